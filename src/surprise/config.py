@@ -1,0 +1,146 @@
+"""The experiment configuration: YAML decoded into typed, validated structures.
+
+:func:`load_yaml` and :func:`decode` are shared by every configuration in the project (experiment,
+agent, master): a bad document raises one :class:`~surprise.errors.ConfigError` naming the file, the
+dotted key and what was expected.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Annotated, Any, TypeVar
+
+import msgspec
+import yaml
+
+from surprise.errors import ConfigError
+from surprise.sensors import check_sensor_names
+
+T = TypeVar("T")
+
+_PATH_RE = re.compile(r"^(?P<reason>.*?)(?: - at `\$(?P<path>[^`]*)`)?$", re.S)
+_UNKNOWN_RE = re.compile(r"unknown field `(?P<field>[^`]+)`")
+# ``__post_init__`` checks name the sub-key they reject as a leading "`key`: reason".
+_SUBKEY_RE = re.compile(r"^`(?P<key>[^`]+)`: (?P<reason>.*)$", re.S)
+
+Probability = Annotated[float, msgspec.Meta(ge=0.0, le=1.0)]
+PositiveInt = Annotated[int, msgspec.Meta(ge=1)]
+NonNegativeFloat = Annotated[float, msgspec.Meta(ge=0.0)]
+
+
+class Strict(msgspec.Struct, forbid_unknown_fields=True, kw_only=True, frozen=True):
+    """Base of every configuration structure: unknown keys are errors, fields are keyword-only."""
+
+
+def _dotted(path: str) -> str:
+    # msgspec paths look like ".evolution.rates[2].x"; we report "evolution.rates[2].x".
+    return path[1:] if path.startswith(".") else path
+
+
+def decode(data: Any, type_: type[T], *, file: str | Path | None = None) -> T:
+    """Convert plain data (as loaded from YAML) into ``type_``, or raise :class:`ConfigError`."""
+    if data is None:
+        data = {}
+    try:
+        return msgspec.convert(data, type_, strict=False)
+    except msgspec.ValidationError as exc:
+        match = _PATH_RE.match(str(exc))
+        assert match is not None  # the pattern accepts any text
+        reason, path = match["reason"], _dotted(match["path"] or "")
+        unknown = _UNKNOWN_RE.search(reason)
+        if unknown:
+            path = f"{path}.{unknown['field']}" if path else unknown["field"]
+            reason = "unknown key"
+        sub = _SUBKEY_RE.match(reason)
+        if sub:
+            path = f"{path}.{sub['key']}" if path else sub["key"]
+            reason = sub["reason"]
+        raise ConfigError(reason, file=str(file) if file else None, key=path or None) from None
+
+
+def load_yaml(path: str | Path, type_: type[T]) -> T:
+    """Read a YAML file and decode it into ``type_``; every failure is a :class:`ConfigError`."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"cannot read the file: {exc.strerror or exc}", file=str(path)) from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"not valid YAML: {exc}", file=str(path)) from None
+    if data is not None and not isinstance(data, dict):
+        raise ConfigError("expected a mapping of keys at the top level", file=str(path))
+    return decode(data, type_, file=path)
+
+
+def to_builtins(config: msgspec.Struct) -> dict[str, Any]:
+    """Plain data for a configuration structure (for snapshots and YAML dumps)."""
+    return msgspec.to_builtins(config)
+
+
+class NetworkConfig(Strict):
+    """Sizes of the actor-predictor pair (REFERENCE section 1).
+
+    ``predictor_hidden`` defaults to R + 1 where R is the number of sensors. ``initial_action`` is
+    a(-1), the previous action fed to the actor at the first step of an evaluation.
+    """
+
+    actor_hidden: PositiveInt = 8
+    predictor_hidden: PositiveInt | None = None
+    initial_action: Annotated[float, msgspec.Meta(ge=-1.0, le=1.0)] = 0.0
+
+
+class EvolutionConfig(Strict):
+    """(1+1) online evolution with re-evaluation (REFERENCE section 2)."""
+
+    evaluations: PositiveInt = 1000
+    reevaluation_probability: Probability = 0.2
+    #: weight of the new fitness in F = w f + (1 - w) F when the best is re-evaluated
+    reevaluation_weight: Probability = 0.2
+    mutation_probability: Probability = 0.1
+    #: a mutated gene gets uniform [-mutation_range, mutation_range] added
+    mutation_range: NonNegativeFloat = 0.4
+    #: the initial genome is uniform in [-initial_range, initial_range]
+    initial_range: NonNegativeFloat = 0.5
+
+
+class ExperimentConfig(Strict):
+    """Everything that defines one experiment, whatever runs it (simulator or real robots).
+
+    ``predefined`` maps sensor names to fixed predictions in [0, 1] (paper Sec. IV-F).
+    ``simulation`` holds overrides of the scenario's world parameters; it is decoded by
+    ``sim_stub`` and ignored on real robots.
+    """
+
+    sensors: list[str] = msgspec.field(
+        default_factory=lambda: [
+            "ir.f0", "ir.f1", "ir.f2", "ir.f3", "ir.f4", "ir.b0", "ir.b1", "ground.0", "ground.1",
+        ]
+    )  # fmt: skip
+    network: NetworkConfig = msgspec.field(default_factory=NetworkConfig)
+    evolution: EvolutionConfig = msgspec.field(default_factory=EvolutionConfig)
+    predefined: dict[str, Probability] = msgspec.field(default_factory=dict)
+    evaluation_steps: PositiveInt = 100
+    post_evaluation_steps: Annotated[int, msgspec.Meta(ge=0)] = 1000
+    scenario: str = "basic"
+    robots: PositiveInt = 10
+    seed: Annotated[int, msgspec.Meta(ge=0)] = 0
+    simulation: dict[str, Any] = msgspec.field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if not self.sensors:
+            raise ValueError("`sensors`: at least one sensor is needed")
+        try:
+            check_sensor_names(self.sensors)
+        except ValueError as exc:
+            raise ValueError(f"`sensors`: {exc}") from None
+        for name in self.predefined:
+            if name not in self.sensors:
+                raise ValueError(f"`predefined.{name}`: not among the experiment's sensors")
+
+
+def load_experiment(path: str | Path) -> ExperimentConfig:
+    """Load an experiment configuration file (see :class:`ExperimentConfig`)."""
+    return load_yaml(path, ExperimentConfig)

@@ -1,0 +1,60 @@
+"""The project's one error tree.
+
+Every error raised on purpose by this project derives from :class:`SurpriseError` and also from the
+built-in that matches its meaning, so callers may catch either. Errors carry their data as
+attributes, not only in the message.
+"""
+
+from __future__ import annotations
+
+
+class SurpriseError(Exception):
+    """Root of every error this project raises on purpose."""
+
+
+class ConfigError(SurpriseError, ValueError):
+    """A configuration file or value is invalid.
+
+    ``file`` is the path of the offending file (or ``None`` for in-memory data), ``key`` the dotted
+    path of the offending key (``"evolution.mutation_rate"``; ``None`` when the whole document is
+    wrong) and ``reason`` what was expected.
+    """
+
+    def __init__(self, reason: str, *, file: str | None = None, key: str | None = None) -> None:
+        self.file = file
+        self.key = key
+        self.reason = reason
+        where = file or "<config>"
+        if key:
+            where += f": key '{key}'"
+        super().__init__(f"{where}: {reason}")
+
+
+class ProtocolError(SurpriseError, ValueError):
+    """Bytes or a message on the wire violate the protocol; the connection should be closed."""
+
+
+class FrameTooLargeError(ProtocolError):
+    """A frame announces a length above the limit; ``size`` and ``limit`` are in bytes."""
+
+    def __init__(self, size: int, limit: int) -> None:
+        self.size = size
+        self.limit = limit
+        super().__init__(f"frame of {size} bytes exceeds the limit of {limit} bytes")
+
+
+class GenomeError(SurpriseError, ValueError):
+    """A genome does not fit the network layout (wrong length or non-finite values)."""
+
+
+class HardwareError(SurpriseError, OSError):
+    """A robot part failed: a D-Bus call, an I2C transfer, a missing device."""
+
+
+class HardwareTimeoutError(HardwareError, TimeoutError):
+    """A call to a robot part did not answer in time; ``operation`` and ``timeout`` (s) say which."""
+
+    def __init__(self, operation: str, timeout: float) -> None:
+        self.operation = operation
+        self.timeout = timeout
+        super().__init__(f"{operation} did not answer within {timeout:.3f} s")
