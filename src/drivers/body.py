@@ -33,7 +33,7 @@ class Body(ABC):
     @property
     @abstractmethod
     def sensors(self) -> tuple[str, ...]:
-        """Names of the values that :meth:`read` returns, in that order (see ``surprise.sensors``)."""
+        """Names of the values :meth:`read` returns, in that order (see ``surprise.sensors``)."""
 
     async def open(self) -> None:  # noqa: B027 - optional hook, most bodies need no set-up
         """Acquire the hardware (connect, power on, calibrate). Called by ``__aenter__``."""

@@ -121,7 +121,7 @@ class ExperimentConfig(Strict):
     )  # fmt: skip
     network: NetworkConfig = msgspec.field(default_factory=NetworkConfig)
     evolution: EvolutionConfig = msgspec.field(default_factory=EvolutionConfig)
-    predefined: dict[str, Probability] = msgspec.field(default_factory=dict)
+    predefined: dict[str, float] = msgspec.field(default_factory=dict)
     evaluation_steps: PositiveInt = 100
     post_evaluation_steps: Annotated[int, msgspec.Meta(ge=0)] = 1000
     scenario: str = "basic"
@@ -136,9 +136,13 @@ class ExperimentConfig(Strict):
             check_sensor_names(self.sensors)
         except ValueError as exc:
             raise ValueError(f"`sensors`: {exc}") from None
-        for name in self.predefined:
+        for name, value in self.predefined.items():
             if name not in self.sensors:
                 raise ValueError(f"`predefined.{name}`: not among the experiment's sensors")
+            if not 0.0 <= value <= 1.0:
+                raise ValueError(
+                    f"`predefined.{name}`: expected a prediction in [0, 1], got {value}"
+                )
 
 
 def load_experiment(path: str | Path) -> ExperimentConfig:
