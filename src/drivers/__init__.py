@@ -1,8 +1,9 @@
 """Robot hardware behind one interface, :class:`drivers.body.Body`.
 
-The backends (asebamedulla over D-Bus, I2C sensors) are imported lazily by
-:func:`drivers.compose.build_body` so that importing this package needs neither ``dbus-fast`` nor
-``smbus2``.
+A real robot's body is built by :func:`drivers.compose.build_body` from a
+:class:`drivers.config.BodyConfig`. The backend libraries are imported lazily, when a part first
+connects (``dbus-fast`` in :mod:`drivers.thymio`, ``smbus2`` in :mod:`drivers.i2c`), so importing
+this package needs neither.
 """
 
 from drivers.body import Body, SensorFrame

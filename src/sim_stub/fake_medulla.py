@@ -1,0 +1,367 @@
+"""A fake asebamedulla on a private D-Bus, for testing :mod:`drivers.thymio` without a robot.
+
+:func:`private_bus` starts a throw-away ``dbus-daemon`` and yields its address;
+:func:`serve_fake_medulla` exports ``ch.epfl.mobots.AsebaNetwork`` at ``/`` under the name
+``ch.epfl.mobots.Aseba`` on it, backed by a :class:`ThymioModel` (raw sensor values in, motor
+targets out). The fake follows the real medulla where the drivers can tell (REFERENCE 4):
+
+- unknown nodes and variables are ``org.freedesktop.DBus.Error.InvalidArgs`` errors;
+- ``GetVariable`` never answers while the robot is disconnected or the fake is in ``hang``
+  mode (the calls are released with an error when the fake shuts down);
+- ``SetVariable`` and ``LoadScripts`` fail silently (their rejections are only recorded in
+  :attr:`FakeMedulla.rejected`); dbus-fast sends no reply when the caller set
+  ``NO_REPLY_EXPECTED``, as the real drivers do, and an empty one otherwise (dbus-fast cannot
+  declare a method no-reply on the service side);
+- ``LoadScripts`` reads the ``.aesl`` file at once and declares the node's ``var`` variables,
+  so the user variables of the program become readable and writable.
+
+This module imports ``dbus_fast`` at the top: it is a test double, not part of the drivers.
+"""
+
+import asyncio
+import contextlib
+import re
+import shutil
+import tempfile
+import xml.etree.ElementTree as ET
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Protocol
+
+from dbus_fast import RequestNameReply
+from dbus_fast.aio import MessageBus
+from dbus_fast.constants import ErrorType
+from dbus_fast.errors import DBusError
+from dbus_fast.service import ServiceInterface, dbus_method
+
+from drivers.thymio import ASEBA_INTERFACE, ASEBA_PATH, ASEBA_SERVICE
+
+#: Seconds to wait for dbus-daemon to print its address, and for it to exit.
+DAEMON_TIMEOUT = 10.0
+GROUND_VARIABLES = ("prox.ground.reflected", "prox.ground.delta", "prox.ground.ambiant")
+MOTOR_TARGETS = {"motor.left.target": "left", "motor.right.target": "right"}
+_VAR_RE = re.compile(r"^\s*var\s+([A-Za-z_][\w.]*)\s*(?:\[\s*(\d+)\s*\])?\s*(?:=\s*(-?\d+))?", re.M)
+
+_BUS_CONFIG = """<!DOCTYPE busconfig PUBLIC "-//freedesktop//DTD D-Bus Bus Configuration 1.0//EN"
+ "http://www.freedesktop.org/standards/dbus/1.0/busconfig.dtd">
+<busconfig>
+  <type>session</type>
+  <listen>unix:path={socket}</listen>
+  <auth>EXTERNAL</auth>
+  <policy context="default">
+    <allow send_destination="*" eavesdrop="true"/>
+    <allow eavesdrop="true"/>
+    <allow own="*"/>
+  </policy>
+</busconfig>
+"""
+
+
+class ThymioModel(Protocol):
+    """What the fake medulla serves: a robot's raw sensors and where its motor targets go.
+
+    ``variables`` stores every other variable (written ones, the program's user variables).
+    """
+
+    variables: dict[str, list[int]]
+
+    def prox_horizontal(self) -> list[int]:
+        """The 7 raw horizontal IR values, 0..4500."""
+
+    def ground(self, variable: str) -> list[int]:
+        """The 2 raw values of a ground variable (``prox.ground.reflected`` ...), 0..1023."""
+
+    def set_target(self, side: str, value: int) -> None:
+        """A new motor target for ``side`` (``"left"`` or ``"right"``), in motor units."""
+
+
+class StaticThymioModel:
+    """A robot whose sensors read what the test sets and which records its motor targets."""
+
+    def __init__(
+        self,
+        prox: list[int] | None = None,
+        reflected: list[int] | None = None,
+        delta: list[int] | None = None,
+    ) -> None:
+        self.prox = list(prox or [0] * 7)
+        self.grounds: dict[str, list[int]] = {
+            "prox.ground.reflected": list(reflected or [0, 0]),
+            "prox.ground.delta": list(delta or [0, 0]),
+            "prox.ground.ambiant": [0, 0],
+        }
+        self.targets: dict[str, int] = {"left": 0, "right": 0}
+        #: Every target received, in order, as ``(side, value)``.
+        self.target_log: list[tuple[str, int]] = []
+        self.variables: dict[str, list[int]] = {}
+
+    def prox_horizontal(self) -> list[int]:
+        """The values in :attr:`prox`."""
+        return list(self.prox)
+
+    def ground(self, variable: str) -> list[int]:
+        """The values in :attr:`grounds` for ``variable``."""
+        return list(self.grounds[variable])
+
+    def set_target(self, side: str, value: int) -> None:
+        """Record the target in :attr:`targets` and :attr:`target_log`."""
+        self.targets[side] = value
+        self.target_log.append((side, value))
+
+
+def _int16(values: list[int]) -> list[int]:
+    return [max(-32768, min(32767, int(v))) for v in values]
+
+
+class FakeMedulla:
+    """The fake's state: the model, fault switches and what clients did.
+
+    Switches: :attr:`hang` (``GetVariable`` never answers), :meth:`disconnect_robot` (the robot
+    went away: ``IsConnected`` is false, reads hang, writes are dropped), :attr:`errors`
+    (variable name -> error text returned by ``GetVariable``), :attr:`latency` (seconds before
+    ``GetVariable`` answers). Records: :attr:`calls`, :attr:`rejected`, :attr:`program`,
+    :attr:`loaded_scripts`, :attr:`max_in_flight` (most ``GetVariable`` calls pending at once).
+    """
+
+    def __init__(self, model: ThymioModel, node: str = "thymio-II") -> None:
+        self.model = model
+        self.node = node
+        self.errors: dict[str, str] = {}
+        self.latency = 0.0
+        self.calls: list[tuple[str, tuple[object, ...]]] = []
+        self.rejected: list[str] = []
+        self.program: str | None = None
+        self.loaded_scripts: list[str] = []
+        self.max_in_flight = 0
+        self._in_flight = 0
+        self._hang = False
+        self._robot_connected = True
+        self._closing = False
+        self._wake = asyncio.Event()
+        self._idle = asyncio.Event()
+        self._idle.set()
+        self.interface = _AsebaNetwork(self)
+
+    @property
+    def hang(self) -> bool:
+        """Whether ``GetVariable`` calls wait forever (until this is cleared or the fake closes)."""
+        return self._hang
+
+    @hang.setter
+    def hang(self, value: bool) -> None:
+        self._hang = value
+        self._wake_waiters()
+
+    @property
+    def robot_connected(self) -> bool:
+        """Whether the robot is reachable."""
+        return self._robot_connected
+
+    def disconnect_robot(self) -> None:
+        """The robot goes away: reads hang, writes are dropped, the node stays listed."""
+        self._robot_connected = False
+
+    def reconnect_robot(self) -> None:
+        """The robot is back (the real medulla never does this; useful in tests)."""
+        self._robot_connected = True
+        self._wake_waiters()
+
+    def close(self) -> None:
+        """Release every waiting ``GetVariable`` with an error."""
+        self._closing = True
+        self._wake_waiters()
+
+    async def wait_idle(self) -> None:
+        """Return once no ``GetVariable`` is pending."""
+        await self._idle.wait()
+
+    def _wake_waiters(self) -> None:
+        self._wake.set()
+        self._wake = asyncio.Event()
+
+    # -- the methods, called by the D-Bus interface ---------------------------------------------
+
+    def _check_node(self, node: str) -> None:
+        if node != self.node:
+            raise DBusError(ErrorType.INVALID_ARGS, f"node {node} does not exists")
+
+    def _lookup(self, variable: str) -> list[int]:
+        if variable in self.errors:
+            raise DBusError(ErrorType.FAILED, self.errors[variable])
+        if variable == "prox.horizontal":
+            return self.model.prox_horizontal()
+        if variable in GROUND_VARIABLES:
+            return self.model.ground(variable)
+        if variable in self.model.variables:
+            return list(self.model.variables[variable])
+        if variable in MOTOR_TARGETS:
+            return [0]
+        raise DBusError(
+            ErrorType.INVALID_ARGS, f"variable {variable} does not exists in node {self.node}"
+        )
+
+    async def get_variable(self, node: str, variable: str) -> list[int]:
+        """``GetVariable``: check the names at once, then answer when the robot does."""
+        self.calls.append(("GetVariable", (node, variable)))
+        self._check_node(node)
+        self._lookup(variable)  # unknown names fail at once, as in medulla
+        self._in_flight += 1
+        self.max_in_flight = max(self.max_in_flight, self._in_flight)
+        self._idle.clear()
+        try:
+            while (self._hang or not self._robot_connected) and not self._closing:
+                await self._wake.wait()
+            if self._closing:
+                raise DBusError(ErrorType.NO_REPLY, "the fake medulla shut down")
+            if self.latency:
+                await asyncio.sleep(self.latency)
+            return _int16(self._lookup(variable))  # sampled when the robot answers
+        finally:
+            self._in_flight -= 1
+            if not self._in_flight:
+                self._idle.set()
+
+    def set_variable(self, node: str, variable: str, values: list[int]) -> None:
+        """``SetVariable``: store the values; motor targets go to the model. Never fails."""
+        self.calls.append(("SetVariable", (node, variable, list(values))))
+        if node != self.node:
+            self.rejected.append(f"SetVariable: node {node} does not exists")
+            return
+        known = (
+            variable in MOTOR_TARGETS
+            or variable in self.model.variables
+            or variable == "prox.horizontal"
+            or variable in GROUND_VARIABLES
+        )
+        if not known:
+            self.rejected.append(f"SetVariable: variable {variable} does not exists")
+            return
+        if not self._robot_connected:
+            return  # medulla writes into the void
+        self.model.variables[variable] = _int16(values)
+        if variable in MOTOR_TARGETS and values:
+            self.model.set_target(MOTOR_TARGETS[variable], _int16(values)[0])
+
+    def load_scripts(self, path: str) -> None:
+        """``LoadScripts``: read the ``.aesl`` file and declare its variables. Never fails."""
+        self.calls.append(("LoadScripts", (path,)))
+        try:
+            root = ET.fromstring(Path(path).read_text(encoding="utf-8"))
+        except (OSError, ET.ParseError) as exc:
+            self.rejected.append(f"LoadScripts: {exc}")
+            return
+        nodes = [n for n in root.iter("node") if n.get("name") == self.node]
+        if root.tag != "network" or not nodes:
+            self.rejected.append(f"LoadScripts: no script for node {self.node} in {path}")
+            return
+        code = nodes[0].text or ""
+        for name, size, initial in _VAR_RE.findall(code):
+            self.model.variables[name] = [int(initial or 0)] * int(size or 1)
+        self.program = code
+        self.loaded_scripts.append(path)
+
+    def is_connected(self, node: str) -> bool:
+        """``IsConnected``: whether the robot is reachable."""
+        self.calls.append(("IsConnected", (node,)))
+        self._check_node(node)
+        return self._robot_connected
+
+
+class _AsebaNetwork(ServiceInterface):
+    """The D-Bus face of :class:`FakeMedulla` (method names and signatures as medulla's).
+
+    The string annotations are D-Bus signatures read by dbus-fast, not Python types (hence the
+    ``noqa``); this module avoids ``from __future__ import annotations`` so they stay plain.
+    """
+
+    def __init__(self, fake: FakeMedulla) -> None:
+        super().__init__(ASEBA_INTERFACE)
+        self._fake = fake
+
+    @dbus_method()
+    def GetNodesList(self) -> "as":  # noqa: F722
+        self._fake.calls.append(("GetNodesList", ()))
+        return [self._fake.node]
+
+    @dbus_method()
+    async def GetVariable(self, node: "s", variable: "s") -> "an":  # noqa: F821
+        return await self._fake.get_variable(node, variable)
+
+    @dbus_method()
+    def SetVariable(self, node: "s", variable: "s", data: "an"):  # noqa: F821
+        self._fake.set_variable(node, variable, data)
+
+    @dbus_method()
+    def IsConnected(self, node: "s") -> "b":  # noqa: F821
+        return self._fake.is_connected(node)
+
+    @dbus_method()
+    def LoadScripts(self, path: "s"):  # noqa: F821
+        self._fake.load_scripts(path)
+
+
+@contextlib.asynccontextmanager
+async def private_bus() -> AsyncIterator[str]:
+    """Start a private ``dbus-daemon`` for the duration of the context; yields its address."""
+    executable = shutil.which("dbus-daemon")
+    if executable is None:
+        raise FileNotFoundError("dbus-daemon is not installed (Debian package dbus-daemon)")
+    with tempfile.TemporaryDirectory(prefix="fake-dbus-") as tmp:
+        config = Path(tmp) / "bus.conf"
+        config.write_text(_BUS_CONFIG.format(socket=Path(tmp) / "socket"), encoding="utf-8")
+        with open(Path(tmp) / "stderr", "wb") as stderr:
+            process = await asyncio.create_subprocess_exec(
+                executable,
+                f"--config-file={config}",
+                "--print-address",
+                "--nofork",
+                "--nopidfile",
+                stdin=asyncio.subprocess.DEVNULL,
+                stdout=asyncio.subprocess.PIPE,
+                stderr=stderr,
+            )
+            try:
+                assert process.stdout is not None
+                async with asyncio.timeout(DAEMON_TIMEOUT):
+                    line = await process.stdout.readline()
+                if not line:
+                    raise RuntimeError(
+                        "dbus-daemon did not start: "
+                        + (Path(tmp) / "stderr").read_text(errors="replace").strip()
+                    )
+                yield line.decode().strip()
+            finally:
+                if process.returncode is None:
+                    process.terminate()
+                    try:
+                        async with asyncio.timeout(DAEMON_TIMEOUT):
+                            await process.wait()
+                    except TimeoutError:
+                        process.kill()
+                        await process.wait()
+
+
+@contextlib.asynccontextmanager
+async def serve_fake_medulla(
+    address: str, model: ThymioModel, *, node: str = "thymio-II"
+) -> AsyncIterator[FakeMedulla]:
+    """Serve a :class:`FakeMedulla` for ``model`` on the bus at ``address`` during the context."""
+    bus = await MessageBus(bus_address=address).connect()
+    fake = FakeMedulla(model, node)
+    try:
+        bus.export(ASEBA_PATH, fake.interface)
+        reply = await bus.request_name(ASEBA_SERVICE)
+        if reply != RequestNameReply.PRIMARY_OWNER:
+            raise RuntimeError(f"cannot own {ASEBA_SERVICE} on {address}: {reply}")
+        yield fake
+    finally:
+        # Answer the hung calls (with an error) before hanging up, so no task is left pending.
+        fake.close()
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(DAEMON_TIMEOUT):
+                await fake.wait_idle()
+        for _ in range(3):  # let the released calls' reply callbacks run
+            await asyncio.sleep(0)
+        bus.disconnect()
+        with contextlib.suppress(Exception):
+            await bus.wait_for_disconnect()

@@ -1,0 +1,19 @@
+"""Fixtures shared by every test directory (keep this file small and generic)."""
+
+from __future__ import annotations
+
+import shutil
+from collections.abc import AsyncIterator
+
+import pytest
+
+
+@pytest.fixture
+async def dbus_address() -> AsyncIterator[str]:
+    """The address of a private ``dbus-daemon`` that runs for the duration of one test."""
+    if shutil.which("dbus-daemon") is None:
+        pytest.skip("dbus-daemon is not installed")
+    from sim_stub.fake_medulla import private_bus
+
+    async with private_bus() as address:
+        yield address

@@ -1,0 +1,1 @@
+"""One behavioural contract, run against every ``Body`` implementation (see ``bodies.py``)."""

@@ -1,0 +1,106 @@
+"""The fake asebamedulla answers like the real one, seen from a raw dbus-fast client."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from dbus_fast import Message, MessageFlag, MessageType
+from dbus_fast.aio import MessageBus
+
+from drivers.thymio import ASEBA_INTERFACE, ASEBA_PATH, ASEBA_SERVICE
+from sim_stub.fake_medulla import FakeMedulla, StaticThymioModel, serve_fake_medulla
+
+
+@pytest.fixture
+async def client(dbus_address: str) -> AsyncIterator[MessageBus]:
+    bus = await MessageBus(bus_address=dbus_address).connect()
+    yield bus
+    bus.disconnect()
+    await bus.wait_for_disconnect()
+
+
+def _message(member: str, signature: str = "", body: list[Any] | None = None, **kw) -> Message:
+    return Message(
+        destination=ASEBA_SERVICE,
+        path=ASEBA_PATH,
+        interface=ASEBA_INTERFACE,
+        member=member,
+        signature=signature,
+        body=body or [],
+        **kw,
+    )
+
+
+async def test_nodes_and_variables(medulla: FakeMedulla, client: MessageBus):
+    reply = await client.call(_message("GetNodesList"))
+    assert reply.body == [["thymio-II"]]
+    reply = await client.call(_message("GetVariable", "ss", ["thymio-II", "prox.horizontal"]))
+    assert reply.body == [[0, 1125, 2250, 4500, 6000, 0, 900]]
+    reply = await client.call(_message("IsConnected", "s", ["thymio-II"]))
+    assert reply.body == [True]
+
+
+@pytest.mark.parametrize(
+    ("node", "variable", "text"),
+    [
+        ("thymio-II", "no.such", "variable no.such does not exists in node thymio-II"),
+        ("other", "prox.horizontal", "node other does not exists"),
+    ],
+)
+async def test_unknown_names_are_invalid_args(
+    medulla: FakeMedulla, client: MessageBus, node: str, variable: str, text: str
+):
+    reply = await client.call(_message("GetVariable", "ss", [node, variable]))
+    assert reply.message_type == MessageType.ERROR
+    assert reply.error_name == "org.freedesktop.DBus.Error.InvalidArgs"
+    assert reply.body == [text]
+
+
+async def test_set_variable_without_reply_when_asked(
+    medulla: FakeMedulla, model: StaticThymioModel, client: MessageBus
+):
+    replies: list[Message] = []
+    client.add_message_handler(
+        lambda m: replies.append(m) if m.message_type != MessageType.SIGNAL else None
+    )
+    body = ["thymio-II", "motor.left.target", [123]]
+    message = _message("SetVariable", "ssan", body, flags=MessageFlag.NO_REPLY_EXPECTED)
+    message.serial = client.next_serial()
+    await client.send(message)
+    await client.call(_message("IsConnected", "s", ["thymio-II"]))  # barrier
+    assert model.targets["left"] == 123
+    assert [m for m in replies if m.reply_serial == message.serial] == []
+    reply = await client.call(_message("SetVariable", "ssan", body))
+    assert reply.message_type == MessageType.METHOD_RETURN and reply.body == []
+
+
+async def test_hung_call_is_released_when_the_fake_stops(dbus_address: str, client: MessageBus):
+    async with serve_fake_medulla(dbus_address, StaticThymioModel()) as fake:
+        fake.hang = True
+        pending = asyncio.ensure_future(
+            client.call(_message("GetVariable", "ss", ["thymio-II", "prox.horizontal"]))
+        )
+        await asyncio.sleep(0.02)
+        assert not pending.done()
+    reply = await asyncio.wait_for(pending, 1.0)
+    assert reply.error_name == "org.freedesktop.DBus.Error.NoReply"
+
+
+async def test_load_scripts_declares_the_program_variables(
+    medulla: FakeMedulla, model: StaticThymioModel, client: MessageBus, tmp_path: Path
+):
+    program = tmp_path / "p.aesl"
+    program.write_text(
+        '<!DOCTYPE aesl-source>\n<network>\n<node name="thymio-II" nodeId="1">'
+        "var a = 3\nvar b[4]\nvar c\n</node>\n</network>\n"
+    )
+    await client.call(_message("LoadScripts", "s", [str(program)]))
+    assert model.variables["a"] == [3] and model.variables["b"] == [0] * 4
+    reply = await client.call(_message("GetVariable", "ss", ["thymio-II", "c"]))
+    assert reply.body == [[0]]
+    await client.call(_message("LoadScripts", "s", [str(tmp_path / "missing.aesl")]))
+    assert len(medulla.rejected) == 1 and medulla.loaded_scripts == [str(program)]
