@@ -1,0 +1,545 @@
+"""The wire protocol between the master and the robot agents.
+
+One codec on both sides: every message is a msgspec Struct in one tagged union (the tag sits in the
+field ``"type"``), encoded as msgpack and sent as a frame: a 4-byte big-endian unsigned length
+followed by that many payload bytes. Encoding and decoding are pure; :class:`FrameDecoder` is
+incremental so any transport can feed it whatever bytes arrive. :class:`MessageStream` is the thin
+asyncio transport used by both the master and the agent.
+
+A session::
+
+    robot  -> Hello(robot_id, software_version, protocol_version, sensors)
+    master -> Challenge(nonce)                   or Refused(code, reason), then close
+    robot  -> Authenticate(mac)
+    master -> Welcome(run_id, heartbeat_interval) or Refused(code, reason), then close
+    master -> Evaluate(...)  robot -> Result(...) | Failed(...);   master -> Abort(...) at any time
+    either -> Ping / Pong / Error / Bye
+
+Decoding ignores fields it does not know, so a newer peer may add optional fields without breaking
+an older one; incompatible changes bump :data:`PROTOCOL_VERSION`, which the master checks in Hello.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import contextlib
+import hashlib
+import hmac
+import math
+import secrets
+import struct
+from typing import Annotated, Final
+
+import msgspec
+import numpy as np
+
+from surprise.errors import FrameTooLargeError, GenomeError, ProtocolError, SurpriseError
+from surprise.network import NetworkSpec
+
+__all__ = [
+    "MAX_FRAME_SIZE",
+    "NONCE_SIZE",
+    "PROTOCOL_VERSION",
+    "REFUSED_BAD_SECRET",
+    "REFUSED_CODES",
+    "REFUSED_MISSING_SENSORS",
+    "REFUSED_PROTOCOL",
+    "REFUSED_UNKNOWN_ROBOT",
+    "REFUSED_VERSION_MISMATCH",
+    "Abort",
+    "Authenticate",
+    "Bye",
+    "Challenge",
+    "ConnectionClosedError",
+    "Error",
+    "Evaluate",
+    "EvaluationStats",
+    "Failed",
+    "FrameDecoder",
+    "Hello",
+    "Message",
+    "MessageStream",
+    "Ping",
+    "Pong",
+    "Refused",
+    "Result",
+    "Trace",
+    "Welcome",
+    "compute_mac",
+    "decode_payload",
+    "encode",
+    "genome_from_bytes",
+    "genome_to_bytes",
+    "new_nonce",
+    "verify_mac",
+]
+
+#: Version of this protocol; sent in Hello. Bump it for any change an older peer cannot decode.
+PROTOCOL_VERSION: Final = 1
+
+#: Default upper bound of one frame's payload, in bytes. A post-evaluation trace of 1000 steps x 12
+#: sensors is about 0.5 MB; 8 MiB leaves ample room for longer traces while bounding the memory a
+#: single (possibly hostile) connection can make us buffer.
+MAX_FRAME_SIZE: Final = 8 * 1024 * 1024
+
+#: Length of a challenge nonce in bytes. Fixed so that ``nonce + robot_id`` in the MAC is
+#: unambiguous.
+NONCE_SIZE: Final = 32
+
+#: Refused codes: the shared secret did not match.
+REFUSED_BAD_SECRET: Final = "bad-secret"
+#: Refused codes: the robot speaks another :data:`PROTOCOL_VERSION`.
+REFUSED_VERSION_MISMATCH: Final = "version-mismatch"
+#: Refused codes: the robot id is not part of this run.
+REFUSED_UNKNOWN_ROBOT: Final = "unknown-robot"
+#: Refused codes: the robot lacks a sensor the experiment needs.
+REFUSED_MISSING_SENSORS: Final = "missing-sensors"
+#: Refused codes: the robot broke the handshake (wrong message, wrong order).
+REFUSED_PROTOCOL: Final = "protocol"
+#: Every Refused code.
+REFUSED_CODES: Final = frozenset(
+    {
+        REFUSED_BAD_SECRET,
+        REFUSED_VERSION_MISMATCH,
+        REFUSED_UNKNOWN_ROBOT,
+        REFUSED_MISSING_SENSORS,
+        REFUSED_PROTOCOL,
+    }
+)
+
+# Bounds checked while decoding (msgspec does not check them when a Struct is built in code).
+_NonNegative = Annotated[int, msgspec.Meta(ge=0)]
+_Positive = Annotated[int, msgspec.Meta(ge=1)]
+_Nonce = Annotated[bytes, msgspec.Meta(min_length=NONCE_SIZE, max_length=NONCE_SIZE)]
+
+_HEADER = struct.Struct(">I")
+# Read size of MessageStream: large enough that a 0.5 MB trace takes a handful of reads, small
+# enough not to matter for memory.
+_CHUNK_SIZE = 64 * 1024
+
+
+class ConnectionClosedError(SurpriseError, ConnectionError):
+    """The peer closed the connection; ``mid_frame`` is true if it stopped inside a frame."""
+
+    def __init__(self, message: str = "peer closed the connection", *, mid_frame: bool = False):
+        self.mid_frame = mid_frame
+        super().__init__(message)
+
+
+# ---------------------------------------------------------------------------------------------
+# Genomes
+
+
+def genome_to_bytes(genome: np.ndarray) -> bytes:
+    """Return a flat genome as float64 little-endian bytes (bit-exact on every platform).
+
+    Raises :class:`GenomeError` if the genome is not one-dimensional or holds a non-finite value:
+    such a genome is a bug on the sending side and must not reach a robot.
+    """
+    array = np.asarray(genome)
+    if array.ndim != 1:
+        raise GenomeError(f"a genome must be one-dimensional, got shape {array.shape}")
+    array = array.astype("<f8", copy=False)
+    if not np.isfinite(array).all():
+        raise GenomeError("a genome must hold finite values only")
+    return array.tobytes()
+
+
+def genome_from_bytes(data: bytes) -> np.ndarray:
+    """Return the float64 genome encoded by :func:`genome_to_bytes` as a new writable array.
+
+    Raises :class:`ProtocolError` if the length is not a multiple of 8 or a value is not finite.
+    """
+    if len(data) % 8:
+        raise ProtocolError(f"genome of {len(data)} bytes is not a whole number of float64 values")
+    # Copy to native byte order: the caller owns the result and may compute with it directly.
+    array = np.frombuffer(data, dtype="<f8").astype(np.float64)
+    if not np.isfinite(array).all():
+        raise ProtocolError("genome holds a non-finite value")
+    return array
+
+
+# ---------------------------------------------------------------------------------------------
+# Authentication
+
+
+def new_nonce() -> bytes:
+    """Return a fresh random challenge of :data:`NONCE_SIZE` bytes."""
+    return secrets.token_bytes(NONCE_SIZE)
+
+
+def compute_mac(secret: bytes, nonce: bytes, robot_id: str) -> bytes:
+    """Return HMAC-SHA256 under ``secret`` of ``nonce`` followed by ``robot_id`` in UTF-8.
+
+    Binding the robot id stops a MAC answered for one robot from being replayed for another.
+    """
+    return hmac.new(secret, nonce + robot_id.encode("utf-8"), hashlib.sha256).digest()
+
+
+def verify_mac(secret: bytes, nonce: bytes, robot_id: str, mac: bytes) -> bool:
+    """Return whether ``mac`` is :func:`compute_mac` of the arguments, in constant time."""
+    return hmac.compare_digest(compute_mac(secret, nonce, robot_id), mac)
+
+
+# ---------------------------------------------------------------------------------------------
+# Messages
+
+
+class _Message(msgspec.Struct, frozen=True, kw_only=True, tag_field="type"):
+    """Base of every message; the subclass's tag goes in the field ``type``."""
+
+
+class Hello(_Message, tag="hello"):
+    """Robot -> master, the first message: who the robot is and what it can sense."""
+
+    robot_id: str
+    software_version: str
+    protocol_version: int
+    sensors: tuple[str, ...]
+
+
+class Challenge(_Message, tag="challenge"):
+    """Master -> robot: a fresh nonce the robot must answer with :class:`Authenticate`."""
+
+    nonce: _Nonce
+
+
+class Authenticate(_Message, tag="auth"):
+    """Robot -> master: ``mac`` = :func:`compute_mac` (secret, nonce, robot_id)."""
+
+    mac: bytes
+
+
+class Welcome(_Message, tag="welcome"):
+    """Master -> robot: accepted into run ``run_id``; send or expect a Ping this often (s)."""
+
+    run_id: str
+    heartbeat_interval: float
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.heartbeat_interval < math.inf:
+            raise ValueError("heartbeat_interval must be positive and finite")
+
+
+class Refused(_Message, tag="refused"):
+    """Master -> robot before closing: why the robot was not accepted (one of REFUSED_CODES)."""
+
+    code: str
+    reason: str
+
+
+class Evaluate(_Message, tag="eval"):
+    """Master -> robot: run ``genome`` (see :func:`genome_to_bytes`) for ``steps`` control steps.
+
+    With ``record`` (post-evaluation) the robot returns the full :class:`Trace` in its Result.
+    """
+
+    evaluation_id: _NonNegative
+    genome: bytes
+    spec: NetworkSpec
+    steps: _Positive
+    record: bool = False
+
+    def __post_init__(self) -> None:
+        # Reject a malformed genome where it enters, not deep inside the robot's control loop.
+        genome_from_bytes(self.genome)
+
+
+class EvaluationStats(msgspec.Struct, frozen=True, kw_only=True):
+    """What happened during an evaluation besides the fitness.
+
+    ``overruns`` counts steps that missed their deadline, ``interventions`` counts safety
+    interventions by reason and ``read_failures`` sensor reads that failed or timed out.
+    """
+
+    steps_run: _NonNegative
+    overruns: _NonNegative
+    interventions: dict[str, int]
+    read_failures: _NonNegative = 0
+
+
+class Trace(msgspec.Struct, frozen=True, kw_only=True):
+    """A post-evaluation record, one entry per control step in every list.
+
+    ``sensors`` the R sensor values, ``predictions`` the R values predicted at that step for the
+    next, ``actions`` the 2 intended wheel speeds, ``commands`` the 2 applied after safety,
+    ``safety`` the intervention reason ("" when none) and, in simulation, ``poses`` (x, y, theta).
+    """
+
+    sensors: list[list[float]]
+    predictions: list[list[float]]
+    actions: list[list[float]]
+    commands: list[list[float]]
+    safety: list[str]
+    poses: list[list[float]] | None = None
+
+    def __post_init__(self) -> None:
+        steps = len(self.sensors)
+        lengths = [len(self.predictions), len(self.actions), len(self.commands), len(self.safety)]
+        if self.poses is not None:
+            lengths.append(len(self.poses))
+        if any(n != steps for n in lengths):
+            raise ValueError("every list of a trace must hold one entry per step")
+
+
+class Result(_Message, tag="result"):
+    """Robot -> master: the fitness of evaluation ``evaluation_id``, with its trace if recorded."""
+
+    evaluation_id: _NonNegative
+    fitness: float
+    stats: EvaluationStats
+    trace: Trace | None = None
+
+    def __post_init__(self) -> None:
+        # A NaN fitness would silently poison the (1+1) comparisons on the master.
+        if not math.isfinite(self.fitness):
+            raise ValueError("fitness must be finite")
+
+
+class Failed(_Message, tag="failed"):
+    """Robot -> master: evaluation ``evaluation_id`` could not be completed, and why."""
+
+    evaluation_id: _NonNegative
+    reason: str
+
+
+class Abort(_Message, tag="abort"):
+    """Master -> robot: stop evaluation ``evaluation_id`` now (motors stop; no Result follows)."""
+
+    evaluation_id: _NonNegative
+    reason: str
+
+
+class Ping(_Message, tag="ping"):
+    """Either way: liveness probe; the peer answers with a Pong of the same ``seq``."""
+
+    seq: _NonNegative
+
+
+class Pong(_Message, tag="pong"):
+    """Either way: the answer to the Ping with the same ``seq``."""
+
+    seq: _NonNegative
+
+
+class Error(_Message, tag="error"):
+    """Either way, before closing: the peer broke the protocol or something failed."""
+
+    code: str
+    message: str
+
+
+class Bye(_Message, tag="bye"):
+    """Either way: orderly close; the sender closes the connection after it."""
+
+    reason: str
+
+
+#: Any message of the protocol.
+Message = (
+    Hello
+    | Challenge
+    | Authenticate
+    | Welcome
+    | Refused
+    | Evaluate
+    | Result
+    | Failed
+    | Abort
+    | Ping
+    | Pong
+    | Error
+    | Bye
+)
+
+_MESSAGE_TYPES: Final = Message.__args__
+_encoder = msgspec.msgpack.Encoder()
+_decoder = msgspec.msgpack.Decoder(Message)
+
+
+# ---------------------------------------------------------------------------------------------
+# Framing
+
+
+def encode(msg: Message, *, max_frame_size: int = MAX_FRAME_SIZE) -> bytes:
+    """Return ``msg`` as one complete frame (length header and payload).
+
+    Raises :class:`FrameTooLargeError` if the payload exceeds ``max_frame_size`` (the peer would
+    refuse it anyway) and ``TypeError`` if ``msg`` is not a protocol message.
+    """
+    if not isinstance(msg, _MESSAGE_TYPES):
+        raise TypeError(f"not a protocol message: {type(msg).__name__}")
+    payload = _encoder.encode(msg)
+    if len(payload) > max_frame_size:
+        raise FrameTooLargeError(len(payload), max_frame_size)
+    return _HEADER.pack(len(payload)) + payload
+
+
+def decode_payload(payload: bytes | bytearray | memoryview) -> Message:
+    """Return the message in one frame's payload (without the length header).
+
+    This is the one place where decoding failures become :class:`ProtocolError` with the reason.
+    """
+    try:
+        return _decoder.decode(payload)
+    except RecursionError as exc:  # deeply nested data in an ignored field
+        raise ProtocolError("malformed message: nested too deeply") from exc
+    except ValueError as exc:
+        # msgspec.DecodeError (and its ValidationError, which wraps __post_init__ failures), and
+        # UnicodeDecodeError, which msgspec raises as is for a string that is not UTF-8.
+        raise ProtocolError(f"malformed message: {exc}") from exc
+
+
+class FrameDecoder:
+    """Incremental decoder of a byte stream of frames.
+
+    :meth:`feed` returns the messages completed so far, however the stream is split. Any error
+    poisons the decoder: the stream is out of sync and the connection must be closed.
+    """
+
+    def __init__(self, max_frame_size: int = MAX_FRAME_SIZE) -> None:
+        self.max_frame_size = max_frame_size
+        self._buffer = bytearray()
+        # Start of unconsumed data in _buffer; consumed bytes are dropped once per feed(), so a
+        # frame fed a byte at a time costs amortised O(1) per byte, not a copy of the buffer.
+        self._start = 0
+        # Payload length of the frame being received, once its header is complete.
+        self._length: int | None = None
+        self._poisoned: ProtocolError | None = None
+
+    @property
+    def poisoned(self) -> bool:
+        """Whether an earlier error made the decoder unusable (every feed() raises)."""
+        return self._poisoned is not None
+
+    @property
+    def pending(self) -> int:
+        """Number of bytes received but not yet decoded (a partial frame, header included)."""
+        # Count a header already parsed too, so that a peer closing right after a header is seen
+        # as closing mid-frame.
+        header = 0 if self._length is None else _HEADER.size
+        return header + len(self._buffer) - self._start
+
+    def feed(self, data: bytes | bytearray | memoryview) -> list[Message]:
+        """Add received bytes; return every message they complete, in order.
+
+        Raises :class:`FrameTooLargeError` as soon as a header announces an oversized frame,
+        :class:`ProtocolError` for an empty frame or an undecodable payload, and
+        :class:`ProtocolError` on every call after an error.
+        """
+        if self._poisoned is not None:
+            raise ProtocolError(f"decoder unusable after an earlier error: {self._poisoned}")
+        try:
+            return self._feed(data)
+        except ProtocolError as exc:
+            self._poisoned = exc
+            self._buffer = bytearray()
+            self._start = 0
+            self._length = None
+            raise
+
+    def _feed(self, data: bytes | bytearray | memoryview) -> list[Message]:
+        buffer = self._buffer
+        buffer += data
+        messages: list[Message] = []
+        while True:
+            available = len(buffer) - self._start
+            if self._length is None:
+                if available < _HEADER.size:
+                    break
+                (length,) = _HEADER.unpack_from(buffer, self._start)
+                if length > self.max_frame_size:
+                    raise FrameTooLargeError(length, self.max_frame_size)
+                if length == 0:
+                    raise ProtocolError("empty frame")
+                self._start += _HEADER.size
+                self._length = length
+                available -= _HEADER.size
+            if available < self._length:
+                break
+            end = self._start + self._length
+            messages.append(decode_payload(buffer[self._start : end]))
+            self._start = end
+            self._length = None
+        if self._start:
+            del buffer[: self._start]
+            self._start = 0
+        return messages
+
+
+# ---------------------------------------------------------------------------------------------
+# Transport
+
+
+class MessageStream:
+    """Messages over an asyncio stream pair; the same class on the master and on the agent.
+
+    One task may :meth:`receive` while others :meth:`send`; concurrent receives are not supported.
+    Usable as an async context manager that closes the stream.
+    """
+
+    def __init__(
+        self,
+        reader: asyncio.StreamReader,
+        writer: asyncio.StreamWriter,
+        *,
+        max_frame_size: int = MAX_FRAME_SIZE,
+    ) -> None:
+        self.reader = reader
+        self.writer = writer
+        self.max_frame_size = max_frame_size
+        self._decoder = FrameDecoder(max_frame_size)
+        # One read may complete several frames; the extra messages wait here.
+        self._queue: collections.deque[Message] = collections.deque()
+
+    async def receive(self) -> Message:
+        """Return the next message.
+
+        Raises :class:`ConnectionClosedError` when the peer closes (or resets) the connection
+        and :class:`ProtocolError` for malformed or oversized input.
+        """
+        while not self._queue:
+            if self._decoder.poisoned:
+                # Fail now rather than wait for bytes from a peer that may never send any.
+                self._decoder.feed(b"")
+            try:
+                data = await self.reader.read(_CHUNK_SIZE)
+            except ConnectionError as exc:
+                raise ConnectionClosedError(f"connection lost: {exc}") from exc
+            if not data:
+                pending = self._decoder.pending
+                if pending:
+                    raise ConnectionClosedError(
+                        f"peer closed the connection inside a frame ({pending} bytes pending)",
+                        mid_frame=True,
+                    )
+                raise ConnectionClosedError()
+            self._queue.extend(self._decoder.feed(data))
+        return self._queue.popleft()
+
+    async def send(self, msg: Message) -> None:
+        """Send one message and wait until the transport's buffer has drained.
+
+        Raises :class:`FrameTooLargeError` before sending anything if ``msg`` is too large and
+        :class:`ConnectionClosedError` if the connection is gone.
+        """
+        frame = encode(msg, max_frame_size=self.max_frame_size)
+        try:
+            self.writer.write(frame)
+            await self.writer.drain()
+        except ConnectionError as exc:
+            raise ConnectionClosedError(f"connection lost: {exc}") from exc
+
+    async def close(self) -> None:
+        """Close the connection; errors of an already broken connection are ignored."""
+        self.writer.close()
+        # The peer may already have reset the connection; closed is closed.
+        with contextlib.suppress(OSError):
+            await self.writer.wait_closed()
+
+    async def __aenter__(self) -> MessageStream:
+        return self
+
+    async def __aexit__(self, *exc_info: object) -> None:
+        await self.close()

@@ -1,0 +1,608 @@
+"""Tests of the wire protocol: messages, genomes, framing, authentication and the TCP stream."""
+
+from __future__ import annotations
+
+import asyncio
+import struct
+from collections.abc import Awaitable, Callable
+
+import msgspec
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from surprise.errors import FrameTooLargeError, GenomeError, ProtocolError, SurpriseError
+from surprise.network import NetworkSpec
+from surprise.sensors import ALL_SENSORS
+from surprise.wire import (
+    MAX_FRAME_SIZE,
+    NONCE_SIZE,
+    PROTOCOL_VERSION,
+    REFUSED_CODES,
+    Abort,
+    Authenticate,
+    Bye,
+    Challenge,
+    ConnectionClosedError,
+    Error,
+    Evaluate,
+    EvaluationStats,
+    Failed,
+    FrameDecoder,
+    Hello,
+    Message,
+    MessageStream,
+    Ping,
+    Pong,
+    Refused,
+    Result,
+    Trace,
+    Welcome,
+    compute_mac,
+    decode_payload,
+    encode,
+    genome_from_bytes,
+    genome_to_bytes,
+    new_nonce,
+    verify_mac,
+)
+
+FAST = settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+FEW = settings(max_examples=50, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+# ---------------------------------------------------------------------------------------------
+# Strategies
+
+finite = st.floats(allow_nan=False, allow_infinity=False)
+unit = st.floats(min_value=0.0, max_value=1.0)
+small_text = st.text(max_size=20)
+u63 = st.integers(min_value=0, max_value=2**63 - 1)
+i64 = st.integers(min_value=-(2**63), max_value=2**63 - 1)
+
+genomes = st.lists(finite, max_size=40).map(lambda xs: np.array(xs, dtype=np.float64))
+
+
+@st.composite
+def network_specs(draw: st.DrawFn) -> NetworkSpec:
+    sensors = tuple(draw(st.lists(st.sampled_from(ALL_SENSORS), min_size=1, unique=True)))
+    predefined_names = draw(st.lists(st.sampled_from(sensors), unique=True))
+    return NetworkSpec(
+        sensors=sensors,
+        actor_hidden=draw(st.integers(1, 64)),
+        predictor_hidden=draw(st.integers(1, 64)),
+        predefined={name: draw(unit) for name in predefined_names},
+        initial_action=draw(finite),
+    )
+
+
+def rows(width: int, steps: int) -> st.SearchStrategy[list[list[float]]]:
+    return st.lists(
+        st.lists(finite, min_size=width, max_size=width), min_size=steps, max_size=steps
+    )
+
+
+@st.composite
+def traces(draw: st.DrawFn) -> Trace:
+    steps = draw(st.integers(0, 8))
+    width = draw(st.integers(1, 12))
+    return Trace(
+        sensors=draw(rows(width, steps)),
+        predictions=draw(rows(width, steps)),
+        actions=draw(rows(2, steps)),
+        commands=draw(rows(2, steps)),
+        safety=draw(st.lists(small_text, min_size=steps, max_size=steps)),
+        poses=draw(st.none() | rows(3, steps)),
+    )
+
+
+stats = st.builds(
+    EvaluationStats,
+    steps_run=u63,
+    overruns=u63,
+    interventions=st.dictionaries(small_text, i64, max_size=4),
+    read_failures=u63,
+)
+
+messages: st.SearchStrategy[Message] = st.one_of(
+    st.builds(
+        Hello,
+        robot_id=small_text,
+        software_version=small_text,
+        protocol_version=i64,
+        sensors=st.lists(small_text, max_size=12).map(tuple),
+    ),
+    st.builds(Challenge, nonce=st.binary(min_size=NONCE_SIZE, max_size=NONCE_SIZE)),
+    st.builds(Authenticate, mac=st.binary(max_size=64)),
+    st.builds(
+        Welcome,
+        run_id=small_text,
+        heartbeat_interval=st.floats(min_value=0.0, exclude_min=True, allow_infinity=False),
+    ),
+    st.builds(Refused, code=st.sampled_from(sorted(REFUSED_CODES)), reason=small_text),
+    st.builds(
+        Evaluate,
+        evaluation_id=u63,
+        genome=genomes.map(genome_to_bytes),
+        spec=network_specs(),
+        steps=st.integers(1, 2**63 - 1),
+        record=st.booleans(),
+    ),
+    st.builds(
+        Result,
+        evaluation_id=u63,
+        fitness=finite,
+        stats=stats,
+        trace=st.none() | traces(),
+    ),
+    st.builds(Failed, evaluation_id=u63, reason=small_text),
+    st.builds(Abort, evaluation_id=u63, reason=small_text),
+    st.builds(Ping, seq=u63),
+    st.builds(Pong, seq=u63),
+    st.builds(Error, code=small_text, message=small_text),
+    st.builds(Bye, reason=small_text),
+)
+
+
+def decode_frame(frame: bytes) -> Message:
+    decoded = FrameDecoder().feed(frame)
+    assert len(decoded) == 1
+    return decoded[0]
+
+
+def frame(payload: bytes) -> bytes:
+    return struct.pack(">I", len(payload)) + payload
+
+
+# ---------------------------------------------------------------------------------------------
+# Messages
+
+
+@FAST
+@given(messages)
+def test_any_message_round_trips_exactly(msg: Message) -> None:
+    data = encode(msg)
+    back = decode_frame(data)
+    assert type(back) is type(msg)
+    assert back == msg
+    # Re-encoding gives the same bytes, so floats (incl. -0.0) survive bit for bit.
+    assert encode(back) == data
+
+
+def test_frame_layout_is_big_endian_length_then_msgpack_with_type_tag() -> None:
+    data = encode(Ping(seq=7))
+    (length,) = struct.unpack(">I", data[:4])
+    assert length == len(data) - 4
+    assert msgspec.msgpack.decode(data[4:]) == {"type": "ping", "seq": 7}
+
+
+def test_unknown_fields_are_ignored_for_forward_compatibility() -> None:
+    payload = msgspec.msgpack.encode({"type": "ping", "seq": 3, "added_later": [1, 2]})
+    assert decode_frame(frame(payload)) == Ping(seq=3)
+
+
+@pytest.mark.parametrize(
+    "payload",
+    [
+        {"type": "nope", "seq": 1},
+        {"seq": 1},
+        {"type": "ping"},
+        {"type": "ping", "seq": -1},
+        {"type": "ping", "seq": "1"},
+        {"type": "challenge", "nonce": b"short"},
+        {"type": "welcome", "run_id": "r", "heartbeat_interval": 0.0},
+        {"type": "result", "evaluation_id": 1, "fitness": float("nan"), "stats": {}},
+        [1, 2, 3],
+        "ping",
+    ],
+)
+def test_invalid_payloads_are_protocol_errors(payload: object) -> None:
+    with pytest.raises(ProtocolError, match="malformed message"):
+        decode_payload(msgspec.msgpack.encode(payload))
+
+
+def test_evaluate_with_malformed_genome_is_rejected_when_decoded() -> None:
+    spec = NetworkSpec(sensors=("ir.f0",), actor_hidden=1, predictor_hidden=1)
+    good = msgspec.msgpack.decode(
+        msgspec.msgpack.encode(Evaluate(evaluation_id=0, genome=b"", spec=spec, steps=1))
+    )
+    for genome in (b"\x00" * 7, struct.pack("<d", float("inf"))):
+        with pytest.raises(ProtocolError, match="malformed message"):
+            decode_payload(msgspec.msgpack.encode({**good, "genome": genome}))
+
+
+def test_trace_lists_must_have_one_entry_per_step() -> None:
+    with pytest.raises(ValueError, match="one entry per step"):
+        Trace(sensors=[[0.5]], predictions=[], actions=[[0, 0]], commands=[[0, 0]], safety=[""])
+
+
+def test_nested_data_too_deep_is_a_protocol_error() -> None:
+    # A hostile peer can nest arrays far deeper than the interpreter's recursion limit.
+    head = msgspec.msgpack.encode({"type": "ping", "seq": 1, "x": None})[:-1]
+    payload = head + b"\x91" * 200_000 + b"\x01"
+    with pytest.raises(ProtocolError):
+        decode_payload(payload)
+
+
+def test_encode_refuses_non_messages() -> None:
+    with pytest.raises(TypeError):
+        encode(EvaluationStats(steps_run=1, overruns=0, interventions={}))  # type: ignore[arg-type]
+
+
+def test_protocol_version_is_one() -> None:
+    assert PROTOCOL_VERSION == 1
+
+
+# ---------------------------------------------------------------------------------------------
+# Genomes
+
+
+@FAST
+@given(genomes)
+def test_genome_bytes_are_bit_exact(genome: np.ndarray) -> None:
+    data = genome_to_bytes(genome)
+    assert len(data) == 8 * len(genome)
+    back = genome_from_bytes(data)
+    assert back.dtype == np.float64
+    assert back.tobytes() == genome.astype("<f8").tobytes()
+    assert np.array_equal(np.signbit(back), np.signbit(genome))
+
+
+def test_genome_special_values_survive() -> None:
+    values = np.array([-0.0, 5e-324, -2.2250738585072014e-308, 1.7976931348623157e308, -1.0])
+    back = genome_from_bytes(genome_to_bytes(values))
+    assert back.tobytes() == values.tobytes()
+    assert np.signbit(back[0])
+    back[0] = 1.0  # the caller owns a writable copy
+
+
+def test_genome_is_little_endian() -> None:
+    assert genome_to_bytes(np.array([1.0])) == struct.pack("<d", 1.0)
+    assert genome_to_bytes(np.array([1.0], dtype=">f8")) == struct.pack("<d", 1.0)
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), float("-inf")])
+def test_non_finite_genome_values_are_rejected(bad: float) -> None:
+    with pytest.raises(ProtocolError, match="non-finite"):
+        genome_from_bytes(struct.pack("<3d", 0.0, bad, 1.0))
+    with pytest.raises(GenomeError):
+        genome_to_bytes(np.array([0.0, bad]))
+
+
+@pytest.mark.parametrize("length", [1, 7, 9, 15])
+def test_genome_length_must_be_a_multiple_of_eight(length: int) -> None:
+    with pytest.raises(ProtocolError, match="float64"):
+        genome_from_bytes(bytes(length))
+
+
+def test_genome_must_be_flat() -> None:
+    with pytest.raises(GenomeError, match="one-dimensional"):
+        genome_to_bytes(np.zeros((2, 2)))
+
+
+# ---------------------------------------------------------------------------------------------
+# Framing
+
+
+@FAST
+@given(st.lists(messages, min_size=1, max_size=5), st.data())
+def test_any_split_of_a_stream_decodes_to_the_same_messages(
+    msgs: list[Message], data: st.DataObject
+) -> None:
+    stream = b"".join(encode(m) for m in msgs)
+    cuts = sorted(data.draw(st.lists(st.integers(0, len(stream)), max_size=10)))
+    decoder = FrameDecoder()
+    decoded: list[Message] = []
+    for start, end in zip([0, *cuts], [*cuts, len(stream)], strict=True):
+        decoded.extend(decoder.feed(stream[start:end]))
+    assert decoded == msgs
+    assert decoder.pending == 0
+
+
+@FEW
+@given(st.lists(messages, min_size=1, max_size=3))
+def test_byte_at_a_time_decodes_to_the_same_messages(msgs: list[Message]) -> None:
+    stream = b"".join(encode(m) for m in msgs)
+    decoder = FrameDecoder()
+    decoded: list[Message] = []
+    for i in range(len(stream)):
+        decoded.extend(decoder.feed(stream[i : i + 1]))
+    assert decoded == msgs
+
+
+def test_pending_counts_buffered_bytes() -> None:
+    data = encode(Bye(reason="done"))
+    decoder = FrameDecoder()
+    assert decoder.feed(data[:3]) == []
+    assert decoder.pending == 3
+    assert decoder.feed(data[3:-1]) == []
+    assert decoder.pending == len(data) - 1
+    assert decoder.feed(data[-1:] + data[:2]) == [Bye(reason="done")]
+    assert decoder.pending == 2
+
+
+def test_large_frame_byte_at_a_time_is_linear() -> None:
+    # About 0.3 MB fed one byte at a time: quadratic buffering would take minutes.
+    msg = Authenticate(mac=bytes(300_000))
+    data = encode(msg)
+    decoder = FrameDecoder()
+    out: list[Message] = []
+    view = memoryview(data)
+    for i in range(len(data)):
+        out += decoder.feed(view[i : i + 1])
+    assert out == [msg]
+
+
+@FAST
+@given(st.binary(max_size=200))
+def test_random_bytes_raise_only_protocol_errors(data: bytes) -> None:
+    try:
+        decoded = FrameDecoder(max_frame_size=1024).feed(data)
+    except ProtocolError:
+        return
+    assert all(isinstance(m, Message) for m in decoded)
+
+
+@FAST
+@given(st.binary(min_size=1, max_size=200))
+def test_random_payloads_in_valid_frames_raise_only_protocol_errors(payload: bytes) -> None:
+    try:
+        decoded = FrameDecoder().feed(frame(payload))
+    except ProtocolError as exc:
+        assert "malformed message" in str(exc)
+        return
+    assert len(decoded) == 1
+    assert isinstance(decoded[0], Message)
+
+
+@FAST
+@given(messages, st.data())
+def test_corrupted_frames_raise_only_protocol_errors(msg: Message, data: st.DataObject) -> None:
+    payload = bytearray(encode(msg)[4:])
+    for _ in range(data.draw(st.integers(1, 4))):
+        i = data.draw(st.integers(0, len(payload) - 1))
+        payload[i] = data.draw(st.integers(0, 255))
+    try:
+        decoded = FrameDecoder().feed(frame(bytes(payload)))
+    except ProtocolError:
+        return
+    assert all(isinstance(m, Message) for m in decoded)
+
+
+def test_oversized_header_is_rejected_before_the_body_arrives() -> None:
+    decoder = FrameDecoder(max_frame_size=100)
+    assert decoder.feed(struct.pack(">I", 101)[:3]) == []
+    with pytest.raises(FrameTooLargeError) as info:
+        decoder.feed(struct.pack(">I", 101)[3:])
+    assert (info.value.size, info.value.limit) == (101, 100)
+    assert decoder.pending == 0
+
+
+def test_default_limit_is_eight_mebibytes() -> None:
+    assert MAX_FRAME_SIZE == 8 * 1024 * 1024
+    assert FrameDecoder().max_frame_size == MAX_FRAME_SIZE
+    with pytest.raises(FrameTooLargeError):
+        FrameDecoder().feed(struct.pack(">I", MAX_FRAME_SIZE + 1))
+
+
+def test_frame_at_the_limit_is_accepted() -> None:
+    data = encode(Bye(reason="x" * 50))
+    limit = len(data) - 4
+    assert FrameDecoder(max_frame_size=limit).feed(data) == [Bye(reason="x" * 50)]
+    assert encode(Bye(reason="x" * 50), max_frame_size=limit) == data
+
+
+def test_encode_refuses_oversized_messages() -> None:
+    with pytest.raises(FrameTooLargeError) as info:
+        encode(Authenticate(mac=bytes(1000)), max_frame_size=999)
+    assert info.value.limit == 999
+    assert info.value.size > 999
+
+
+def test_zero_length_frame_is_a_protocol_error() -> None:
+    with pytest.raises(ProtocolError, match="empty frame"):
+        FrameDecoder().feed(encode(Ping(seq=1)) + bytes(4))
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [bytes(4), struct.pack(">I", 1 << 30), frame(b"\xc1"), frame(msgspec.msgpack.encode({}))],
+)
+def test_decoder_is_poisoned_after_an_error(bad: bytes) -> None:
+    decoder = FrameDecoder()
+    with pytest.raises(ProtocolError):
+        decoder.feed(bad)
+    with pytest.raises(ProtocolError, match="earlier error"):
+        decoder.feed(encode(Ping(seq=1)))
+    with pytest.raises(ProtocolError):
+        decoder.feed(b"")
+
+
+def test_messages_before_a_bad_frame_in_the_same_chunk_are_lost_with_the_connection() -> None:
+    # The whole chunk raises: the connection is closed anyway, so nothing is half-delivered.
+    decoder = FrameDecoder()
+    with pytest.raises(ProtocolError):
+        decoder.feed(encode(Ping(seq=1)) + frame(b"\xc1"))
+
+
+# ---------------------------------------------------------------------------------------------
+# Authentication
+
+
+def test_mac_verifies_with_the_right_secret_nonce_and_robot() -> None:
+    nonce = new_nonce()
+    assert len(nonce) == NONCE_SIZE
+    mac = compute_mac(b"secret", nonce, "thymio-3")
+    assert len(mac) == 32
+    assert verify_mac(b"secret", nonce, "thymio-3", mac)
+    assert not verify_mac(b"other", nonce, "thymio-3", mac)
+    assert not verify_mac(b"secret", new_nonce(), "thymio-3", mac)
+    assert not verify_mac(b"secret", nonce, "thymio-4", mac)
+    assert not verify_mac(b"secret", nonce, "thymio-3", mac[:-1])
+    assert not verify_mac(b"secret", nonce, "thymio-3", b"")
+
+
+def test_mac_is_hmac_sha256_of_nonce_and_robot_id() -> None:
+    import hashlib
+    import hmac
+
+    nonce = bytes(range(NONCE_SIZE))
+    expected = hmac.new(b"k", nonce + "rob\u00f6t".encode(), hashlib.sha256).digest()
+    assert compute_mac(b"k", nonce, "rob\u00f6t") == expected
+
+
+def test_nonces_are_fresh() -> None:
+    assert len({new_nonce() for _ in range(100)}) == 100
+
+
+# ---------------------------------------------------------------------------------------------
+# MessageStream over loopback TCP
+
+Handler = Callable[[asyncio.StreamReader, asyncio.StreamWriter], Awaitable[None]]
+
+
+class Loopback:
+    """A server on 127.0.0.1 running ``handler`` for one client, and that client's stream."""
+
+    def __init__(self, handler: Handler, *, max_frame_size: int = MAX_FRAME_SIZE) -> None:
+        self.handler = handler
+        self.max_frame_size = max_frame_size
+        self.handled = asyncio.Event()
+
+    async def __aenter__(self) -> MessageStream:
+        async def run(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+            try:
+                await self.handler(reader, writer)
+            finally:
+                self.handled.set()
+
+        self.server = await asyncio.start_server(run, "127.0.0.1", 0)
+        port = self.server.sockets[0].getsockname()[1]
+        reader, writer = await asyncio.open_connection("127.0.0.1", port)
+        self.client = MessageStream(reader, writer, max_frame_size=self.max_frame_size)
+        return self.client
+
+    async def __aexit__(self, *exc_info: object) -> None:
+        await self.client.close()
+        # Wait for the handler so no task outlives the test's event loop.
+        await asyncio.wait_for(self.handled.wait(), timeout=5)
+        self.server.close()
+        await self.server.wait_closed()
+
+
+def sample_trace(steps: int, width: int) -> Trace:
+    row = [0.123456789 * i for i in range(width)]
+    return Trace(
+        sensors=[row] * steps,
+        predictions=[row] * steps,
+        actions=[[0.5, -0.5]] * steps,
+        commands=[[0.5, -0.5]] * steps,
+        safety=[""] * steps,
+        poses=[[1.0, 2.0, 3.0]] * steps,
+    )
+
+
+async def test_stream_round_trips_messages_over_tcp() -> None:
+    async def echo(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        async with MessageStream(reader, writer) as stream:
+            while True:
+                try:
+                    msg = await stream.receive()
+                except ConnectionClosedError:
+                    return
+                await stream.send(msg)
+
+    big = Result(
+        evaluation_id=9,
+        fitness=-0.25,
+        stats=EvaluationStats(steps_run=1000, overruns=2, interventions={"cliff": 3}),
+        trace=sample_trace(1000, 12),
+    )
+    assert len(encode(big)) > 4 * 64 * 1024  # spans many reads
+    sent: list[Message] = [
+        Hello(robot_id="t1", software_version="0.1", protocol_version=1, sensors=("ir.f0",)),
+        Ping(seq=1),
+        big,
+        Bye(reason="done"),
+    ]
+    async with asyncio.timeout(5), Loopback(echo) as client:
+        for msg in sent:
+            await client.send(msg)
+        received = [await client.receive() for _ in sent]
+    assert received == sent
+
+
+async def test_stream_queues_several_messages_from_one_read() -> None:
+    async def burst(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        writer.write(b"".join(encode(Ping(seq=i)) for i in range(50)))
+        await writer.drain()
+        writer.close()
+        await writer.wait_closed()
+
+    async with asyncio.timeout(5), Loopback(burst) as client:
+        assert [await client.receive() for _ in range(50)] == [Ping(seq=i) for i in range(50)]
+        with pytest.raises(ConnectionClosedError) as info:
+            await client.receive()
+    assert not info.value.mid_frame
+
+
+async def test_peer_closing_mid_frame_raises_connection_closed() -> None:
+    async def half(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        data = encode(Pong(seq=1)) + encode(Bye(reason="cut"))
+        writer.write(data[:-3])
+        await writer.drain()
+        writer.close()
+        await writer.wait_closed()
+
+    async with asyncio.timeout(5), Loopback(half) as client:
+        assert await client.receive() == Pong(seq=1)
+        with pytest.raises(ConnectionClosedError, match="inside a frame") as info:
+            await client.receive()
+    assert info.value.mid_frame
+    assert isinstance(info.value, ConnectionError)
+    assert isinstance(info.value, SurpriseError)
+
+
+async def test_peer_closing_right_after_a_header_is_mid_frame() -> None:
+    async def header_only(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        writer.write(struct.pack(">I", 10))
+        await writer.drain()
+        writer.close()
+        await writer.wait_closed()
+
+    async with asyncio.timeout(5), Loopback(header_only) as client:
+        with pytest.raises(ConnectionClosedError) as info:
+            await client.receive()
+    assert info.value.mid_frame
+
+
+async def test_stream_rejects_oversized_frame_from_peer() -> None:
+    async def hostile(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        # Announce 1 GiB but send only the header: the receiver must not wait for the body.
+        writer.write(struct.pack(">I", 1 << 30))
+        await writer.drain()
+        await reader.read()  # hold the connection open until the client closes it
+        writer.close()
+        await writer.wait_closed()
+
+    async with asyncio.timeout(5), Loopback(hostile) as client:
+        with pytest.raises(FrameTooLargeError):
+            await client.receive()
+        # The stream stays poisoned: the caller must close it.
+        with pytest.raises(ProtocolError):
+            await client.receive()
+
+
+async def test_stream_send_refuses_oversized_message_before_writing() -> None:
+    received: list[bytes] = []
+
+    async def sink(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        received.append(await reader.read())
+        writer.close()
+        await writer.wait_closed()
+
+    async with asyncio.timeout(5), Loopback(sink, max_frame_size=100) as client:
+        with pytest.raises(FrameTooLargeError):
+            await client.send(Authenticate(mac=bytes(200)))
+        await client.send(Ping(seq=1))
+    assert received == [encode(Ping(seq=1))]
