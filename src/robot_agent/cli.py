@@ -1,0 +1,185 @@
+"""``surprise-agent``: the composition root of the robot's daemon.
+
+::
+
+    surprise-agent --config /etc/surprise/agent.yaml [--log-level INFO]
+
+Loads the configuration (a bad one exits with code 2 and one message on stderr; nothing starts),
+builds the real body (``drivers.compose.build_body``, imported only here), opens it, and runs the
+:class:`~robot_agent.agent.Agent` with a :class:`~drivers.clock.MonotonicClock` until SIGTERM or
+SIGINT, which stop the motors and exit with code 0. Logs go to stdout, where systemd's journal
+collects them.
+
+Exit codes: 0 stopped by a signal, 1 could not start (body absent) or crashed, 2 bad configuration.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import logging
+import signal
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import surprise
+from drivers.body import Body
+from drivers.clock import Clock, MonotonicClock
+from drivers.config import BodyConfig
+from robot_agent.agent import Agent
+from robot_agent.config import AgentConfig, load_agent_config, make_ssl_context, read_secret
+from robot_agent.runner import finish, stop_motors
+from surprise.errors import ConfigError
+
+__all__ = ["EXIT_CONFIG", "EXIT_FAILURE", "EXIT_OK", "amain", "main", "run_agent"]
+
+log = logging.getLogger("robot_agent")
+
+#: Exit code after SIGTERM or SIGINT: stopping is the normal end of a daemon.
+EXIT_OK = 0
+#: Exit code when the agent cannot start (the body cannot be opened) or crashes.
+EXIT_FAILURE = 1
+#: Exit code for a bad configuration (the usual code for usage errors).
+EXIT_CONFIG = 2
+
+_SIGNALS = (signal.SIGTERM, signal.SIGINT)
+
+BodyFactory = Callable[[BodyConfig], Body]
+
+
+def _build_real_body(config: BodyConfig) -> Body:
+    # Imported here: the hardware drivers need dbus-fast and smbus2, which only the robot has.
+    from drivers.compose import build_body
+
+    return build_body(config)
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="surprise-agent",
+        description="Run one robot's agent: connect to the master and evaluate genomes.",
+    )
+    parser.add_argument("--config", required=True, type=Path, help="the agent's YAML file")
+    parser.add_argument(
+        "--log-level",
+        default="INFO",
+        type=str.upper,
+        choices=["DEBUG", "INFO", "WARNING", "ERROR"],
+        help="log verbosity (default: INFO)",
+    )
+    parser.add_argument("--version", action="version", version=surprise.__version__)
+    return parser
+
+
+async def run_agent(
+    config: AgentConfig,
+    secret: bytes,
+    *,
+    body_factory: BodyFactory = _build_real_body,
+    clock: Clock | None = None,
+) -> int:
+    """Run the agent until SIGTERM or SIGINT; returns the exit code.
+
+    The signal handlers are installed on the running loop for the duration of the call and the
+    previous handlers restored afterwards. ``body_factory`` builds the (unopened) body; tests pass
+    a fake one. Must run in the main thread (signal handlers can only be set there).
+    """
+    loop = asyncio.get_running_loop()
+    task = asyncio.current_task()
+    assert task is not None
+    received: list[int] = []
+
+    def on_signal(signum: int) -> None:
+        if not received:
+            log.info("received %s: stopping", signal.Signals(signum).name)
+            task.cancel()
+        received.append(signum)
+
+    previous = {sig: signal.getsignal(sig) for sig in _SIGNALS}
+    for sig in _SIGNALS:
+        loop.add_signal_handler(sig, on_signal, sig)
+    body: Body | None = None
+    try:
+        try:
+            body = body_factory(config.body)
+        except ConfigError as exc:
+            print(f"surprise-agent: {exc}", file=sys.stderr)
+            return EXIT_CONFIG
+        except Exception as exc:  # e.g. the drivers' libraries are missing
+            print(f"surprise-agent: cannot build the robot's body: {exc}", file=sys.stderr)
+            return EXIT_FAILURE
+        try:
+            await body.open()
+        except Exception as exc:  # e.g. asebamedulla absent, an I2C device not answering
+            print(f"surprise-agent: cannot open the robot's body: {exc}", file=sys.stderr)
+            # close() is idempotent and stops whatever part did open; a stop() on a body that
+            # never opened would only add a misleading error to the log.
+            await finish(body.close(), 2 * config.loop.stop_timeout)
+            return EXIT_FAILURE
+        try:
+            log.info("robot %s: sensors %s", config.robot_id, ", ".join(body.sensors))
+            async with Agent(config, body, clock or MonotonicClock(), secret) as agent:
+                await agent.run()
+        finally:
+            await _close(body, config)
+        return EXIT_OK  # not reached: run() returns only by cancellation
+    except asyncio.CancelledError:
+        if not received:
+            raise
+        # Our own signal handler cancelled us: that is the normal way to stop.
+        task.uncancel()
+        log.info("stopped")
+        return EXIT_OK
+    finally:
+        for sig in _SIGNALS:
+            loop.remove_signal_handler(sig)
+            signal.signal(sig, previous[sig])
+
+
+async def _close(body: Body, config: AgentConfig) -> None:
+    # Motors first, bounded: close() of a vanished robot may hang, the stop must not wait for it.
+    await stop_motors(body, config.loop.stop_timeout)
+    with contextlib.suppress(Exception):
+        async with asyncio.timeout(2 * config.loop.stop_timeout):
+            await body.close()
+
+
+async def amain(
+    argv: Sequence[str] | None = None, *, body_factory: BodyFactory = _build_real_body
+) -> int:
+    """The whole command in a running loop: parse, load, run; returns the exit code."""
+    args = _parser().parse_args(argv)
+    _setup_logging(args.log_level)
+    try:
+        config = load_agent_config(args.config)
+        secret = read_secret(config, config_file=args.config)
+        make_ssl_context(config, config_file=args.config)  # fail now, not at the first connect
+    except ConfigError as exc:
+        print(f"surprise-agent: {exc}", file=sys.stderr)
+        return EXIT_CONFIG
+    try:
+        return await run_agent(config, secret, body_factory=body_factory)
+    except Exception:
+        log.exception("the agent crashed")
+        return EXIT_FAILURE
+
+
+def _setup_logging(level: str) -> None:
+    # basicConfig leaves an already configured root logger alone (an embedding process, pytest).
+    # systemd's journal adds its own timestamps; keep ours for runs outside systemd.
+    logging.basicConfig(
+        stream=sys.stdout,
+        level=level,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``surprise-agent``; returns the exit code."""
+    return asyncio.run(amain(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,237 @@
+"""Configuration of one robot's agent (``surprise-agent --config FILE``).
+
+One YAML file per robot::
+
+    robot_id: thymio-01
+    master:
+      host: 192.168.1.10
+      port: 7474                       # default
+      secret_file: secret.key          # relative paths are relative to this file
+      tls:                             # optional; plain TCP without it
+        ca_file: ca.pem
+        cert_file: robot.pem
+        key_file: robot.key
+        server_hostname: master.lab
+    body: {thymio: {speed_scale: 315, failsafe: true}}   # drivers.config.BodyConfig
+    safety: {profile: stop}                              # robot_agent.safety.SafetyConfig
+    loop: {period: 0.1, read_timeout: 0.15, max_read_failures: 3}
+    reconnect: {initial: 0.5, max: 30, jitter: 0.25}
+
+The optional Aseba failsafe (the Thymio stops itself when the Pi stops commanding it) is
+``body.thymio.failsafe``; it lives with the other Thymio settings rather than twice.
+
+Every failure is a :class:`~surprise.errors.ConfigError` naming the file, the dotted key and what
+was expected. The shared secret is read from its own file (never from the YAML, which is copied
+around for snapshots) by :func:`read_secret`.
+"""
+
+from __future__ import annotations
+
+import re
+import ssl
+from pathlib import Path
+from typing import Annotated
+
+import msgspec
+
+from drivers.config import BodyConfig
+from robot_agent.safety import SafetyConfig
+from robot_agent.watchdog import TIMEOUT as WATCHDOG_TIMEOUT
+from surprise.config import Probability, Strict, load_yaml
+from surprise.errors import ConfigError
+
+__all__ = [
+    "DEFAULT_PORT",
+    "AgentConfig",
+    "BackoffConfig",
+    "LoopConfig",
+    "MasterConfig",
+    "TlsConfig",
+    "load_agent_config",
+    "make_ssl_context",
+    "read_secret",
+]
+
+#: The master's default TCP port.
+DEFAULT_PORT = 7474
+
+# A robot id appears in logs, in the master's file names and in MACs: keep it plain.
+_ROBOT_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
+Port = Annotated[int, msgspec.Meta(ge=1, le=65535)]
+Seconds = Annotated[float, msgspec.Meta(gt=0.0)]
+
+
+class TlsConfig(Strict):
+    """TLS towards the master. Without ``ca_file`` the system's trusted CAs verify the master;
+    ``cert_file`` (with ``key_file`` if the key is separate) is the robot's client certificate;
+    ``server_hostname`` overrides the name checked in the master's certificate (default: host)."""
+
+    ca_file: str | None = None
+    cert_file: str | None = None
+    key_file: str | None = None
+    server_hostname: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.key_file is not None and self.cert_file is None:
+            raise ValueError("`key_file`: a key needs its certificate in cert_file")
+
+
+class MasterConfig(Strict):
+    """Where the master listens and how the robot proves who it is."""
+
+    host: str
+    #: file holding the shared secret (surrounding whitespace, e.g. a final newline, is ignored)
+    secret_file: str
+    port: Port = DEFAULT_PORT
+    tls: TlsConfig | None = None
+
+    def __post_init__(self) -> None:
+        if not self.host:
+            raise ValueError("`host`: must not be empty")
+        if not self.secret_file:
+            raise ValueError("`secret_file`: must not be empty")
+
+
+class LoopConfig(Strict):
+    """The control loop's timing.
+
+    The watchdog (``robot_agent.watchdog``) stops the motors after 0.25 s without a feed; the loop
+    feeds it at the start and at the end of every step, so both the period and one sensor read must
+    fit inside that time, with a margin for the rest of the step.
+    """
+
+    #: seconds per control step (10 Hz in the paper; the Thymio's sensors also update at 10 Hz)
+    period: Seconds = 0.1
+    #: seconds one sensor read may take. The Thymio answers after its next 10 Hz sensor update
+    #: (up to 100 ms) plus D-Bus latency; 150 ms allows that and still stops a hung read well
+    #: before the watchdog would.
+    read_timeout: Seconds = 0.15
+    #: this many failed reads in a row stop the motors and fail the evaluation (one or two lost
+    #: readings are tolerated: the motors stop for those steps and the loop carries on)
+    max_read_failures: Annotated[int, msgspec.Meta(ge=1)] = 3
+    #: seconds a motor stop may take before it is given up (and left to the watchdog to retry)
+    stop_timeout: Seconds = 0.5
+
+    def __post_init__(self) -> None:
+        # Margin for the work of one step besides the read (network, safety, motor write).
+        margin = 0.03
+        if self.period > WATCHDOG_TIMEOUT - margin:
+            raise ValueError(
+                f"`period`: at most {WATCHDOG_TIMEOUT - margin:.2f} s, so that the watchdog "
+                f"({WATCHDOG_TIMEOUT} s without a feed) does not trip between steps"
+            )
+        if self.read_timeout > WATCHDOG_TIMEOUT - margin:
+            raise ValueError(
+                f"`read_timeout`: at most {WATCHDOG_TIMEOUT - margin:.2f} s, so that a hung read "
+                f"is given up before the watchdog ({WATCHDOG_TIMEOUT} s) trips"
+            )
+
+
+class BackoffConfig(Strict):
+    """Reconnection delays: ``initial`` doubling per failed attempt up to ``max`` (seconds), each
+    shortened by a random fraction of up to ``jitter`` so that robots do not retry in step."""
+
+    initial: Seconds = 0.5
+    max: Seconds = 30.0
+    jitter: Probability = 0.25
+
+    def __post_init__(self) -> None:
+        if self.max < self.initial:
+            raise ValueError(f"`max`: must be at least initial ({self.initial})")
+
+
+class AgentConfig(Strict):
+    """Everything one robot's agent needs; see the module docstring for an example file."""
+
+    robot_id: str
+    master: MasterConfig
+    body: BodyConfig = msgspec.field(default_factory=BodyConfig)
+    safety: SafetyConfig = msgspec.field(default_factory=SafetyConfig)
+    loop: LoopConfig = msgspec.field(default_factory=LoopConfig)
+    reconnect: BackoffConfig = msgspec.field(default_factory=BackoffConfig)
+
+    def __post_init__(self) -> None:
+        if not _ROBOT_ID.fullmatch(self.robot_id):
+            raise ValueError(
+                "`robot_id`: expected 1 to 64 letters, digits, '.', '_' or '-' (not starting "
+                f"with a symbol), got {self.robot_id!r}"
+            )
+
+
+def _resolve(base: Path, value: str | None) -> str | None:
+    if value is None:
+        return None
+    path = Path(value).expanduser()
+    return str(path if path.is_absolute() else base / path)
+
+
+def load_agent_config(path: str | Path) -> AgentConfig:
+    """Load an agent configuration file; relative file names in it become relative to its folder.
+
+    Raises :class:`ConfigError` naming the file and key. Files it names (secret, certificates) are
+    not opened here: see :func:`read_secret` and :func:`make_ssl_context`.
+    """
+    path = Path(path)
+    config = load_yaml(path, AgentConfig)
+    base = path.parent
+    master = config.master
+    tls = master.tls
+    if tls is not None:
+        tls = msgspec.structs.replace(
+            tls,
+            ca_file=_resolve(base, tls.ca_file),
+            cert_file=_resolve(base, tls.cert_file),
+            key_file=_resolve(base, tls.key_file),
+        )
+    master = msgspec.structs.replace(
+        master, secret_file=_resolve(base, master.secret_file), tls=tls
+    )
+    return msgspec.structs.replace(config, master=master)
+
+
+def read_secret(config: AgentConfig, *, config_file: str | Path | None = None) -> bytes:
+    """The shared secret from ``master.secret_file``, without surrounding whitespace.
+
+    Raises :class:`ConfigError` (naming ``config_file`` and the key ``master.secret_file``) if the
+    file cannot be read or holds nothing.
+    """
+    secret_path = config.master.secret_file
+    where = {"file": str(config_file) if config_file else None, "key": "master.secret_file"}
+    try:
+        secret = Path(secret_path).read_bytes().strip()
+    except OSError as exc:
+        raise ConfigError(
+            f"cannot read the secret file {secret_path}: {exc.strerror or exc}", **where
+        ) from None
+    if not secret:
+        raise ConfigError(f"the secret file {secret_path} is empty", **where)
+    return secret
+
+
+def make_ssl_context(
+    config: AgentConfig, *, config_file: str | Path | None = None
+) -> ssl.SSLContext | None:
+    """The TLS context for the link to the master, or None for plain TCP.
+
+    Raises :class:`ConfigError` naming the ``master.tls`` key whose file cannot be loaded.
+    """
+    tls = config.master.tls
+    if tls is None:
+        return None
+    file = str(config_file) if config_file else None
+    try:
+        context = ssl.create_default_context(cafile=tls.ca_file)
+    except (OSError, ssl.SSLError) as exc:
+        raise ConfigError(
+            f"cannot load the CA file {tls.ca_file}: {exc}", file=file, key="master.tls.ca_file"
+        ) from None
+    if tls.cert_file is not None:
+        try:
+            context.load_cert_chain(tls.cert_file, tls.key_file)
+        except (OSError, ssl.SSLError) as exc:
+            raise ConfigError(
+                f"cannot load the certificate {tls.cert_file} (key {tls.key_file}): {exc}",
+                file=file,
+                key="master.tls.cert_file",
+            ) from None
+    return context

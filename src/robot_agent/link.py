@@ -1,0 +1,389 @@
+"""The robot's link to the master: connect, authenticate, serve evaluations, reconnect.
+
+The conversation is fixed by ``docs/protocol.md``::
+
+    Hello -> (Challenge | Refused) -> Authenticate -> (Welcome | Refused)
+    then: Evaluate -> Result | Failed;  Abort;  Ping -> Pong;  Bye / Error close the session
+
+:class:`Link.run` loops forever: one session per connection, and after any end of a session
+(refused, closed, silent for too long, broken input) a delay from :class:`Backoff` before the next
+attempt. An evaluation runs in its own task; a new Evaluate replaces (aborts) a running one, an
+Abort with its id cancels it, and a session that ends while it runs trips the watchdog (the motors
+stop at once) and cancels it. A cancelled evaluation sends nothing.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import random
+import ssl
+from collections.abc import Callable
+from typing import Any, Final, TypeVar
+
+import surprise
+from robot_agent.config import AgentConfig, BackoffConfig
+from robot_agent.runner import EvaluationRunner, finish
+from robot_agent.watchdog import Watchdog
+from surprise.errors import FrameTooLargeError, ProtocolError, SurpriseError
+from surprise.wire import (
+    PROTOCOL_VERSION,
+    REFUSED_VERSION_MISMATCH,
+    Abort,
+    Authenticate,
+    Bye,
+    Challenge,
+    Error,
+    Evaluate,
+    Failed,
+    Hello,
+    Message,
+    MessageStream,
+    Ping,
+    Pong,
+    Refused,
+    Result,
+    Welcome,
+    compute_mac,
+    encode,
+)
+
+__all__ = [
+    "CLOSE_TIMEOUT",
+    "CONNECT_TIMEOUT",
+    "DEAD_AFTER_HEARTBEATS",
+    "HANDSHAKE_TIMEOUT",
+    "PROBE_AFTER_HEARTBEATS",
+    "Backoff",
+    "Link",
+    "LinkDeadError",
+    "RefusedError",
+]
+
+log = logging.getLogger(__name__)
+
+#: Seconds to open the TCP (and TLS) connection. A master on the lab network answers within
+#: milliseconds; a host that silently drops packets would otherwise hold us for minutes of SYN
+#: retries instead of backing off.
+CONNECT_TIMEOUT: Final = 10.0
+#: Seconds for each step of the handshake (``HANDSHAKE_TIMEOUT`` of docs/protocol.md).
+HANDSHAKE_TIMEOUT: Final = 10.0
+#: The link is dead when nothing at all arrived for this many heartbeat intervals (protocol.md).
+DEAD_AFTER_HEARTBEATS: Final = 3.0
+#: After this many heartbeat intervals without a message the robot sends a Ping itself: a live
+#: master answers with a Pong, so a master that is late with its own pings (busy writing a
+#: checkpoint) is not dropped, while a dead one still is at DEAD_AFTER_HEARTBEATS. Above 1 so that
+#: a master pinging on time never causes an extra ping.
+PROBE_AFTER_HEARTBEATS: Final = 1.5
+#: Seconds to close a connection (TLS shutdown included) before it is abandoned.
+CLOSE_TIMEOUT: Final = 1.0
+
+_CODE_PROTOCOL: Final = "protocol"
+
+_M = TypeVar("_M", Challenge, Welcome)
+
+
+class RefusedError(SurpriseError, ConnectionError):
+    """The master refused the robot; ``code`` is one of ``surprise.wire.REFUSED_CODES``."""
+
+    def __init__(self, code: str, reason: str) -> None:
+        self.code = code
+        self.reason = reason
+        super().__init__(f"refused by the master ({code}): {reason}")
+
+
+class LinkDeadError(SurpriseError, ConnectionError):
+    """Nothing arrived from the master for ``DEAD_AFTER_HEARTBEATS`` heartbeat intervals."""
+
+
+class Backoff:
+    """Capped exponential delays with jitter: ``min(max, initial * 2**n)``, shortened by up to
+    ``jitter`` of itself at random (so delays never exceed ``max`` and robots spread out).
+
+    ``rng`` is injectable so tests are deterministic.
+    """
+
+    def __init__(self, config: BackoffConfig, rng: random.Random | None = None) -> None:
+        self.config = config
+        self.rng = rng if rng is not None else random.Random()
+        #: failed attempts since the last :meth:`reset`
+        self.attempts = 0
+
+    def reset(self) -> None:
+        """A session succeeded: the next delay is the initial one again."""
+        self.attempts = 0
+
+    def next_delay(self) -> float:
+        """The delay before the next attempt, in seconds."""
+        c = self.config
+        # min() before the power would overflow for a very long outage; cap the exponent instead.
+        base = min(c.max, c.initial * 2.0 ** min(self.attempts, 64))
+        self.attempts += 1
+        return base * (1.0 - c.jitter * self.rng.random())
+
+
+Spawn = Callable[..., asyncio.Task[Any]]
+
+
+class _Prefixed(logging.LoggerAdapter):
+    # Several agents may share one process (the master's ``sim`` command): say which robot speaks.
+    def process(self, msg: Any, kwargs: Any) -> tuple[Any, Any]:
+        return f"[{self.extra['robot']}] {msg}", kwargs
+
+
+class Link:
+    """The link of one robot to the master.
+
+    ``runner`` runs the evaluations; ``sensors`` are the body's (sent in Hello); ``watchdog`` is
+    tripped when the link is lost during an evaluation; ``ssl_context`` enables TLS; ``spawn``
+    creates the evaluation tasks (the agent passes its TaskGroup's ``create_task``).
+    :attr:`connected` is set while a session is welcomed.
+    """
+
+    def __init__(
+        self,
+        config: AgentConfig,
+        secret: bytes,
+        runner: EvaluationRunner,
+        sensors: tuple[str, ...],
+        *,
+        watchdog: Watchdog | None = None,
+        rng: random.Random | None = None,
+        ssl_context: ssl.SSLContext | None = None,
+        spawn: Spawn | None = None,
+    ) -> None:
+        if not secret:
+            raise ValueError("the shared secret must not be empty")
+        self.config = config
+        self.secret = secret
+        self.runner = runner
+        self.sensors = tuple(sensors)
+        self.watchdog = watchdog
+        self.ssl_context = ssl_context
+        self.spawn: Spawn = spawn if spawn is not None else asyncio.create_task
+        self.backoff = Backoff(config.reconnect, rng)
+        self.log = _Prefixed(log, {"robot": config.robot_id})
+        #: set while the master has welcomed us
+        self.connected = asyncio.Event()
+        #: the current session's run id and heartbeat interval (after Welcome)
+        self.run_id: str | None = None
+        self.heartbeat_interval: float | None = None
+        #: sessions welcomed so far (for tests and status)
+        self.sessions = 0
+        self._evaluation: tuple[int, asyncio.Task[None]] | None = None
+        self._ping_seq = 0
+        self._send_lock = asyncio.Lock()
+
+    # ------------------------------------------------------------------ the reconnect loop
+
+    async def run(self) -> None:
+        """Connect and serve forever, reconnecting with backoff; returns only when cancelled."""
+        master = self.config.master
+        while True:
+            try:
+                await self._session()
+            except RefusedError as exc:
+                # A version mismatch never fixes itself; keep it loud on every try.
+                level = logging.ERROR if exc.code == REFUSED_VERSION_MISMATCH else logging.WARNING
+                self.log.log(level, "%s", exc)
+            except (OSError, ProtocolError) as exc:  # includes timeouts and lost connections
+                self.log.warning("link to %s:%d: %s", master.host, master.port, _describe(exc))
+            except Exception:  # a bug in a session must not end the agent: log it and retry
+                self.log.exception("link to %s:%d failed unexpectedly", master.host, master.port)
+            delay = self.backoff.next_delay()
+            self.log.info("reconnecting in %.2f s", delay)
+            await asyncio.sleep(delay)
+
+    async def _session(self) -> None:
+        master = self.config.master
+        self.log.info("connecting to %s:%d", master.host, master.port)
+        extra: dict[str, Any] = {}
+        if self.ssl_context is not None:
+            extra["ssl"] = self.ssl_context
+            if master.tls is not None and master.tls.server_hostname:
+                extra["server_hostname"] = master.tls.server_hostname
+        try:
+            async with asyncio.timeout(CONNECT_TIMEOUT):
+                reader, writer = await asyncio.open_connection(master.host, master.port, **extra)
+        except TimeoutError:
+            raise TimeoutError(f"no connection within {CONNECT_TIMEOUT} s") from None
+        stream = MessageStream(reader, writer)
+        bye: str | None = None
+        try:
+            welcome = await self._handshake(stream)
+            self.backoff.reset()
+            self.sessions += 1
+            self.run_id, self.heartbeat_interval = welcome.run_id, welcome.heartbeat_interval
+            self.log.info(
+                "welcomed into run %s (heartbeat %.2f s)",
+                welcome.run_id,
+                welcome.heartbeat_interval,
+            )
+            self.connected.set()
+            await self._serve(stream, welcome.heartbeat_interval)
+        except asyncio.CancelledError:
+            bye = "agent stopping"
+            raise
+        finally:
+            self.connected.clear()
+            await self._cancel_evaluation("session ended", link_lost=True)
+            if bye is not None:
+                # Best effort and without waiting: we are being cancelled.
+                with contextlib.suppress(OSError, RuntimeError):
+                    stream.writer.write(encode(Bye(reason=bye)))
+            await finish(stream.close(), CLOSE_TIMEOUT)
+
+    async def _handshake(self, stream: MessageStream) -> Welcome:
+        robot_id = self.config.robot_id
+        async with asyncio.timeout(HANDSHAKE_TIMEOUT):
+            await stream.send(
+                Hello(
+                    robot_id=robot_id,
+                    software_version=surprise.__version__,
+                    protocol_version=PROTOCOL_VERSION,
+                    sensors=self.sensors,
+                )
+            )
+        challenge = await self._handshake_receive(stream, Challenge)
+        async with asyncio.timeout(HANDSHAKE_TIMEOUT):
+            await stream.send(Authenticate(mac=compute_mac(self.secret, challenge.nonce, robot_id)))
+        return await self._handshake_receive(stream, Welcome)
+
+    async def _handshake_receive(self, stream: MessageStream, expected: type[_M]) -> _M:
+        try:
+            async with asyncio.timeout(HANDSHAKE_TIMEOUT):
+                msg = await stream.receive()
+        except TimeoutError:
+            raise TimeoutError(
+                f"no {expected.__name__} from the master within {HANDSHAKE_TIMEOUT} s"
+            ) from None
+        if isinstance(msg, expected):
+            return msg
+        if isinstance(msg, Refused):
+            raise RefusedError(msg.code, msg.reason)
+        if isinstance(msg, Error):
+            raise ProtocolError(f"the master reported an error ({msg.code}): {msg.message}")
+        raise ProtocolError(f"expected {expected.__name__} during the handshake, got {_kind(msg)}")
+
+    # ------------------------------------------------------------------ a welcomed session
+
+    async def _serve(self, stream: MessageStream, heartbeat: float) -> None:
+        loop = asyncio.get_running_loop()
+        last = loop.time()
+        probed = False
+        dead_after = DEAD_AFTER_HEARTBEATS * heartbeat
+        while True:
+            limit = last + (DEAD_AFTER_HEARTBEATS if probed else PROBE_AFTER_HEARTBEATS) * heartbeat
+            try:
+                # Cancelling a receive is safe: MessageStream keeps any partial frame.
+                async with asyncio.timeout_at(limit):
+                    msg = await stream.receive()
+            except TimeoutError:
+                if probed:
+                    raise LinkDeadError(
+                        f"no message from the master for {dead_after:.2f} s"
+                    ) from None
+                probed = True
+                self._ping_seq += 1
+                await self._send(stream, Ping(seq=self._ping_seq), dead_after)
+                continue
+            last = loop.time()
+            probed = False
+            match msg:
+                case Evaluate():
+                    await self._start_evaluation(stream, msg, dead_after)
+                case Abort(evaluation_id=eid, reason=reason):
+                    running = self._evaluation[0] if self._evaluation is not None else None
+                    if running == eid:
+                        self.log.info("evaluation %d aborted by the master: %s", eid, reason)
+                        await self._cancel_evaluation("aborted")
+                    else:
+                        # Late or duplicate: that attempt already ended (its result may be in
+                        # flight; the master ignores it by id).
+                        self.log.debug("abort of evaluation %d ignored: not running", eid)
+                case Ping(seq=seq):
+                    await self._send(stream, Pong(seq=seq), dead_after)
+                case Pong():
+                    pass  # any message proves the link alive; nothing else to do
+                case Bye(reason=reason):
+                    self.log.info("the master closed the session: %s", reason)
+                    return
+                case Error(code=code, message=text):
+                    self.log.error("the master reported an error (%s): %s", code, text)
+                    return
+                case _:
+                    text = f"unexpected {_kind(msg)} in a welcomed session"
+                    await self._send_quietly(stream, Error(code=_CODE_PROTOCOL, message=text))
+                    raise ProtocolError(text)
+
+    async def _send(self, stream: MessageStream, msg: Message, timeout: float) -> None:
+        # One sender at a time: the evaluation task and the receive loop both send.
+        async with self._send_lock, asyncio.timeout(timeout):
+            await stream.send(msg)
+
+    async def _send_quietly(self, stream: MessageStream, msg: Message) -> None:
+        with contextlib.suppress(OSError, ProtocolError):
+            await self._send(stream, msg, CLOSE_TIMEOUT)
+
+    # ------------------------------------------------------------------ evaluations
+
+    async def _start_evaluation(self, stream: MessageStream, msg: Evaluate, timeout: float) -> None:
+        if self._evaluation is not None:
+            old = self._evaluation[0]
+            self.log.info("evaluation %d replaces the running %d", msg.evaluation_id, old)
+            await self._cancel_evaluation("replaced")
+        task = self.spawn(
+            self._evaluate(stream, msg, timeout), name=f"evaluation-{msg.evaluation_id}"
+        )
+        self._evaluation = (msg.evaluation_id, task)
+
+    async def _evaluate(self, stream: MessageStream, msg: Evaluate, timeout: float) -> None:
+        try:
+            outcome: Result | Failed = await self.runner.run(msg)
+            try:
+                await self._send(stream, outcome, timeout)
+            except FrameTooLargeError as exc:
+                await self._send(
+                    stream,
+                    Failed(evaluation_id=msg.evaluation_id, reason=f"result too large: {exc}"),
+                    timeout,
+                )
+        except (OSError, ProtocolError) as exc:
+            # The session ends on its own when the connection is gone; the result is lost and
+            # the master repeats the round.
+            self.log.warning(
+                "could not send the outcome of evaluation %d: %s", msg.evaluation_id, exc
+            )
+        except Exception:  # never let a bug escape into the agent's task group
+            self.log.exception("evaluation %d: unexpected error", msg.evaluation_id)
+        finally:
+            current = self._evaluation
+            if current is not None and current[1] is asyncio.current_task():
+                self._evaluation = None
+
+    async def _cancel_evaluation(self, why: str, *, link_lost: bool = False) -> None:
+        """Cancel the running evaluation (if any) and wait until its motors are stopped."""
+        current, self._evaluation = self._evaluation, None
+        if current is None:
+            return
+        eid, task = current
+        if task.done():
+            return
+        if link_lost and self.watchdog is not None:
+            # Stop the motors now rather than after the task unwinds; the loop checks the
+            # watchdog before it drives, so nothing restarts them.
+            await finish(self.watchdog.trip(f"link lost ({why})"), self.runner.config.stop_timeout)
+        self.log.info("cancelling evaluation %d: %s", eid, why)
+        task.cancel()
+        # The runner's clean-up is bounded (a motor stop, perhaps a watchdog trip); wait for it.
+        await finish(asyncio.wait((task,)), 4 * self.runner.config.stop_timeout)
+
+
+def _kind(msg: object) -> str:
+    return type(msg).__name__
+
+
+def _describe(exc: BaseException) -> str:
+    text = str(exc)
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__

@@ -1,0 +1,215 @@
+"""One evaluation on the robot: from an ``Evaluate`` message to a ``Result`` or ``Failed``.
+
+:class:`EvaluationRunner` checks the request (genome, sensors), builds the network pair, resets
+the safety escape state and the network's memory (a new genome; the robot's pose is not reset),
+arms the watchdog, runs the :class:`~robot_agent.loop.ControlLoop` and, on every exit path (end,
+failure, exception, cancellation), stops the motors and disarms the watchdog.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+from collections.abc import Awaitable
+
+import numpy as np
+
+from drivers.body import Body
+from drivers.clock import Clock
+from robot_agent.config import LoopConfig
+from robot_agent.loop import ControlLoop, LoopOutcome, MissingSensorsError, sensor_index
+from robot_agent.safety import SafetyConfig, SafetyLayer
+from robot_agent.watchdog import Watchdog
+from surprise.errors import HardwareError, ProtocolError
+from surprise.network import NetworkPair
+from surprise.wire import Evaluate, Failed, Result, genome_from_bytes
+
+__all__ = [
+    "FAILED_GENOME",
+    "FAILED_HARDWARE",
+    "FAILED_INTERNAL",
+    "FAILED_MISSING_SENSORS",
+    "EvaluationRunner",
+    "finish",
+    "stop_motors",
+]
+
+log = logging.getLogger(__name__)
+
+# Failed reasons start with one of these words (then ": " and the details), so the master can
+# group failures without parsing prose. The loop adds "sensor-read" and "watchdog".
+#: the spec needs a sensor the body does not have
+FAILED_MISSING_SENSORS = "missing-sensors"
+#: the genome does not fit the spec
+FAILED_GENOME = "genome"
+#: a motor write failed or hung
+FAILED_HARDWARE = "hardware"
+#: a bug (an unexpected exception); the log holds the traceback
+FAILED_INTERNAL = "internal"
+
+
+async def finish(awaitable: Awaitable[object], timeout: float) -> BaseException | None:
+    """Await ``awaitable`` for at most ``timeout`` seconds, even if the caller is cancelled.
+
+    For clean-up that must happen (stopping the motors) on paths where the calling task may be
+    cancelled again. Returns None on success, else the exception (``TimeoutError`` if it did not
+    finish in time; it is then cancelled). If the caller was cancelled meanwhile, the
+    cancellation is re-raised after the clean-up finished.
+    """
+    loop = asyncio.get_running_loop()
+    try:
+        task = asyncio.ensure_future(awaitable)
+    except Exception as exc:  # not awaitable, or a coroutine function that raised at once
+        return exc
+    end = loop.time() + timeout
+    cancelled = False
+    while not task.done():
+        remaining = end - loop.time()
+        if remaining <= 0:
+            break
+        try:
+            await asyncio.wait((task,), timeout=remaining)
+        except asyncio.CancelledError:
+            cancelled = True  # finish first, re-raise below
+    if task.done():
+        error = task.exception() if not task.cancelled() else asyncio.CancelledError()
+    else:
+        task.cancel()
+        # Retrieve its eventual outcome so asyncio does not warn about it.
+        task.add_done_callback(lambda t: t.cancelled() or t.exception())
+        error = TimeoutError(f"did not finish within {timeout} s")
+    if cancelled:
+        raise asyncio.CancelledError
+    return error
+
+
+async def stop_motors(body: Body, timeout: float, watchdog: Watchdog | None = None) -> bool:
+    """Stop the motors (see :func:`finish`); returns whether that is known to have worked.
+
+    If the stop fails and a ``watchdog`` is given, it is tripped so that it keeps retrying.
+    """
+    error = await finish(body.stop(), timeout)
+    if error is None:
+        return True
+    log.error("stopping the motors failed: %r", error)
+    if watchdog is not None:
+        await finish(watchdog.trip("stop failed"), timeout)
+    return False
+
+
+class EvaluationRunner:
+    """Runs evaluations on one body; one at a time (a second :meth:`run` waits for the first).
+
+    ``loop`` and ``safety`` are the agent's settings; ``watchdog`` (optional) is armed for the
+    duration of each evaluation; ``safety_seed`` seeds the safety layer's escape turns (use a
+    different one per robot).
+    """
+
+    def __init__(
+        self,
+        body: Body,
+        clock: Clock,
+        *,
+        loop: LoopConfig | None = None,
+        safety: SafetyConfig | None = None,
+        watchdog: Watchdog | None = None,
+        safety_seed: int = 0,
+    ) -> None:
+        self.body = body
+        self.clock = clock
+        self.config = loop if loop is not None else LoopConfig()
+        self.watchdog = watchdog
+        self.layer = SafetyLayer(body.sensors, safety)
+        self.safety_state = self.layer.initial_state(safety_seed)
+        self.loop = ControlLoop(
+            body,
+            clock,
+            self.layer,
+            period=self.config.period,
+            read_timeout=self.config.read_timeout,
+            max_read_failures=self.config.max_read_failures,
+            drive_timeout=self.config.stop_timeout,
+            watchdog=watchdog,
+        )
+        self._lock = asyncio.Lock()
+        #: the id of the evaluation running now, if any
+        self.running: int | None = None
+
+    def prepare(self, msg: Evaluate) -> tuple[NetworkPair, np.ndarray | None] | Failed:
+        """The network and sensor index for ``msg``, or the Failed to answer if it cannot run."""
+        try:
+            index = sensor_index(msg.spec.sensors, self.body.sensors)
+        except MissingSensorsError as exc:
+            return Failed(
+                evaluation_id=msg.evaluation_id, reason=f"{FAILED_MISSING_SENSORS}: {exc}"
+            )
+        try:
+            network = NetworkPair(msg.spec, genome_from_bytes(msg.genome))
+        except (ProtocolError, ValueError) as exc:  # GenomeError is a ValueError
+            return Failed(evaluation_id=msg.evaluation_id, reason=f"{FAILED_GENOME}: {exc}")
+        return network, index
+
+    async def run(self, msg: Evaluate) -> Result | Failed:
+        """Run ``msg.genome`` for ``msg.steps`` steps from where the robot stands.
+
+        Returns the :class:`Result` (with a trace if ``msg.record``) or a :class:`Failed` whose
+        reason starts with a ``FAILED_*`` word, ``sensor-read`` or ``watchdog``. The motors are
+        stopped and the watchdog disarmed on every exit path, cancellation included.
+        """
+        prepared = self.prepare(msg)
+        if isinstance(prepared, Failed):
+            log.warning("evaluation %d refused: %s", msg.evaluation_id, prepared.reason)
+            return prepared
+        network, index = prepared
+        async with self._lock:
+            self.running = msg.evaluation_id
+            # A new genome: no escape manoeuvre carries over (the network was just built fresh).
+            state = self.layer.reset(self.safety_state)
+            log.info(
+                "evaluation %d: %d steps%s",
+                msg.evaluation_id,
+                msg.steps,
+                " (recorded)" * msg.record,
+            )
+            failure: str | None = None
+            outcome: LoopOutcome | None = None
+            if self.watchdog is not None:
+                self.watchdog.arm()
+            try:
+                outcome = await self.loop.run(network, index, msg.steps, state, record=msg.record)
+            except HardwareError as exc:
+                failure = f"{FAILED_HARDWARE}: {exc}"
+            except Exception as exc:  # a bug must not leave the robot driving or kill the agent
+                log.exception("evaluation %d crashed", msg.evaluation_id)
+                failure = f"{FAILED_INTERNAL}: {exc!r}"
+            finally:
+                self.running = None
+                await stop_motors(self.body, self.config.stop_timeout, self.watchdog)
+                if self.watchdog is not None:
+                    self.watchdog.disarm()
+
+        if outcome is not None:
+            self.safety_state = outcome.safety_state
+            failure = outcome.failure
+            if failure is None and not math.isfinite(outcome.fitness):
+                failure = f"{FAILED_INTERNAL}: non-finite fitness {outcome.fitness}"
+        if failure is not None:
+            log.warning("evaluation %d failed: %s", msg.evaluation_id, failure)
+            return Failed(evaluation_id=msg.evaluation_id, reason=failure)
+        assert outcome is not None
+        stats = outcome.stats
+        log.info(
+            "evaluation %d: fitness %.4f, %d overruns, %d read failures, interventions %s",
+            msg.evaluation_id,
+            outcome.fitness,
+            stats.overruns,
+            stats.read_failures,
+            stats.interventions or "none",
+        )
+        return Result(
+            evaluation_id=msg.evaluation_id,
+            fitness=outcome.fitness,
+            stats=stats,
+            trace=outcome.trace,
+        )
