@@ -45,6 +45,9 @@ EXIT_FAILURE = 1
 EXIT_CONFIG = 2
 
 _SIGNALS = (signal.SIGTERM, signal.SIGINT)
+#: Seconds ``--stop-motors`` waits for the body to open: connecting to medulla and loading the
+#: failsafe take a second or two on a Pi; systemd's stop timeout (5 s) bounds the whole.
+OPEN_TIMEOUT = 3.0
 
 BodyFactory = Callable[[BodyConfig], Body]
 
@@ -68,6 +71,12 @@ def _parser() -> argparse.ArgumentParser:
         type=str.upper,
         choices=["DEBUG", "INFO", "WARNING", "ERROR"],
         help="log verbosity (default: INFO)",
+    )
+    parser.add_argument(
+        "--stop-motors",
+        action="store_true",
+        help="only set the motors to zero and exit (systemd's ExecStopPost runs this, so the "
+        "robot stands still however the agent ended)",
     )
     parser.add_argument("--version", action="version", version=surprise.__version__)
     return parser
@@ -138,6 +147,34 @@ async def run_agent(
             signal.signal(sig, previous[sig])
 
 
+async def stop_motors_once(
+    config: AgentConfig, *, body_factory: BodyFactory = _build_real_body
+) -> int:
+    """Open the body, set the motors to zero, close it; returns the exit code.
+
+    This is the last line of defence after the agent ended, however it ended (even SIGKILL): it
+    must not depend on the master, the secret or anything but the robot's own configuration.
+    """
+    try:
+        body = body_factory(config.body)
+    except Exception as exc:
+        print(f"surprise-agent: cannot build the robot's body: {exc}", file=sys.stderr)
+        return EXIT_FAILURE
+    # Opening includes connecting to medulla (and loading the failsafe): allow it some seconds.
+    error = await finish(body.open(), OPEN_TIMEOUT)
+    if error is not None:
+        print(f"surprise-agent: cannot open the robot's body to stop it: {error}", file=sys.stderr)
+        await finish(body.close(), 2 * config.loop.stop_timeout)
+        return EXIT_FAILURE
+    stopped = await stop_motors(body, config.loop.stop_timeout)
+    await _close(body, config)
+    if not stopped:
+        print("surprise-agent: the motor stop was not confirmed", file=sys.stderr)
+        return EXIT_FAILURE
+    log.info("motors stopped")
+    return EXIT_OK
+
+
 async def _close(body: Body, config: AgentConfig) -> None:
     # Motors first, bounded: close() of a vanished robot may hang, the stop must not wait for it.
     await stop_motors(body, config.loop.stop_timeout)
@@ -154,6 +191,8 @@ async def amain(
     _setup_logging(args.log_level)
     try:
         config = load_agent_config(args.config)
+        if args.stop_motors:
+            return await stop_motors_once(config, body_factory=body_factory)
         secret = read_secret(config, config_file=args.config)
         make_ssl_context(config, config_file=args.config)  # fail now, not at the first connect
     except ConfigError as exc:

@@ -21,6 +21,7 @@ T = TypeVar("T")
 
 _PATH_RE = re.compile(r"^(?P<reason>.*?)(?: - at `\$(?P<path>[^`]*)`)?$", re.S)
 _UNKNOWN_RE = re.compile(r"unknown field `(?P<field>[^`]+)`")
+_MISSING_RE = re.compile(r"missing required field `(?P<field>[^`]+)`")
 # ``__post_init__`` checks name the sub-key they reject as a leading "`key`: reason".
 _SUBKEY_RE = re.compile(r"^`(?P<key>[^`]+)`: (?P<reason>.*)$", re.S)
 
@@ -48,10 +49,14 @@ def decode(data: Any, type_: type[T], *, file: str | Path | None = None) -> T:
         match = _PATH_RE.match(str(exc))
         assert match is not None  # the pattern accepts any text
         reason, path = match["reason"], _dotted(match["path"] or "")
-        unknown = _UNKNOWN_RE.search(reason)
-        if unknown:
-            path = f"{path}.{unknown['field']}" if path else unknown["field"]
-            reason = "unknown key"
+        for pattern, what in (
+            (_UNKNOWN_RE, "unknown key"),
+            (_MISSING_RE, "required key is missing"),
+        ):
+            found = pattern.search(reason)
+            if found:
+                path = f"{path}.{found['field']}" if path else found["field"]
+                reason = what
         sub = _SUBKEY_RE.match(reason)
         if sub:
             path = f"{path}.{sub['key']}" if path else sub["key"]

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from surprise.config import ExperimentConfig, load_experiment
+from surprise.config import ExperimentConfig, Strict, decode, load_experiment
 from surprise.errors import ConfigError
 
 
@@ -72,6 +72,20 @@ def test_bad_values_name_file_and_key(tmp_path, text, key, words):
 def test_malformed_documents(tmp_path, text, words):
     with pytest.raises(ConfigError, match=words):
         load_experiment(write(tmp_path, text))
+
+
+class Inner(Strict):
+    port: int
+
+
+class Outer(Strict):
+    master: Inner
+
+
+def test_missing_required_key_is_named():
+    with pytest.raises(ConfigError) as info:
+        decode({"master": {}}, Outer, file="agent.yaml")
+    assert info.value.key == "master.port" and "required key is missing" in str(info.value)
 
 
 def test_missing_file(tmp_path):
