@@ -1,0 +1,178 @@
+"""The paper's behaviour metrics (Sec. V, REFERENCE section 7), computed from recorded poses.
+
+``poses`` is an array of shape (T + 1, N, 3): the ``x, y, theta`` of N robots at T + 1 instants
+(as :meth:`sim_stub.world.World.recorded_poses` returns), in metres and radians.
+
+* distance covered d_R: mean over robots of the path length (sum of step displacements);
+* box displacement d_B: mean distance between the boxes' start and end positions;
+* rotation c_o: ``|1/N sum_n sum_t (theta_n(t+1) - theta_n(t))|`` over the last ``window`` steps,
+  each step's change wrapped to [-pi, pi) (paper Eq. for c_o; 126 rad is constant turning at full
+  speed for 50 s). The absolute value is taken of the swarm's sum, as in the paper, so robots
+  turning opposite ways cancel;
+* mean cluster size: robots closer than ``cluster_distance`` (2 robot radii, about 15.75 cm, between
+  positions) to another member share a cluster (single linkage); the mean cluster size of one
+  instant is N / (number of clusters), and the metric is its mean over the instants of the window.
+
+Classification (paper Sec. V-B, V-C): stopped if c_o < 5, circling if c_o > 55, else diverse;
+grouped if the mean cluster size exceeds 1.43, else dispersed; pushing if d_B > 0.1 m. The
+thresholds were chosen for windows of 50 s (5000 Webots steps of 10 ms); our 10 Hz window of the
+same length is 500 steps, the default below when the recording is long enough (else its second
+half).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+import msgspec
+import numpy as np
+
+#: Robots closer than this (metres, between positions) are in one cluster (paper: 15.75 cm).
+CLUSTER_DISTANCE = 0.1575
+#: Classification thresholds of the paper.
+STOPPED_BELOW = 5.0
+CIRCLING_ABOVE = 55.0
+GROUPED_ABOVE = 1.43
+PUSHING_ABOVE = 0.1
+#: 50 s at 10 Hz: the length of the paper's analysis window.
+DEFAULT_WINDOW = 500
+
+
+class BehaviourMetrics(msgspec.Struct, frozen=True, kw_only=True):
+    """The metrics of one run and their classification (``pushing`` is None without boxes)."""
+
+    distance_covered: float
+    rotation: float
+    mean_cluster_size: float
+    box_displacement: float | None
+    motion: Literal["stopped", "diverse", "circling"]
+    grouping: Literal["grouped", "dispersed"]
+    pushing: bool | None
+    window: int
+
+
+def _check(poses: np.ndarray) -> np.ndarray:
+    poses = np.asarray(poses, dtype=float)
+    if poses.ndim != 3 or poses.shape[2] != 3 or poses.shape[0] < 1:
+        raise ValueError(f"poses must have shape (T + 1, N, 3), not {poses.shape}")
+    return poses
+
+
+def _window(poses: np.ndarray, window: int | None) -> np.ndarray:
+    # The last ``window`` steps, i.e. the last window + 1 instants.
+    if window is None:
+        return poses
+    if window < 0:
+        raise ValueError("window must be >= 0")
+    return poses[max(len(poses) - 1 - window, 0) :]
+
+
+def default_window(poses: np.ndarray) -> int:
+    """The paper's 50 s window (500 steps) if the recording holds twice that, else its second
+    half: the first half gives the robots time to settle into their behaviour."""
+    steps = len(poses) - 1
+    return DEFAULT_WINDOW if steps >= 2 * DEFAULT_WINDOW else steps - steps // 2
+
+
+def distance_covered(poses: np.ndarray, window: int | None = None) -> float:
+    """d_R: mean path length per robot over the last ``window`` steps (all if None), metres."""
+    p = _window(_check(poses), window)
+    if len(p) < 2:
+        return 0.0
+    steps = np.hypot(np.diff(p[:, :, 0], axis=0), np.diff(p[:, :, 1], axis=0))
+    return float(steps.sum(axis=0).mean())
+
+
+def box_displacement(start: np.ndarray, end: np.ndarray) -> float:
+    """d_B: mean distance between the boxes' ``start`` and ``end`` positions (B, 2), metres."""
+    start = np.asarray(start, dtype=float).reshape(-1, 2)
+    end = np.asarray(end, dtype=float).reshape(-1, 2)
+    if start.shape != end.shape:
+        raise ValueError(f"start {start.shape} and end {end.shape} differ in shape")
+    if len(start) == 0:
+        return 0.0
+    return float(np.hypot(*(end - start).T).mean())
+
+
+def rotation(poses: np.ndarray, window: int | None = None, *, each_step: bool = False) -> float:
+    """c_o: absolute accumulated heading change per robot over the last ``window`` steps, rad.
+
+    By default the paper's equation: the absolute value of the swarm's summed change, divided by
+    N. ``each_step=True`` sums the absolute value of every step's change instead, so that robots
+    turning opposite ways, or to and fro, do not cancel.
+    """
+    p = _window(_check(poses), window)
+    if len(p) < 2:
+        return 0.0
+    turn = (np.diff(p[:, :, 2], axis=0) + math.pi) % (2 * math.pi) - math.pi
+    if each_step:
+        return float(np.abs(turn).sum() / p.shape[1])
+    return float(abs(turn.sum() / p.shape[1]))
+
+
+def cluster_counts(positions: np.ndarray, distance: float = CLUSTER_DISTANCE) -> np.ndarray:
+    """Number of clusters at each instant of ``positions`` (T, N, 2) (or one instant (N, 2))."""
+    pos = np.asarray(positions, dtype=float)
+    if pos.ndim == 2:
+        pos = pos[None]
+    n = pos.shape[1]
+    d2 = ((pos[:, :, None, :] - pos[:, None, :, :]) ** 2).sum(axis=3)
+    reach = (d2 <= distance * distance).astype(np.int64)  # includes each robot itself
+    # Transitive closure by repeated squaring of the adjacency: log2(N) products.
+    for _ in range(max(1, math.ceil(math.log2(max(n, 2))))):
+        reach = np.minimum(reach @ reach, 1)
+    # Each robot contributes 1 / (size of its cluster): the sum counts the clusters.
+    return np.rint((1.0 / reach.sum(axis=2)).sum(axis=1)).astype(np.int64)
+
+
+def mean_cluster_size(
+    poses: np.ndarray, window: int | None = None, distance: float = CLUSTER_DISTANCE
+) -> float:
+    """Mean over the instants of the last ``window`` steps of N / (number of clusters)."""
+    p = _window(_check(poses), window)
+    counts = cluster_counts(p[:, :, :2], distance)
+    return float((p.shape[1] / counts).mean())
+
+
+def behaviour_metrics(
+    poses: np.ndarray,
+    box_start: np.ndarray | None = None,
+    box_end: np.ndarray | None = None,
+    *,
+    window: int | None = None,
+    cluster_distance: float = CLUSTER_DISTANCE,
+) -> BehaviourMetrics:
+    """Every metric and its class. d_R and d_B cover the whole recording (the paper's Eq. for
+    d_R sums over the run); c_o and the cluster size the last ``window`` steps (default:
+    :func:`default_window`). Boxes are optional."""
+    poses = _check(poses)
+    if window is None:
+        window = default_window(poses)
+    c_o = rotation(poses, window)
+    size = mean_cluster_size(poses, window, cluster_distance)
+    d_b = None if box_start is None or box_end is None else box_displacement(box_start, box_end)
+    return BehaviourMetrics(
+        distance_covered=distance_covered(poses),
+        rotation=c_o,
+        mean_cluster_size=size,
+        box_displacement=d_b,
+        motion=classify_motion(c_o),
+        grouping=classify_grouping(size),
+        pushing=None if d_b is None else d_b > PUSHING_ABOVE,
+        window=window,
+    )
+
+
+def classify_motion(c_o: float) -> Literal["stopped", "diverse", "circling"]:
+    """Stopped below 5 rad, circling above 55 rad, diverse between (paper Sec. V-B)."""
+    if c_o < STOPPED_BELOW:
+        return "stopped"
+    if c_o > CIRCLING_ABOVE:
+        return "circling"
+    return "diverse"
+
+
+def classify_grouping(mean_size: float) -> Literal["grouped", "dispersed"]:
+    """Grouped when the mean cluster size exceeds 1.43 (paper Sec. V-B)."""
+    return "grouped" if mean_size > GROUPED_ABOVE else "dispersed"
