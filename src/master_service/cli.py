@@ -1,0 +1,179 @@
+"""``surprise-master``: run, resume, report on and inspect experiments with real robots.
+
+Subcommands::
+
+    surprise-master run --config FILE [--out DIR]   start a run (DIR: runs/<time>-<scenario>)
+    surprise-master resume DIR                      continue a run from its checkpoint
+    surprise-master report DIR                      write metrics.json and plots/
+    surprise-master status DIR                      where a run stands
+
+Exit status: 0 done; 1 the run stopped on an error (a busy port, a full disk); 2 bad configuration
+or run directory (one message naming the file and key; nothing was started); 128 + N stopped by
+signal N (SIGINT, SIGTERM), the run can be resumed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import signal
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+from master_service.config import MasterConfig, load_master_config, load_secret
+from master_service.master import Master
+from master_service.progress import ProgressDisplay
+from master_service.rundir import RunDir, RunDirError
+from surprise.errors import ConfigError
+
+__all__ = ["main"]
+
+_log = logging.getLogger("master_service.cli")
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="surprise-master",
+        description="Online evolution by minimizing surprise on a swarm of Thymio II robots.",
+    )
+    parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages too")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    run = sub.add_parser("run", help="start an experiment with real robots")
+    run.add_argument("--config", required=True, type=Path, help="master configuration (YAML)")
+    run.add_argument("--out", type=Path, help="run directory (must not exist or be empty)")
+    run.set_defaults(handler=_run)
+
+    resume = sub.add_parser("resume", help="continue a run from its checkpoint")
+    resume.add_argument("dir", type=Path, metavar="DIR", help="the run directory")
+    resume.set_defaults(handler=_resume)
+
+    report = sub.add_parser("report", help="write metrics.json and plots of a run")
+    report.add_argument("dir", type=Path, metavar="DIR", help="the run directory")
+    report.set_defaults(handler=_report)
+
+    status = sub.add_parser("status", help="show where a run stands")
+    status.add_argument("dir", type=Path, metavar="DIR", help="the run directory")
+    status.set_defaults(handler=_status)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``surprise-master``; returns the exit status."""
+    args = _parser().parse_args(argv)
+    try:
+        return args.handler(args)
+    except (ConfigError, RunDirError) as exc:
+        print(f"surprise-master: {exc}", file=sys.stderr)
+        return 2
+
+
+def _secret(config: MasterConfig, source: Path) -> bytes:
+    if config.secret_file is None:
+        raise ConfigError(
+            "the robots' shared secret is needed: name its file",
+            file=str(source),
+            key="secret_file",
+        )
+    return load_secret(config.secret_file)
+
+
+def _run(args: argparse.Namespace) -> int:
+    config = load_master_config(args.config)
+    assert config.experiment is not None
+    secret = _secret(config, args.config)
+    out = args.out
+    if out is None:
+        out = Path("runs") / f"{time.strftime('%Y%m%d-%H%M%S')}-{config.experiment.scenario}"
+    RunDir(out).check_new()
+    return _serve(Master(config, out, secret=secret), args)
+
+
+def _resume(args: argparse.Namespace) -> int:
+    run = RunDir(args.dir)
+    config = run.load_config()
+    checkpoint = run.read_checkpoint_data()
+    if checkpoint is not None and checkpoint.get("phase") == "done":
+        print(f"run {args.dir} is complete; nothing to resume")
+        return 0
+    secret = _secret(config, run.file("config.yaml"))
+    return _serve(Master(config, args.dir, secret=secret, resume=True), args)
+
+
+def _serve(master: Master, args: argparse.Namespace) -> int:
+    level = logging.DEBUG if args.verbose else logging.INFO
+    with ProgressDisplay(level=level) as display:
+        master.add_progress_listener(display.update)
+        try:
+            return asyncio.run(_serve_async(master))
+        except OSError as exc:
+            # Typically a busy port: nothing was created (the port is bound before the run
+            # directory is touched).
+            _log.error("surprise-master: %s", exc)
+            return 1
+
+
+async def _serve_async(master: Master) -> int:
+    loop = asyncio.get_running_loop()
+    task = asyncio.current_task()
+    assert task is not None
+    received: list[int] = []
+
+    def stop(signum: int) -> None:
+        # The first signal stops the run cleanly (Bye to the robots, files closed); the
+        # checkpoint is always current, so nothing is lost.
+        if not received:
+            received.append(signum)
+            task.cancel()
+
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(signum, stop, signum)
+    summary = None
+    try:
+        async with master:
+            try:
+                summary = await master.run()
+            except asyncio.CancelledError:
+                if not received:
+                    raise
+                task.uncancel()
+                # Logged before the master closes, so that it lands in the run's log file too.
+                master.log.warning(
+                    "stopped by %s; continue with `surprise-master resume %s`",
+                    signal.Signals(received[0]).name,
+                    master.run_dir.path,
+                )
+    finally:
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            loop.remove_signal_handler(signum)
+    if summary is None:
+        return 128 + received[0]
+    best = "-" if summary.best_fitness is None else f"{summary.best_fitness:.4f}"
+    print(
+        f"run {summary.run_dir} done: {summary.evaluations} evaluations, best fitness {best}; "
+        f"see `surprise-master report {summary.run_dir}`"
+    )
+    return 0
+
+
+def _report(args: argparse.Namespace) -> int:
+    from master_service.report import write_report
+
+    metrics = write_report(args.dir)
+    best = metrics.get("best_fitness")
+    print(
+        f"wrote {Path(args.dir) / 'metrics.json'} and plots in {Path(args.dir) / 'plots'}: "
+        f"{metrics['evaluations']} evaluations, best fitness "
+        + ("-" if best is None else f"{best:.4f}")
+    )
+    return 0
+
+
+def _status(args: argparse.Namespace) -> int:
+    from master_service.report import status_text
+
+    print(status_text(args.dir))
+    return 0

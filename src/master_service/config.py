@@ -1,0 +1,228 @@
+"""Configuration of the master: where it listens, who may join, how long a round may take.
+
+A master configuration file names the experiment (inline under ``experiment`` or as a separate file
+under ``experiment_file``), the shared secret's file and optionally TLS certificate files. Relative
+paths are resolved against the configuration file's directory. :func:`load_master_config` returns a
+*resolved* configuration: the experiment inline and every path absolute, which is what the run
+directory's snapshot holds, so ``resume`` needs nothing but the run directory.
+
+Example::
+
+    experiment_file: experiment.yaml
+    host: 0.0.0.0
+    port: 7474
+    secret_file: secret.txt
+    allowed_robots: [thymio-1, thymio-2, thymio-3, thymio-4]
+    round_margin: 5.0
+    heartbeat_interval: 2.0
+"""
+
+from __future__ import annotations
+
+import re
+import ssl
+from pathlib import Path
+from typing import Annotated, Final
+
+import msgspec
+
+from surprise.config import ExperimentConfig, Strict, decode, load_experiment, load_yaml
+from surprise.errors import ConfigError
+from surprise.wire import MAX_FRAME_SIZE
+
+__all__ = [
+    "DEFAULT_HANDSHAKE_TIMEOUT",
+    "DEFAULT_HEARTBEAT_INTERVAL",
+    "DEFAULT_PORT",
+    "DEFAULT_ROUND_MARGIN",
+    "ROBOT_ID_PATTERN",
+    "MasterConfig",
+    "TlsConfig",
+    "build_ssl_context",
+    "load_master_config",
+    "load_secret",
+]
+
+#: Default TCP port of the master.
+DEFAULT_PORT: Final = 7474
+#: protocol.md: each handshake step has a 10 s deadline; generous for a Pi on a busy lab WLAN,
+#: short enough that a half-open connection does not linger.
+DEFAULT_HANDSHAKE_TIMEOUT: Final = 10.0
+#: The link is declared dead after 3 intervals without any message (protocol.md). 2 s notices a
+#: dropped robot within 6-8 s, less than one 10 s evaluation, at a negligible ping traffic.
+DEFAULT_HEARTBEAT_INTERVAL: Final = 2.0
+#: Added to ``steps * 0.1 s`` for a round's deadline: covers building the networks on the Pi, the
+#: Result's transfer and a few late control steps, yet loses little time when a robot is stuck.
+DEFAULT_ROUND_MARGIN: Final = 5.0
+
+#: What a robot id may look like: it names a CSV column and a trace file, so no separators or
+#: spaces, and a bounded length.
+ROBOT_ID_PATTERN: Final = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"
+_ROBOT_ID_RE = re.compile(ROBOT_ID_PATTERN)
+
+_PositiveSeconds = Annotated[float, msgspec.Meta(gt=0.0, le=86400.0)]
+_RobotId = Annotated[str, msgspec.Meta(pattern=ROBOT_ID_PATTERN)]
+
+
+class TlsConfig(Strict):
+    """TLS for the robots' connections: the master's certificate chain and private key.
+
+    With ``ca_file`` the robots must present a client certificate signed by that CA (mutual TLS).
+    The HMAC challenge is still required: TLS protects the link, the secret admits the robot.
+    """
+
+    cert_file: str
+    key_file: str
+    ca_file: str | None = None
+
+
+class MasterConfig(Strict):
+    """Everything the master needs besides the run directory.
+
+    ``experiment`` or ``experiment_file`` (exactly one) defines the experiment. ``port`` 0 picks
+    any free port (tests). ``allowed_robots`` empty admits any authenticated robot.
+    ``expected_robots`` (default: the experiment's ``robots``) is how many robots form the swarm:
+    a round starts only when that many are connected. The swarm is fixed when it first completes
+    (those robots' ids are the CSV's columns); from then on only its members are admitted, so
+    with spares in ``allowed_robots`` the first robots to connect take part. ``round_margin`` is
+    added to ``steps * 0.1 s`` for a round's deadline; ``heartbeat_interval`` is how often the
+    master pings (a link is dead after three silent intervals); ``handshake_timeout`` bounds each
+    handshake step; ``max_frame_size`` bounds one incoming message (bytes).
+    """
+
+    experiment: ExperimentConfig | None = None
+    experiment_file: str | None = None
+    host: str = "127.0.0.1"
+    port: Annotated[int, msgspec.Meta(ge=0, le=65535)] = DEFAULT_PORT
+    secret_file: str | None = None
+    allowed_robots: list[_RobotId] = msgspec.field(default_factory=list)
+    expected_robots: Annotated[int, msgspec.Meta(ge=1)] | None = None
+    tls: TlsConfig | None = None
+    round_margin: _PositiveSeconds = DEFAULT_ROUND_MARGIN
+    heartbeat_interval: _PositiveSeconds = DEFAULT_HEARTBEAT_INTERVAL
+    handshake_timeout: _PositiveSeconds = DEFAULT_HANDSHAKE_TIMEOUT
+    max_frame_size: Annotated[int, msgspec.Meta(ge=1024)] = MAX_FRAME_SIZE
+
+    def __post_init__(self) -> None:
+        if (self.experiment is None) == (self.experiment_file is None):
+            raise ValueError("`experiment`: give exactly one of `experiment` and `experiment_file`")
+        if len(set(self.allowed_robots)) != len(self.allowed_robots):
+            raise ValueError("`allowed_robots`: a robot id is listed twice")
+        # Unresolved (experiment_file) configurations are checked once the experiment is loaded.
+        allowed = self.allowed_robots
+        if self.experiment is not None and allowed and self.robot_count > len(allowed):
+            raise ValueError(
+                f"`expected_robots`: the swarm needs {self.robot_count} robots but "
+                f"`allowed_robots` lists only {len(allowed)}"
+            )
+
+    @property
+    def robot_count(self) -> int:
+        """How many robots form the swarm (``expected_robots`` or the experiment's ``robots``)."""
+        if self.expected_robots is not None:
+            return self.expected_robots
+        if self.experiment is None:
+            raise ConfigError("the experiment is not loaded yet", key="experiment_file")
+        return self.experiment.robots
+
+
+def is_valid_robot_id(robot_id: str) -> bool:
+    """Whether ``robot_id`` matches :data:`ROBOT_ID_PATTERN`."""
+    return _ROBOT_ID_RE.match(robot_id) is not None
+
+
+def _resolve(base: Path, value: str | None) -> str | None:
+    if value is None:
+        return None
+    return str((base / Path(value).expanduser()).resolve())
+
+
+def load_master_config(path: str | Path) -> MasterConfig:
+    """Load a master configuration file and resolve it (experiment inline, paths absolute).
+
+    Every failure is one :class:`~surprise.errors.ConfigError` naming the file and the key: this
+    file's, or the experiment file's when that one is wrong. The files it names must exist.
+    """
+    path = Path(path)
+    config = load_yaml(path, MasterConfig)
+    base = path.resolve().parent
+    experiment = config.experiment
+    if config.experiment_file is not None:
+        experiment_path = Path(_resolve(base, config.experiment_file) or "")
+        if not experiment_path.is_file():
+            raise ConfigError(
+                f"the experiment file {experiment_path} does not exist",
+                file=str(path),
+                key="experiment_file",
+            )
+        experiment = load_experiment(experiment_path)
+    tls = config.tls
+    if tls is not None:
+        tls = TlsConfig(
+            cert_file=_resolve(base, tls.cert_file) or "",
+            key_file=_resolve(base, tls.key_file) or "",
+            ca_file=_resolve(base, tls.ca_file),
+        )
+    data = msgspec.to_builtins(config)
+    data.update(
+        experiment=msgspec.to_builtins(experiment),
+        experiment_file=None,
+        secret_file=_resolve(base, config.secret_file),
+        tls=None if tls is None else msgspec.to_builtins(tls),
+    )
+    # Decode again so the checks that need the experiment (robots vs allow-list) run now.
+    resolved = decode(data, MasterConfig, file=path)
+    for key, file in _named_files(resolved):
+        if not Path(file).is_file():
+            raise ConfigError(f"the file {file} does not exist", file=str(path), key=key)
+    return resolved
+
+
+def _named_files(config: MasterConfig) -> list[tuple[str, str]]:
+    files = []
+    if config.secret_file is not None:
+        files.append(("secret_file", config.secret_file))
+    if config.tls is not None:
+        files += [("tls.cert_file", config.tls.cert_file), ("tls.key_file", config.tls.key_file)]
+        if config.tls.ca_file is not None:
+            files.append(("tls.ca_file", config.tls.ca_file))
+    return files
+
+
+def load_secret(path: str | Path) -> bytes:
+    """The shared secret: the file's bytes without leading and trailing whitespace.
+
+    Whitespace is stripped because editors add a final newline; the robots' agent must read its
+    copy the same way. Raises :class:`~surprise.errors.ConfigError` naming the file if it cannot be
+    read or is empty.
+    """
+    path = Path(path)
+    try:
+        secret = path.read_bytes().strip()
+    except OSError as exc:
+        raise ConfigError(
+            f"cannot read the secret file: {exc.strerror or exc}", file=str(path)
+        ) from None
+    if not secret:
+        raise ConfigError("the secret file is empty", file=str(path))
+    return secret
+
+
+def build_ssl_context(tls: TlsConfig) -> ssl.SSLContext:
+    """A server-side TLS context from ``tls``; a bad certificate or key is a ConfigError."""
+    context = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+    try:
+        context.load_cert_chain(tls.cert_file, tls.key_file)
+    except (OSError, ssl.SSLError) as exc:
+        raise ConfigError(
+            f"cannot load the certificate and key: {exc}", file=tls.cert_file, key="tls.cert_file"
+        ) from None
+    if tls.ca_file is not None:
+        try:
+            context.load_verify_locations(cafile=tls.ca_file)
+        except (OSError, ssl.SSLError) as exc:
+            raise ConfigError(
+                f"cannot load the CA certificates: {exc}", file=tls.ca_file, key="tls.ca_file"
+            ) from None
+        context.verify_mode = ssl.CERT_REQUIRED
+    return context

@@ -1,0 +1,354 @@
+"""What a run amounts to: ``metrics.json``, plots, and the one-screen status.
+
+Plots (``plots/``): ``best_fitness.png`` (best and swarm fitness over evaluations),
+``robot_fitness.png`` (each robot's fitness over evaluations), ``predictions.png`` (from the
+post-evaluation: mean predicted against mean real value per sensor) and, when the traces hold poses
+(simulation), ``trajectories.png``.
+
+Behaviour metrics from the post-evaluation traces (REFERENCE section 7), when poses are present:
+``path_length`` per robot over the whole trace (the unit of the poses), ``rotation`` = accumulated
+absolute heading change (rad) and the mean cluster size (robots / clusters, robots closer than
+``CLUSTER_DISTANCE`` being in one cluster), both over the second half of the trace as the paper
+measures the last half of its runs. The paper's thresholds (stopped, circling; grouped) were set for
+its 10,000-step Webots runs, so the labels are left to the reader.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Final
+
+import numpy as np
+
+from master_service.master import LIVE_INTERVAL, format_duration
+from master_service.rundir import (
+    LIVE,
+    METRICS,
+    PLOTS,
+    POST_EVALUATION,
+    RunDir,
+    write_atomic,
+)
+from surprise.config import ExperimentConfig
+
+__all__ = ["CLUSTER_DISTANCE", "compute_metrics", "status_text", "write_report"]
+
+#: Two robot radii (REFERENCE section 7: about 15.75 cm), in metres, the unit of simulated poses.
+CLUSTER_DISTANCE: Final = 0.1575
+#: A live.json older than this many refresh periods means the master is gone.
+_STALE_PERIODS: Final = 5
+
+
+def _rows(run: RunDir) -> tuple[list[dict[str, Any]], list[str]]:
+    rows = run.read_rows()
+    robots = []
+    if rows:
+        robots = [key[len("fitness_") :] for key in rows[0] if key.startswith("fitness_")]
+    typed = []
+    for row in rows:
+        typed.append(
+            {
+                "evaluation": int(row["evaluation"]),
+                "kind": row["kind"],
+                "fitness": float(row["fitness"]),
+                "best_fitness": float(row["best_fitness"]),
+                "accepted": row["accepted"] == "true",
+                "attempts": int(row["attempts"]),
+                "duration_s": float(row["duration_s"]),
+                "robots": {robot: float(row[f"fitness_{robot}"]) for robot in robots},
+            }
+        )
+    return typed, robots
+
+
+def _traces(run: RunDir, post: dict[str, Any] | None) -> dict[str, dict[str, np.ndarray]]:
+    traces: dict[str, dict[str, np.ndarray]] = {}
+    if post is None:
+        return traces
+    for robot, entry in post.get("robots", {}).items():
+        if entry.get("trace"):
+            with np.load(run.path / entry["trace"]) as data:
+                traces[robot] = {key: data[key] for key in data.files}
+    return traces
+
+
+def _wrap(angle: np.ndarray) -> np.ndarray:
+    return (angle + np.pi) % (2 * np.pi) - np.pi
+
+
+def _clusters(points: np.ndarray, distance: float) -> int:
+    """Number of single-linkage clusters of ``points`` (n, 2) at ``distance``."""
+    n = len(points)
+    parent = list(range(n))
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    close = np.linalg.norm(points[:, None, :] - points[None, :, :], axis=-1) < distance
+    for i, j in zip(*np.nonzero(np.triu(close, 1)), strict=True):
+        parent[find(int(i))] = find(int(j))
+    return len({find(i) for i in range(n)})
+
+
+def _post_metrics(
+    post: dict[str, Any], traces: dict[str, dict[str, np.ndarray]], sensors: list[str]
+) -> dict[str, Any]:
+    robots: dict[str, Any] = {}
+    predicted: list[np.ndarray] = []
+    real: list[np.ndarray] = []
+    poses: dict[str, np.ndarray] = {}
+    for robot, entry in post.get("robots", {}).items():
+        info: dict[str, Any] = {"fitness": entry["fitness"], "stats": entry["stats"]}
+        trace = traces.get(robot)
+        if trace is not None:
+            steps = len(trace["sensors"])
+            info["steps"] = steps
+            info["safety_steps"] = int(np.count_nonzero(trace["safety"] != ""))
+            if steps >= 2:
+                # The prediction made at t is for the reading at t + 1.
+                predicted.append(trace["predictions"][:-1])
+                real.append(trace["sensors"][1:])
+            if "poses" in trace and steps >= 2:
+                pose = trace["poses"]
+                poses[robot] = pose
+                half = pose[steps // 2 :]
+                steps_xy = np.diff(pose[:, :2], axis=0)
+                info["path_length"] = float(np.linalg.norm(steps_xy, axis=1).sum())
+                info["rotation"] = float(np.abs(_wrap(np.diff(half[:, 2]))).sum())
+        robots[robot] = info
+    metrics: dict[str, Any] = {
+        "steps": post.get("steps"),
+        "genome_fitness": post.get("genome_fitness"),
+        "swarm_fitness": post.get("swarm_fitness"),
+        "robots": robots,
+    }
+    if predicted:
+        p = np.concatenate(predicted)
+        s = np.concatenate(real)
+        metrics["sensors"] = {
+            name: {
+                "mean_predicted": float(p[:, i].mean()),
+                "mean_real": float(s[:, i].mean()),
+                "mean_abs_error": float(np.abs(p[:, i] - s[:, i]).mean()),
+            }
+            for i, name in enumerate(sensors)
+            if i < p.shape[1]
+        }
+    if poses:
+        behaviour: dict[str, Any] = {
+            "mean_path_length": float(np.mean([robots[r]["path_length"] for r in poses])),
+            "mean_rotation": float(np.mean([robots[r]["rotation"] for r in poses])),
+        }
+        steps = min(len(p) for p in poses.values())
+        if len(poses) > 1 and steps:
+            stacked = np.stack([p[:steps, :2] for p in poses.values()], axis=1)
+            sizes = [len(poses) / _clusters(xy, CLUSTER_DISTANCE) for xy in stacked[steps // 2 :]]
+            behaviour["mean_cluster_size"] = float(np.mean(sizes))
+        metrics["behaviour"] = behaviour
+    return metrics
+
+
+@dataclass
+class _Run:
+    """Everything a report reads from a run directory, read once."""
+
+    run: RunDir
+    experiment: ExperimentConfig
+    checkpoint: dict[str, Any]
+    rows: list[dict[str, Any]]
+    robots: list[str]
+    post: dict[str, Any] | None
+    traces: dict[str, dict[str, np.ndarray]]
+
+
+def _load(path: str | Path) -> _Run:
+    run = RunDir(path)
+    config = run.load_config()
+    assert config.experiment is not None
+    checkpoint = run.read_checkpoint_data() or {}
+    rows, robots = _rows(run)
+    # Rows past the checkpoint's count belong to an unfinished commit (resume drops them).
+    if "csv_rows" in checkpoint:
+        rows = rows[: checkpoint["csv_rows"]]
+    post = run.read_json(POST_EVALUATION)
+    return _Run(run, config.experiment, checkpoint, rows, robots, post, _traces(run, post))
+
+
+def compute_metrics(path: str | Path) -> dict[str, Any]:
+    """The metrics of the run in ``path`` as plain data (what ``metrics.json`` holds)."""
+    return _metrics(_load(path))
+
+
+def _metrics(data: _Run) -> dict[str, Any]:
+    run, checkpoint, rows, robots = data.run, data.checkpoint, data.rows, data.robots
+    metrics: dict[str, Any] = {
+        "run_id": checkpoint.get("run_id", run.path.resolve().name),
+        "phase": checkpoint.get("phase", "evolution"),
+        "evaluations": len(rows),
+        "evaluations_planned": data.experiment.evolution.evaluations,
+        "robots": robots,
+    }
+    if rows:
+        fitness = np.array([r["fitness"] for r in rows])
+        offspring = [r for r in rows if r["kind"] == "offspring"]
+        metrics.update(
+            best_fitness=rows[-1]["best_fitness"],
+            max_fitness=float(fitness.max()),
+            mean_fitness=float(fitness.mean()),
+            offspring=len(offspring),
+            accepted_offspring=sum(r["accepted"] for r in offspring),
+            reevaluations=sum(r["kind"] == "reevaluation" for r in rows),
+            attempts=sum(r["attempts"] for r in rows),
+            failed_attempts=checkpoint.get("failed_attempts"),
+            duration_s=float(sum(r["duration_s"] for r in rows)),
+            robot_fitness={
+                robot: {
+                    "mean": float(np.mean([r["robots"][robot] for r in rows])),
+                    "max": float(np.max([r["robots"][robot] for r in rows])),
+                }
+                for robot in robots
+            },
+        )
+    metrics["post_evaluation"] = (
+        None
+        if data.post is None
+        else _post_metrics(data.post, data.traces, list(data.experiment.sensors))
+    )
+    return metrics
+
+
+def write_report(path: str | Path) -> dict[str, Any]:
+    """Write ``metrics.json`` and the plots of the run in ``path``; return the metrics."""
+    data = _load(path)
+    metrics = _metrics(data)
+    write_atomic(data.run.file(METRICS), json.dumps(metrics, indent=2).encode("utf-8"))
+    _plot(data, metrics)
+    return metrics
+
+
+def _plot(data: _Run, metrics: dict[str, Any]) -> None:
+    # The object-oriented API only: no pyplot, no global backend switch in the caller's process.
+    from matplotlib.figure import Figure
+
+    rows, robots = data.rows, data.robots
+    plots = data.run.file(PLOTS)
+    plots.mkdir(exist_ok=True)
+    if rows:
+        x = [r["evaluation"] for r in rows]
+        fig = Figure(figsize=(8, 4.5))
+        ax = fig.add_subplot()
+        for kind, marker in (("initial", "s"), ("offspring", "."), ("reevaluation", "x")):
+            pts = [(r["evaluation"], r["fitness"]) for r in rows if r["kind"] == kind]
+            if pts:
+                ax.scatter(*zip(*pts, strict=True), s=12, marker=marker, label=f"{kind} fitness")
+        ax.plot(x, [r["best_fitness"] for r in rows], color="black", label="best fitness")
+        ax.set(xlabel="evaluation", ylabel="fitness", title="Fitness over evaluations")
+        ax.legend(loc="lower right")
+        fig.savefig(plots / "best_fitness.png", dpi=100)
+
+        fig = Figure(figsize=(8, 4.5))
+        ax = fig.add_subplot()
+        for robot in robots:
+            ax.plot(x, [r["robots"][robot] for r in rows], linewidth=0.8, label=robot)
+        ax.set(xlabel="evaluation", ylabel="fitness", title="Fitness of each robot")
+        ax.legend(loc="lower right", fontsize="small")
+        fig.savefig(plots / "robot_fitness.png", dpi=100)
+
+    post = metrics.get("post_evaluation") or {}
+    sensors = post.get("sensors")
+    if sensors:
+        names = list(sensors)
+        idx = np.arange(len(names))
+        fig = Figure(figsize=(max(6, len(names) * 0.8), 4.5))
+        ax = fig.add_subplot()
+        ax.bar(idx - 0.2, [sensors[n]["mean_predicted"] for n in names], 0.4, label="predicted")
+        ax.bar(idx + 0.2, [sensors[n]["mean_real"] for n in names], 0.4, label="real")
+        ax.set_xticks(idx, names, rotation=45, ha="right")
+        ax.set(ylabel="mean value", title="Post-evaluation: mean predicted and real value")
+        ax.legend()
+        fig.tight_layout()
+        fig.savefig(plots / "predictions.png", dpi=100)
+
+    poses = {robot: t["poses"] for robot, t in data.traces.items() if "poses" in t}
+    if poses:
+        fig = Figure(figsize=(6, 6))
+        ax = fig.add_subplot()
+        for robot, pose in poses.items():
+            ax.plot(pose[:, 0], pose[:, 1], linewidth=0.8, label=robot)
+            ax.plot(pose[-1, 0], pose[-1, 1], "o", markersize=3, color="black")
+        ax.set(xlabel="x", ylabel="y", title="Post-evaluation trajectories", aspect="equal")
+        ax.legend(fontsize="small")
+        fig.savefig(plots / "trajectories.png", dpi=100)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def status_text(path: str | Path) -> str:
+    """Where the run in ``path`` stands, in a few lines."""
+    run = RunDir(path)
+    config = run.load_config()
+    assert config.experiment is not None
+    planned = config.experiment.evolution.evaluations
+    checkpoint = run.read_checkpoint_data()
+    lines = [f"run {run.path.resolve().name} ({run.path})"]
+    if checkpoint is None:
+        lines.append(f"phase: not started, 0/{planned} evaluations")
+    else:
+        optimizer = checkpoint.get("optimizer", {})
+        best = optimizer.get("best_fitness")
+        lines.append(
+            f"phase: {checkpoint['phase']}, {optimizer.get('evaluations', 0)}/{planned} "
+            f"evaluations counted, {checkpoint.get('failed_attempts', 0)} failed attempts"
+        )
+        lines.append("best fitness: " + ("-" if best is None else f"{best:.4f}"))
+        rows = run.read_rows()[: checkpoint.get("csv_rows", 0)]
+        if rows:
+            last = rows[-1]
+            lines.append(
+                f"last evaluation: {last['evaluation']} {last['kind']}, fitness "
+                f"{float(last['fitness']):.4f}, accepted {last['accepted']}"
+            )
+        lines.append(f"served for {format_duration(float(checkpoint.get('elapsed_s', 0.0)))}")
+    live = run.read_json(LIVE)
+    fresh = (
+        isinstance(live, dict)
+        and live.get("running")
+        and time.time() - float(live.get("updated_at", 0)) < _STALE_PERIODS * LIVE_INTERVAL
+        and _alive(int(live.get("pid", -1)))
+    )
+    if fresh:
+        robots = live.get("robots", [])
+        lines.append(
+            f"master: running (pid {live['pid']}, {live['host']}:{live['port']}), "
+            f"robots connected {len(robots)}/{config.robot_count}: {', '.join(robots) or '-'}"
+        )
+        if live.get("time_left_s") is not None:
+            lines.append(f"time left: ~{format_duration(live['time_left_s'])}")
+    elif checkpoint is None or checkpoint.get("phase") != "done":
+        lines.append(f"master: not running; continue with `surprise-master resume {run.path}`")
+    else:
+        lines.append("master: not running; the run is complete")
+    post = run.read_json(POST_EVALUATION)
+    if post is not None:
+        fitness = post.get("swarm_fitness")
+        lines.append(
+            "post-evaluation: done, swarm fitness "
+            + ("-" if fitness is None else f"{fitness:.4f}")
+            + f", traces of {len(post.get('robots', {}))} robots"
+        )
+    return "\n".join(lines)

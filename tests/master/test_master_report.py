@@ -1,0 +1,141 @@
+"""Reports, status and the progress display."""
+
+from __future__ import annotations
+
+import asyncio
+import io
+import json
+import os
+import time
+
+import pytest
+from master_helpers import SECRET, close, experiment, make_robots, master_config, run_with
+
+from master_service import Master, Progress
+from master_service.cli import main
+from master_service.progress import ProgressDisplay, describe
+from master_service.report import compute_metrics, status_text, write_report
+
+
+@pytest.fixture
+async def finished_run(tmp_path):
+    """A finished run of 3 robots whose traces hold poses, as in simulation."""
+    run = tmp_path / "run"
+    async with Master(master_config(experiment(evaluations=8)), run, secret=SECRET) as master:
+        robots = make_robots(master.port, 3, poses=True)
+        await run_with(master, robots)
+        await close(robots)
+    return run
+
+
+def test_report_writes_metrics_and_plots(finished_run, capsys):
+    assert main(["report", str(finished_run)]) == 0
+    assert "best fitness" in capsys.readouterr().out
+    metrics = json.loads((finished_run / "metrics.json").read_text())
+    assert metrics["evaluations"] == metrics["evaluations_planned"] == 8
+    assert metrics["robots"] == ["r0", "r1", "r2"]
+    assert metrics["offspring"] + metrics["reevaluations"] == 7
+    assert metrics["attempts"] == 8 and metrics["failed_attempts"] == 0
+    assert set(metrics["robot_fitness"]) == {"r0", "r1", "r2"}
+    post = metrics["post_evaluation"]
+    assert post["steps"] == 4 and set(post["robots"]) == {"r0", "r1", "r2"}
+    # Scripted traces: robot i predicts 0.1 (i + 1) for every sensor; readings add 0.01 (t % 10)
+    # and 0.001 per sensor index. Predictions at t = 0..2 are scored against readings t = 1..3.
+    ir = post["sensors"]["ir.f0"]
+    assert ir["mean_predicted"] == pytest.approx(0.2)
+    assert ir["mean_real"] == pytest.approx(0.2 + 0.02)
+    assert post["sensors"]["ground.1"]["mean_real"] == pytest.approx(0.2 + 0.02 + 0.008)
+    assert post["robots"]["r0"]["safety_steps"] == 1  # the scripted trace stops every 5th step
+    behaviour = post["behaviour"]
+    # Robots drive 1 cm per step along parallel lines 5 cm apart: all within one cluster.
+    assert behaviour["mean_path_length"] == pytest.approx(0.03)
+    assert behaviour["mean_cluster_size"] == pytest.approx(3.0)
+    assert behaviour["mean_rotation"] == pytest.approx(0.1)
+    plots = {p.name for p in (finished_run / "plots").iterdir()}
+    assert plots == {
+        "best_fitness.png",
+        "robot_fitness.png",
+        "predictions.png",
+        "trajectories.png",
+    }
+    for name in plots:
+        assert (finished_run / "plots" / name).read_bytes()[:4] == b"\x89PNG"
+
+
+def test_status_of_a_finished_run(finished_run, capsys):
+    assert main(["status", str(finished_run)]) == 0
+    text = capsys.readouterr().out
+    assert "phase: done, 8/8 evaluations counted" in text
+    assert "the run is complete" in text and "post-evaluation: done" in text
+
+
+async def test_status_and_metrics_while_running(tmp_path):
+    run = tmp_path / "run"
+    async with Master(master_config(experiment(evaluations=5)), run, secret=SECRET) as master:
+        robots = make_robots(master.port, 2)
+        for robot in robots:
+            await robot.connect()
+        async with asyncio.timeout(5):
+            # live.json is refreshed by the master's own task within a fraction of a second.
+            while "robots connected 2/3" not in (text := status_text(run)):
+                await asyncio.sleep(0.02)
+        assert "phase: not started" in text
+        assert f"master: running (pid {os.getpid()}" in text
+        assert compute_metrics(run)["evaluations"] == 0
+        await close(robots)
+    assert "not running; continue with `surprise-master resume" in status_text(run)
+
+
+def test_report_of_a_run_without_rows(tmp_path):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.yaml").write_text("experiment: {}\n")
+    metrics = write_report(run)
+    assert metrics["evaluations"] == 0 and metrics["post_evaluation"] is None
+    assert list((run / "plots").iterdir()) == []
+
+
+def sample_progress(**overrides) -> Progress:
+    values = {
+        "run_id": "run",
+        "phase": "evolution",
+        "waiting": False,
+        "evaluations": 12,
+        "total": 350,
+        "best_fitness": 0.87654,
+        "last_fitness": 0.8,
+        "robots_connected": 3,
+        "robots_expected": 4,
+        "failed_attempts": 1,
+        "elapsed_s": 125.0,
+        "time_left_s": 3480.0,
+    }
+    values.update(overrides)
+    return Progress(**values)
+
+
+def test_describe_has_every_figure():
+    text = describe(sample_progress(waiting=True))
+    assert "waiting for robots" in text and "evaluations 12/350" in text
+    assert "best 0.8765" in text and "robots 3/4" in text and "left ~58m00s" in text
+
+
+def test_without_a_terminal_the_display_is_plain_log_lines():
+    stream = io.StringIO()
+    with ProgressDisplay(stream) as display:
+        assert not display.live
+        display.update(sample_progress())
+        import logging
+
+        logging.getLogger("master_service.run.x").info("evaluation 1/2")
+    assert stream.getvalue().rstrip().endswith("INFO evaluation 1/2")
+    assert "\x1b[" not in stream.getvalue()
+
+
+def test_the_live_panel_renders():
+    stream = io.StringIO()
+    with ProgressDisplay(stream, live=True) as display:
+        display.update(sample_progress(time_left_s=None, best_fitness=None))
+        display.update(sample_progress())
+        time.sleep(0)  # the panel refreshes on its own thread; stop() draws the last state
+    assert "evaluations" in stream.getvalue() and "12/350" in stream.getvalue()

@@ -1,0 +1,243 @@
+"""The robots' server: handshake, refusals, malformed input, replacement, keep-alive, TLS.
+
+After every refusal or broken connection a good robot must still be welcomed.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import shutil
+import ssl
+import struct
+import subprocess
+
+import pytest
+from master_helpers import SECRET, master_config
+
+from master_service import Master
+from master_service.config import TlsConfig
+from master_service.scripted import RobotRefusedError, ScriptedRobot
+from surprise.sensors import ALL_SENSORS, IR_SENSORS
+from surprise.wire import (
+    MAX_FRAME_SIZE,
+    PROTOCOL_VERSION,
+    REFUSED_BAD_SECRET,
+    REFUSED_MISSING_SENSORS,
+    REFUSED_PROTOCOL,
+    REFUSED_UNKNOWN_ROBOT,
+    REFUSED_VERSION_MISMATCH,
+    Authenticate,
+    FrameDecoder,
+    Hello,
+    MessageStream,
+    Ping,
+    Pong,
+    Refused,
+    Welcome,
+    compute_mac,
+    encode,
+)
+
+
+async def still_serving(master: Master, robot_id: str = "good") -> None:
+    """A well-behaved robot is welcomed, then leaves."""
+    robot = ScriptedRobot(robot_id, SECRET, master.port)
+    welcome = await robot.connect()
+    assert welcome.run_id == master.run_id
+    await robot.close()
+
+
+async def read_all(reader: asyncio.StreamReader, timeout: float = 3.0) -> list:
+    """Every message the master sends until it closes the connection."""
+    decoder = FrameDecoder()
+    messages = []
+    async with asyncio.timeout(timeout):
+        while data := await reader.read(65536):
+            messages += decoder.feed(data)
+    return messages
+
+
+async def test_a_robot_is_welcomed(tmp_path):
+    async with Master(master_config(), tmp_path / "run", secret=SECRET) as master:
+        robot = ScriptedRobot("r0", SECRET, master.port)
+        welcome = await robot.connect()
+        assert welcome.run_id == "run" and welcome.heartbeat_interval == 0.25
+        assert master.connected_robots == ["r0"]
+        await robot.close()
+    log = (tmp_path / "run" / "master.log").read_text()
+    assert "robot r0 joined" in log and "the robot said bye" in log
+
+
+@pytest.mark.parametrize(
+    "kwargs, config, code, words",
+    [
+        ({"secret": b"wrong"}, {}, REFUSED_BAD_SECRET, "does not match"),
+        ({"protocol_version": PROTOCOL_VERSION + 1}, {}, REFUSED_VERSION_MISMATCH, "version"),
+        ({}, {"allowed_robots": ["a", "b", "c"]}, REFUSED_UNKNOWN_ROBOT, "not among the allowed"),
+        ({"sensors": IR_SENSORS}, {}, REFUSED_MISSING_SENSORS, "ground.0, ground.1"),
+        ({"robot_id": "no spaces"}, {}, REFUSED_PROTOCOL, "robot id"),
+    ],
+)
+async def test_refusals_carry_a_code_and_reason(tmp_path, kwargs, config, code, words):
+    async with Master(master_config(**config), tmp_path / "run", secret=SECRET) as master:
+        args = {"robot_id": "r0", "secret": SECRET, **kwargs}
+        robot = ScriptedRobot(args.pop("robot_id"), args.pop("secret"), master.port, **args)
+        with pytest.raises(RobotRefusedError) as info:
+            await robot.connect()
+        assert info.value.code == code and words in info.value.reason
+        assert master.connected_robots == []
+        await still_serving(master, "a" if config else "good")
+    assert "refused robot" in (tmp_path / "run" / "master.log").read_text()
+
+
+async def test_version_mismatch_is_refused_before_the_challenge(tmp_path):
+    async with Master(master_config(), tmp_path / "run", secret=SECRET) as master:
+        reader, writer = await asyncio.open_connection("127.0.0.1", master.port)
+        hello = Hello(robot_id="r0", software_version="x", protocol_version=99, sensors=())
+        writer.write(encode(hello))
+        messages = await read_all(reader)
+        writer.close()
+        assert len(messages) == 1 and isinstance(messages[0], Refused)
+        assert messages[0].code == REFUSED_VERSION_MISMATCH
+
+
+async def test_a_complete_swarm_refuses_a_further_robot(tmp_path):
+    async with Master(master_config(), tmp_path / "run", secret=SECRET) as master:
+        robots = [ScriptedRobot(f"r{i}", SECRET, master.port) for i in range(3)]
+        for robot in robots:
+            await robot.connect()
+        with pytest.raises(RobotRefusedError, match="complete") as info:
+            await ScriptedRobot("r9", SECRET, master.port).connect()
+        assert info.value.code == REFUSED_UNKNOWN_ROBOT
+        # A robot of the swarm may always come back (it replaces its stale session).
+        await ScriptedRobot("r1", SECRET, master.port).connect()
+        await robots[1].closed.wait()
+        assert master.connected_robots == ["r0", "r1", "r2"]
+
+
+@pytest.mark.parametrize(
+    "data, words",
+    [
+        pytest.param(b"GET / HTTP/1.1\r\nHost: x\r\n\r\n", "exceeds the limit", id="http"),
+        pytest.param(b"\x00\x00\x00\x05\xc1\xc1\xc1\xc1\xc1", "malformed", id="garbage"),
+        pytest.param(struct.pack(">I", MAX_FRAME_SIZE + 1), "exceeds the limit", id="oversized"),
+        pytest.param(b"\x00\x00\x00\x00", "empty frame", id="empty"),
+        pytest.param(encode(Ping(seq=1)), "expected hello", id="ping-first"),
+    ],
+)
+async def test_malformed_handshakes_are_refused_and_closed(tmp_path, data, words):
+    async with Master(master_config(), tmp_path / "run", secret=SECRET) as master:
+        reader, writer = await asyncio.open_connection("127.0.0.1", master.port)
+        writer.write(data)
+        messages = await read_all(reader)
+        writer.close()
+        assert len(messages) == 1 and messages[0].code == REFUSED_PROTOCOL
+        assert words in messages[0].reason
+        await still_serving(master)
+
+
+async def test_a_silent_peer_is_closed_after_the_handshake_timeout(tmp_path):
+    config = master_config(handshake_timeout=0.2)
+    async with Master(config, tmp_path / "run", secret=SECRET) as master:
+        reader, writer = await asyncio.open_connection("127.0.0.1", master.port)
+        messages = await read_all(reader, timeout=2.0)
+        writer.close()
+        assert messages[0].code == REFUSED_PROTOCOL and "handshake" in messages[0].reason
+        await still_serving(master)
+
+
+async def test_a_peer_that_vanishes_mid_frame_leaves_the_master_serving(tmp_path):
+    async with Master(master_config(), tmp_path / "run", secret=SECRET) as master:
+        _, writer = await asyncio.open_connection("127.0.0.1", master.port)
+        hello = Hello(robot_id="r0", software_version="x", protocol_version=1, sensors=())
+        writer.write(encode(hello)[:7])
+        await writer.drain()
+        writer.transport.abort()
+        await still_serving(master)
+
+
+async def test_a_second_connection_replaces_the_stale_one(tmp_path):
+    async with Master(master_config(), tmp_path / "run", secret=SECRET) as master:
+        stale = ScriptedRobot("r0", SECRET, master.port)
+        await stale.connect()
+        fresh = ScriptedRobot("r0", SECRET, master.port)
+        await fresh.connect()
+        await asyncio.wait_for(stale.closed.wait(), 2)
+        assert master.connected_robots == ["r0"]
+        assert master.server.sessions["r0"].robot_id == "r0"
+        assert not fresh.closed.is_set()
+        await fresh.close()
+    assert "replaced by a new connection" in (tmp_path / "run" / "master.log").read_text()
+
+
+async def test_keep_alive_drops_a_dead_link_and_keeps_a_live_one(tmp_path):
+    # heartbeat 0.1 s: a silent robot is dead after 0.3 s, noticed within 0.4 s.
+    async with Master(master_config(heartbeat_interval=0.1), tmp_path / "run", secret=SECRET) as m:
+        live = ScriptedRobot("r0", SECRET, m.port)
+        dead = ScriptedRobot("r1", SECRET, m.port, answer_pings=False)
+        await live.connect()
+        await dead.connect()
+        await asyncio.wait_for(dead.closed.wait(), 3)
+        assert m.connected_robots == ["r0"]
+        await live.close()
+    assert "link dead: no message for" in (tmp_path / "run" / "master.log").read_text()
+
+
+async def test_the_master_answers_a_robots_ping(tmp_path):
+    async with Master(master_config(), tmp_path / "run", secret=SECRET) as master:
+        reader, writer = await asyncio.open_connection("127.0.0.1", master.port)
+        stream = MessageStream(reader, writer)
+        await stream.send(
+            Hello(robot_id="r0", software_version="x", protocol_version=1, sensors=ALL_SENSORS)
+        )
+        challenge = await stream.receive()
+        await stream.send(Authenticate(mac=compute_mac(SECRET, challenge.nonce, "r0")))
+        assert isinstance(await stream.receive(), Welcome)
+        await stream.send(Ping(seq=41))
+        async with asyncio.timeout(2):
+            # The master's own pings may come first.
+            while not isinstance(msg := await stream.receive(), Pong):
+                assert isinstance(msg, Ping)
+        assert msg.seq == 41
+        await stream.close()
+
+
+def _make_certificate(directory) -> tuple[str, str]:
+    cert, key = directory / "cert.pem", directory / "key.pem"
+    subprocess.run(
+        [
+            "openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1",
+            "-subj", "/CN=localhost", "-addext", "subjectAltName=IP:127.0.0.1",
+            "-keyout", str(key), "-out", str(cert),
+        ],
+        check=True,
+        capture_output=True,
+    )  # fmt: skip
+    return str(cert), str(key)
+
+
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl command")
+async def test_tls(tmp_path):
+    cert, key = _make_certificate(tmp_path)
+    config = master_config(tls=TlsConfig(cert_file=cert, key_file=key))
+    async with Master(config, tmp_path / "run", secret=SECRET) as master:
+        client = ssl.create_default_context(cafile=cert)
+        robot = ScriptedRobot("r0", SECRET, master.port, ssl_context=client)
+        assert (await robot.connect()).run_id == "run"
+        # A plain-TCP robot gets nowhere, and the master carries on.
+        plain = ScriptedRobot("r1", SECRET, master.port)
+        with pytest.raises((ConnectionError, OSError, asyncio.IncompleteReadError)):
+            await asyncio.wait_for(plain.connect(), 3)
+        await robot.close()
+        again = ScriptedRobot("r2", SECRET, master.port, ssl_context=client)
+        await again.connect()
+        await again.close()
+
+
+async def test_sessions_of_a_closing_master_get_a_bye(tmp_path):
+    master = Master(master_config(), tmp_path / "run", secret=SECRET)
+    await master.start()
+    robot = ScriptedRobot("r0", SECRET, master.port)
+    await robot.connect()
+    await master.close()
+    await asyncio.wait_for(robot.closed.wait(), 2)
