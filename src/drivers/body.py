@@ -5,7 +5,7 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from types import TracebackType
-from typing import Self
+from typing import ClassVar, Self
 
 import numpy as np
 
@@ -29,6 +29,10 @@ class Body(ABC):
     exit path. ``drive`` takes normalised wheel speeds in [-1, 1] (values outside are clamped; the
     body maps 1 to its calibrated maximum speed).
     """
+
+    #: False for a body whose ``read``, ``drive`` and ``stop`` never wait for I/O (a simulated
+    #: body computes its answer at once): the control loop then needs no timeout around them.
+    blocking: ClassVar[bool] = True
 
     @property
     @abstractmethod

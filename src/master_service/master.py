@@ -34,7 +34,7 @@ import logging
 import os
 import statistics
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Final
@@ -117,9 +117,11 @@ class Master:
 
     ``secret`` is the shared secret's bytes (see :func:`master_service.config.load_secret`).
     ``on_progress`` (also :meth:`add_progress_listener`) is called with a :class:`Progress` on
-    every change. Construction validates and touches no file; :meth:`start` (or ``async with``)
-    binds the port and creates or opens the run directory; :meth:`run` evolves and
-    post-evaluates; :meth:`close` says Bye to the robots and closes everything.
+    every change. ``before_post_evaluation`` is awaited before each attempt of the
+    post-evaluation, while every robot is idle. Construction validates and touches no file;
+    :meth:`start` (or ``async with``) binds the port and creates or opens the run directory;
+    :meth:`run` evolves and post-evaluates; :meth:`close` says Bye to the robots and closes
+    everything.
     """
 
     def __init__(
@@ -130,6 +132,7 @@ class Master:
         secret: bytes,
         resume: bool = False,
         on_progress: Callable[[Progress], None] | None = None,
+        before_post_evaluation: Callable[[], Awaitable[None]] | None = None,
     ) -> None:
         if config.experiment is None:
             raise ConfigError(
@@ -144,6 +147,7 @@ class Master:
         self.run_dir = RunDir(run_dir)
         self.run_id = self.run_dir.path.resolve().name
         self.resume = resume
+        self._before_post_evaluation = before_post_evaluation
         self._ssl = build_ssl_context(config.tls) if config.tls is not None else None
         self._listeners: list[Callable[[Progress], None]] = []
         if on_progress is not None:
@@ -404,6 +408,9 @@ class Master:
             evaluation_id = self._reserve_attempt()
             await self._commit(None)
             robots = await self._wait_for_swarm()
+            if self._before_post_evaluation is not None:
+                # The simulator resets its arena here, as the paper does before this run.
+                await self._before_post_evaluation()
             attempt = await self.rounds.run(
                 evaluation_id=evaluation_id,
                 genome=opt.best,

@@ -5,12 +5,10 @@ Plots (``plots/``): ``best_fitness.png`` (best and swarm fitness over evaluation
 post-evaluation: mean predicted against mean real value per sensor) and, when the traces hold poses
 (simulation), ``trajectories.png``.
 
-Behaviour metrics from the post-evaluation traces (REFERENCE section 7), when poses are present:
-``path_length`` per robot over the whole trace (the unit of the poses), ``rotation`` = accumulated
-absolute heading change (rad) and the mean cluster size (robots / clusters, robots closer than
-``CLUSTER_DISTANCE`` being in one cluster), both over the second half of the trace as the paper
-measures the last half of its runs. The paper's thresholds (stopped, circling; grouped) were set for
-its 10,000-step Webots runs, so the labels are left to the reader.
+Behaviour metrics from the post-evaluation traces, when they hold poses (simulation): the paper's
+d_R, c_o, mean cluster size and their classes, computed by :mod:`sim_stub.metrics` (REFERENCE
+section 7), with the box displacement d_B when the run directory holds ``simulation.json`` (written
+by ``surprise-master sim``). Per robot: its path length and its rotation.
 """
 
 from __future__ import annotations
@@ -22,6 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Final
 
+import msgspec
 import numpy as np
 
 from master_service.master import LIVE_INTERVAL, format_duration
@@ -33,12 +32,14 @@ from master_service.rundir import (
     RunDir,
     write_atomic,
 )
+from sim_stub import metrics as sim_metrics
 from surprise.config import ExperimentConfig
 
-__all__ = ["CLUSTER_DISTANCE", "compute_metrics", "status_text", "write_report"]
+__all__ = ["SIMULATION_FILE", "compute_metrics", "status_text", "write_report"]
 
-#: Two robot radii (REFERENCE section 7: about 15.75 cm), in metres, the unit of simulated poses.
-CLUSTER_DISTANCE: Final = 0.1575
+#: Written by ``surprise-master sim``: the boxes before and after the post-evaluation.
+SIMULATION_FILE: Final = "simulation.json"
+
 #: A live.json older than this many refresh periods means the master is gone.
 _STALE_PERIODS: Final = 5
 
@@ -76,29 +77,11 @@ def _traces(run: RunDir, post: dict[str, Any] | None) -> dict[str, dict[str, np.
     return traces
 
 
-def _wrap(angle: np.ndarray) -> np.ndarray:
-    return (angle + np.pi) % (2 * np.pi) - np.pi
-
-
-def _clusters(points: np.ndarray, distance: float) -> int:
-    """Number of single-linkage clusters of ``points`` (n, 2) at ``distance``."""
-    n = len(points)
-    parent = list(range(n))
-
-    def find(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    close = np.linalg.norm(points[:, None, :] - points[None, :, :], axis=-1) < distance
-    for i, j in zip(*np.nonzero(np.triu(close, 1)), strict=True):
-        parent[find(int(i))] = find(int(j))
-    return len({find(i) for i in range(n)})
-
-
 def _post_metrics(
-    post: dict[str, Any], traces: dict[str, dict[str, np.ndarray]], sensors: list[str]
+    post: dict[str, Any],
+    traces: dict[str, dict[str, np.ndarray]],
+    sensors: list[str],
+    simulation: dict[str, Any] | None,
 ) -> dict[str, Any]:
     robots: dict[str, Any] = {}
     predicted: list[np.ndarray] = []
@@ -116,12 +99,10 @@ def _post_metrics(
                 predicted.append(trace["predictions"][:-1])
                 real.append(trace["sensors"][1:])
             if "poses" in trace and steps >= 2:
-                pose = trace["poses"]
-                poses[robot] = pose
-                half = pose[steps // 2 :]
-                steps_xy = np.diff(pose[:, :2], axis=0)
-                info["path_length"] = float(np.linalg.norm(steps_xy, axis=1).sum())
-                info["rotation"] = float(np.abs(_wrap(np.diff(half[:, 2]))).sum())
+                poses[robot] = trace["poses"]
+                one = trace["poses"][:, None, :]  # the metrics take (T, N, 3)
+                info["path_length"] = sim_metrics.distance_covered(one)
+                info["rotation"] = sim_metrics.rotation(one, sim_metrics.default_window(one))
         robots[robot] = info
     metrics: dict[str, Any] = {
         "steps": post.get("steps"),
@@ -142,16 +123,11 @@ def _post_metrics(
             if i < p.shape[1]
         }
     if poses:
-        behaviour: dict[str, Any] = {
-            "mean_path_length": float(np.mean([robots[r]["path_length"] for r in poses])),
-            "mean_rotation": float(np.mean([robots[r]["rotation"] for r in poses])),
-        }
         steps = min(len(p) for p in poses.values())
-        if len(poses) > 1 and steps:
-            stacked = np.stack([p[:steps, :2] for p in poses.values()], axis=1)
-            sizes = [len(poses) / _clusters(xy, CLUSTER_DISTANCE) for xy in stacked[steps // 2 :]]
-            behaviour["mean_cluster_size"] = float(np.mean(sizes))
-        metrics["behaviour"] = behaviour
+        stacked = np.stack([p[:steps] for p in poses.values()], axis=1)
+        boxes = (simulation or {}).get("post_evaluation_boxes") or {}
+        behaviour = sim_metrics.behaviour_metrics(stacked, boxes.get("start"), boxes.get("end"))
+        metrics["behaviour"] = msgspec.to_builtins(behaviour)
     return metrics
 
 
@@ -166,6 +142,7 @@ class _Run:
     robots: list[str]
     post: dict[str, Any] | None
     traces: dict[str, dict[str, np.ndarray]]
+    simulation: dict[str, Any] | None
 
 
 def _load(path: str | Path) -> _Run:
@@ -178,7 +155,10 @@ def _load(path: str | Path) -> _Run:
     if "csv_rows" in checkpoint:
         rows = rows[: checkpoint["csv_rows"]]
     post = run.read_json(POST_EVALUATION)
-    return _Run(run, config.experiment, checkpoint, rows, robots, post, _traces(run, post))
+    simulation = run.read_json(SIMULATION_FILE)
+    return _Run(
+        run, config.experiment, checkpoint, rows, robots, post, _traces(run, post), simulation
+    )
 
 
 def compute_metrics(path: str | Path) -> dict[str, Any]:
@@ -219,7 +199,7 @@ def _metrics(data: _Run) -> dict[str, Any]:
     metrics["post_evaluation"] = (
         None
         if data.post is None
-        else _post_metrics(data.post, data.traces, list(data.experiment.sensors))
+        else _post_metrics(data.post, data.traces, list(data.experiment.sensors), data.simulation)
     )
     return metrics
 

@@ -184,6 +184,8 @@ class ControlLoop:
         body, clock, layer, watchdog = self.body, self.clock, self.layer, self.watchdog
         read_timeout, drive_timeout = self.read_timeout, self.drive_timeout
         has_pose = self._has_pose
+        # A timeout costs a timer per call; a body that never waits for I/O cannot hang.
+        blocking = body.blocking
         score = SurpriseScore()
         sensors = np.empty(network.layout.sensors) if index is not None else None
         interventions: dict[str, int] = {}
@@ -207,7 +209,10 @@ class ControlLoop:
             # --- read s(t), bounded
             error: str | None = None
             try:
-                async with asyncio.timeout(read_timeout):
+                if blocking:
+                    async with asyncio.timeout(read_timeout):
+                        frame = await body.read()
+                else:
                     frame = await body.read()
                 values = frame.values
                 if index is not None:
@@ -267,11 +272,14 @@ class ControlLoop:
             if watchdog is not None and watchdog.tripped:
                 failure = f"watchdog: {watchdog.tripped_reason}"
                 break
-            try:
-                async with asyncio.timeout(drive_timeout):
-                    await body.drive(command[0], command[1])
-            except TimeoutError:
-                raise HardwareTimeoutError("drive", drive_timeout) from None
+            if blocking:
+                try:
+                    async with asyncio.timeout(drive_timeout):
+                        await body.drive(command[0], command[1])
+                except TimeoutError:
+                    raise HardwareTimeoutError("drive", drive_timeout) from None
+            else:
+                await body.drive(command[0], command[1])
             if watchdog is not None:
                 watchdog.feed()
             # --- sleep to the next absolute deadline

@@ -267,6 +267,9 @@ class SimSwarm:
 class SimBody(Body):
     """Robot ``index`` of a :class:`SimSwarm`, behind the drivers' ``Body`` interface."""
 
+    #: read, drive and stop compute their answer at once (no I/O): no timeouts needed.
+    blocking = False
+
     def __init__(self, swarm: SimSwarm, index: int, sensors: Sequence[str] | None = None) -> None:
         self._swarm = swarm
         self._index = index

@@ -64,8 +64,8 @@ def decode(data: Any, type_: type[T], *, file: str | Path | None = None) -> T:
         raise ConfigError(reason, file=str(file) if file else None, key=path or None) from None
 
 
-def load_yaml(path: str | Path, type_: type[T]) -> T:
-    """Read a YAML file and decode it into ``type_``; every failure is a :class:`ConfigError`."""
+def read_yaml(path: str | Path) -> dict[str, Any]:
+    """The top-level mapping of a YAML file (empty for an empty file), or :class:`ConfigError`."""
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
@@ -77,7 +77,12 @@ def load_yaml(path: str | Path, type_: type[T]) -> T:
         raise ConfigError(f"not valid YAML: {exc}", file=str(path)) from None
     if data is not None and not isinstance(data, dict):
         raise ConfigError("expected a mapping of keys at the top level", file=str(path))
-    return decode(data, type_, file=path)
+    return data or {}
+
+
+def load_yaml(path: str | Path, type_: type[T]) -> T:
+    """Read a YAML file and decode it into ``type_``; every failure is a :class:`ConfigError`."""
+    return decode(read_yaml(path), type_, file=path)
 
 
 def to_builtins(config: msgspec.Struct) -> dict[str, Any]:

@@ -47,10 +47,13 @@ def test_report_writes_metrics_and_plots(finished_run, capsys):
     assert post["sensors"]["ground.1"]["mean_real"] == pytest.approx(0.2 + 0.02 + 0.008)
     assert post["robots"]["r0"]["safety_steps"] == 1  # the scripted trace stops every 5th step
     behaviour = post["behaviour"]
-    # Robots drive 1 cm per step along parallel lines 5 cm apart: all within one cluster.
-    assert behaviour["mean_path_length"] == pytest.approx(0.03)
+    # Robots drive 1 cm and turn 0.1 rad per step, 11 cm apart: all within one cluster. Rotation
+    # covers the second half of the 3 steps (2 steps), as the paper measures the end of a run.
+    assert behaviour["distance_covered"] == pytest.approx(0.03)
     assert behaviour["mean_cluster_size"] == pytest.approx(3.0)
-    assert behaviour["mean_rotation"] == pytest.approx(0.1)
+    assert behaviour["rotation"] == pytest.approx(0.2)
+    assert behaviour["motion"] == "stopped" and behaviour["grouping"] == "grouped"
+    assert behaviour["box_displacement"] is None and post["robots"]["r0"]["path_length"] == 0.03
     plots = {p.name for p in (finished_run / "plots").iterdir()}
     assert plots == {
         "best_fitness.png",

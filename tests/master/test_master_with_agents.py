@@ -58,5 +58,5 @@ async def test_a_simulated_swarm_of_agents_completes_a_run(tmp_path):
     post = json.loads((run / "post_evaluation.json").read_text())
     assert post["steps"] == 20 and len(post["robots"]) == ROBOTS
     metrics = write_report(run)
-    assert metrics["post_evaluation"]["behaviour"]["mean_path_length"] >= 0.0
+    assert metrics["post_evaluation"]["behaviour"]["distance_covered"] >= 0.0
     assert (run / "plots" / "trajectories.png").exists()

@@ -1,0 +1,222 @@
+"""``surprise-master sim``: the whole system on one machine, on a simulated swarm.
+
+The master and N real agents (:class:`robot_agent.agent.Agent`, the code that runs on a robot's Pi)
+run in one event loop and talk over loopback TCP exactly as in a lab; the agents drive simulated
+Thymios (:mod:`sim_stub`) that share one world. In lockstep (the default) the world advances one
+step once every robot has sent its command, so a run goes as fast as the CPU allows and repeats
+exactly for a seed; ``realtime`` paces the world at 10 Hz of wall-clock time instead.
+
+Before the post-evaluation the arena is reset (new random start poses, or the centre, and freshly
+scattered boxes), as the paper does; the boxes' positions before and after it are kept in
+``simulation.json`` so that the report can measure the box displacement d_B.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import random
+import secrets
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from master_service.config import MasterConfig
+from master_service.master import Master, Progress, RunSummary
+from master_service.report import SIMULATION_FILE
+from master_service.rundir import write_atomic
+from robot_agent.agent import Agent
+from robot_agent.config import AgentConfig, BackoffConfig
+from robot_agent.config import MasterConfig as AgentMasterConfig
+from robot_agent.safety import SafetyConfig
+from sim_stub.body import SimSwarm
+from sim_stub.scenarios import SCENARIOS, WorldConfig, scenario_config
+from sim_stub.world import World
+from surprise.config import ExperimentConfig, decode, read_yaml
+from surprise.errors import ConfigError
+
+__all__ = [
+    "SAFETY_PROFILES",
+    "SIMULATION_FILE",
+    "SimulatedSwarm",
+    "robot_ids",
+    "simulation_experiment",
+]
+
+#: Basic behaviours stop at obstacles; object manipulation escapes (REFERENCE section 3).
+SAFETY_PROFILES = {"basic": "stop", "boxes": "escape", "gradient": "escape"}
+#: In-process agents reconnect at once: the master is on the same machine and never far away.
+_RECONNECT = BackoffConfig(initial=0.05, max=0.5, jitter=0.5)
+
+
+def robot_ids(count: int) -> list[str]:
+    """The simulated robots' ids: ``sim-0`` .. ``sim-<count-1>``."""
+    return [f"sim-{i}" for i in range(count)]
+
+
+def simulation_experiment(
+    scenario: str | None = None,
+    *,
+    config_file: str | Path | None = None,
+    robots: int | None = None,
+    evaluations: int | None = None,
+    seed: int | None = None,
+) -> ExperimentConfig:
+    """The experiment of a simulated run.
+
+    Layers, each overriding the one before: the scenario's robots and sensors (the world's own
+    defaults; the rest from :class:`~surprise.config.ExperimentConfig`, i.e. the paper's
+    simulation parameters), the experiment file ``config_file``, then the arguments given. A bad
+    file or value raises :class:`ConfigError` naming the file and key.
+    """
+    data: dict[str, Any] = {} if config_file is None else read_yaml(config_file)
+    if scenario is not None:
+        data["scenario"] = scenario
+    name = data.get("scenario", "basic")
+    world = scenario_config(name, data.get("simulation"), file=config_file)
+    data.setdefault("robots", world.robots)
+    data.setdefault("sensors", list(world.sensors))
+    for key, value in (("robots", robots), ("seed", seed)):
+        if value is not None:
+            data[key] = value
+    if evaluations is not None:
+        data["evolution"] = {**data.get("evolution", {}), "evaluations": evaluations}
+    experiment = decode(data, ExperimentConfig, file=config_file)
+    missing = [s for s in experiment.sensors if s not in world.sensors]
+    if missing:
+        raise ConfigError(
+            f"the {name} scenario's robots do not carry {', '.join(missing)} "
+            f"(they carry {', '.join(world.sensors)})",
+            file=str(config_file) if config_file else None,
+            key="sensors",
+        )
+    return experiment
+
+
+def world_config(experiment: ExperimentConfig) -> WorldConfig:
+    """The world an experiment runs in: its scenario with its ``simulation`` overrides."""
+    return scenario_config(
+        experiment.scenario, {**experiment.simulation, "robots": experiment.robots}
+    )
+
+
+@dataclass(frozen=True)
+class SimulatedRun:
+    """What a simulated run leaves: the master's summary and the report's metrics."""
+
+    summary: RunSummary
+    metrics: dict[str, Any]
+
+
+class SimulatedSwarm:
+    """A master and ``experiment.robots`` agents on simulated Thymios in one shared world.
+
+    ``await run(run_dir)`` evolves, post-evaluates and writes the report; ``on_progress`` sees the
+    master's progress.
+    """
+
+    def __init__(
+        self,
+        experiment: ExperimentConfig,
+        *,
+        realtime: bool = False,
+        on_progress: Callable[[Progress], None] | None = None,
+    ) -> None:
+        self.experiment = experiment
+        self.realtime = realtime
+        self.on_progress = on_progress
+        self.world = World(world_config(experiment), seed=experiment.seed)
+        self.ids = robot_ids(experiment.robots)
+        # Nobody outside this process talks to this master: a fresh random secret per run.
+        self._secret = secrets.token_bytes(32)
+        self._boxes_before: list[list[float]] | None = None
+
+    def master_config(self) -> MasterConfig:
+        """The master's configuration: loopback, any free port, only the simulated robots."""
+        return MasterConfig(
+            experiment=self.experiment,
+            host="127.0.0.1",
+            port=0,
+            allowed_robots=self.ids,
+        )
+
+    def agent_config(self, robot_id: str, port: int) -> AgentConfig:
+        """One in-process agent's configuration (the secret is handed over directly)."""
+        profile = SAFETY_PROFILES.get(self.experiment.scenario, "stop")
+        return AgentConfig(
+            robot_id=robot_id,
+            master=AgentMasterConfig(host="127.0.0.1", port=port, secret_file="(in-process)"),
+            safety=SafetyConfig(profile=profile),
+            reconnect=_RECONNECT,
+        )
+
+    async def _reset_arena(self) -> None:
+        # Every robot is idle between two rounds, so nobody is inside a step of the world.
+        self.world.reset(seed=self.experiment.seed + 1)
+        self._boxes_before = self.world.box_positions.tolist()
+
+    async def run(self, run_dir: str | Path) -> SimulatedRun:
+        """Run the experiment into ``run_dir`` (created; must not hold another run)."""
+        from master_service.report import write_report  # matplotlib: only when reporting
+
+        run_dir = Path(run_dir)
+        swarm = SimSwarm(self.world, realtime=self.realtime, attach_all=True)
+        master = Master(
+            self.master_config(),
+            run_dir,
+            secret=self._secret,
+            on_progress=self.on_progress,
+            before_post_evaluation=self._reset_arena,
+        )
+        async with contextlib.AsyncExitStack() as stack:
+            await stack.enter_async_context(master)
+            if self.realtime:
+                await stack.enter_async_context(swarm)
+            agents = []
+            for index, robot_id in enumerate(self.ids):
+                body = await stack.enter_async_context(swarm.body(index))
+                agent = Agent(
+                    self.agent_config(robot_id, master.port),
+                    body,
+                    body.clock,
+                    self._secret,
+                    rng=random.Random(self.experiment.seed * 1000 + index),
+                )
+                agents.append(await stack.enter_async_context(agent))
+            tasks = [asyncio.create_task(a.run(), name=f"agent-{i}") for i, a in enumerate(agents)]
+            try:
+                summary = await master.run()
+            finally:
+                for task in tasks:
+                    task.cancel()
+                await asyncio.gather(*tasks, return_exceptions=True)
+        self._write_simulation_file(run_dir)
+        metrics = await asyncio.to_thread(write_report, run_dir)
+        return SimulatedRun(summary, metrics)
+
+    def _write_simulation_file(self, run_dir: Path) -> None:
+        data: dict[str, Any] = {
+            "scenario": self.experiment.scenario,
+            "world": {
+                "arena_side": self.world.config.arena_side,
+                "robots": self.world.config.robots,
+                "boxes": len(self.world.box_positions),
+            },
+        }
+        if self._boxes_before is not None and len(self.world.box_positions):
+            data["post_evaluation_boxes"] = {
+                "start": self._boxes_before,
+                "end": self.world.box_positions.tolist(),
+            }
+        write_atomic(run_dir / SIMULATION_FILE, json.dumps(data).encode("utf-8"))
+
+
+def quiet_agents() -> None:
+    """In-process agents log their connections at INFO: keep them out of the progress display."""
+    logging.getLogger("robot_agent").setLevel(logging.WARNING)
+
+
+__all__ += ["SCENARIOS", "SimulatedRun", "quiet_agents", "world_config"]
