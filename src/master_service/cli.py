@@ -6,6 +6,12 @@ Subcommands::
     surprise-master resume DIR                      continue a run from its checkpoint
     surprise-master report DIR                      write metrics.json and plots/
     surprise-master status DIR                      where a run stands
+    surprise-master sim [--scenario S] [--robots N] [--evaluations N] [--seed S] [--out DIR]
+                        [--realtime] [--config FILE]
+                                                    a whole experiment on a simulated swarm
+    surprise-master baseline --scenario S --random N [--out DIR] [--seed S] [--config FILE]
+                                                    random network pairs in the same arena
+    surprise-master report DIR --baseline BASE      ... and evolved against random
 
 Exit status: 0 done; 1 the run stopped on an error (a busy port, a full disk); 2 bad configuration
 or run directory (one message naming the file and key; nothing was started); 128 + N stopped by
@@ -55,10 +61,47 @@ def _parser() -> argparse.ArgumentParser:
     report.add_argument("dir", type=Path, metavar="DIR", help="the run directory")
     report.set_defaults(handler=_report)
 
+    report.add_argument(
+        "--baseline",
+        type=Path,
+        metavar="BASE",
+        help="a `surprise-master baseline` directory: compare evolved against random pairs",
+    )
+
+    sim = sub.add_parser("sim", help="run an experiment on a simulated swarm (no robots needed)")
+    _experiment_options(sim)
+    sim.add_argument("--evaluations", type=int, help="evaluations to count (default: 1000)")
+    sim.add_argument("--out", type=Path, help="run directory (default: runs/<time>-sim-<scenario>)")
+    sim.add_argument("--realtime", action="store_true", help="pace the world at 10 Hz")
+    sim.set_defaults(handler=_sim)
+
+    baseline = sub.add_parser("baseline", help="evaluate random network pairs in an arena")
+    _experiment_options(baseline)
+    baseline.add_argument(
+        "--random", type=int, required=True, metavar="N", help="number of random pairs"
+    )
+    baseline.add_argument(
+        "--out", type=Path, help="output directory (default: runs/<time>-baseline-<scenario>)"
+    )
+    baseline.set_defaults(handler=_baseline)
+
     status = sub.add_parser("status", help="show where a run stands")
     status.add_argument("dir", type=Path, metavar="DIR", help="the run directory")
     status.set_defaults(handler=_status)
     return parser
+
+
+def _experiment_options(parser: argparse.ArgumentParser) -> None:
+    from sim_stub.scenarios import SCENARIOS
+
+    parser.add_argument(
+        "--scenario", choices=SCENARIOS, help="arena and robots (default: basic, or the file's)"
+    )
+    parser.add_argument("--robots", type=int, help="number of robots (default: the scenario's)")
+    parser.add_argument("--seed", type=int, help="seed of every random draw (default: 0)")
+    parser.add_argument(
+        "--config", type=Path, help="an experiment file (YAML) overriding the scenario's defaults"
+    )
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -159,16 +202,85 @@ async def _serve_async(master: Master) -> int:
     return 0
 
 
+def _sim_experiment(args: argparse.Namespace, evaluations: int | None = None):
+    from master_service.simulate import simulation_experiment
+
+    for name in ("robots", "evaluations", "random"):
+        value = getattr(args, name, None)
+        if value is not None and value < 1:
+            raise ConfigError(f"expected a positive number, got {value}", key=f"--{name}")
+    return simulation_experiment(
+        args.scenario,
+        config_file=args.config,
+        robots=args.robots,
+        evaluations=evaluations,
+        seed=args.seed,
+    )
+
+
+def _default_out(kind: str, scenario: str) -> Path:
+    return Path("runs") / f"{time.strftime('%Y%m%d-%H%M%S')}-{kind}-{scenario}"
+
+
+def _sim(args: argparse.Namespace) -> int:
+    from master_service.simulate import SimulatedSwarm, quiet_agents, summary_text
+
+    experiment = _sim_experiment(args, args.evaluations)
+    out = args.out or _default_out("sim", experiment.scenario)
+    RunDir(out).check_new()
+    level = logging.DEBUG if args.verbose else logging.INFO
+    quiet_agents()
+    with ProgressDisplay(level=level) as display:
+        swarm = SimulatedSwarm(experiment, realtime=args.realtime, on_progress=display.update)
+        print(
+            f"simulating {experiment.scenario}: {experiment.robots} robots, "
+            f"{experiment.evolution.evaluations} evaluations of {experiment.evaluation_steps} "
+            f"steps, seed {experiment.seed}{', real time' if args.realtime else ', lockstep'}"
+        )
+        started = time.perf_counter()
+        result = asyncio.run(swarm.run(out))
+    print(summary_text(result.metrics, out, time.perf_counter() - started))
+    return 0
+
+
+def _baseline(args: argparse.Namespace) -> int:
+    from master_service.baseline import run_baseline
+
+    experiment = _sim_experiment(args)
+    out = args.out or _default_out("baseline", experiment.scenario)
+    steps = max(experiment.post_evaluation_steps, experiment.evaluation_steps)
+    print(
+        f"evaluating {args.random} random pairs in the {experiment.scenario} arena "
+        f"({experiment.robots} robots, {steps} steps each)"
+    )
+    data = asyncio.run(run_baseline(experiment, args.random, out))
+    print(
+        f"wrote {Path(out) / 'baseline.json'}: median fitness of {args.random} random pairs "
+        f"{data['median_fitness']:.4f}"
+    )
+    return 0
+
+
 def _report(args: argparse.Namespace) -> int:
     from master_service.report import write_report
 
-    metrics = write_report(args.dir)
+    metrics = write_report(args.dir, baseline=args.baseline)
     best = metrics.get("best_fitness")
     print(
         f"wrote {Path(args.dir) / 'metrics.json'} and plots in {Path(args.dir) / 'plots'}: "
         f"{metrics['evaluations']} evaluations, best fitness "
         + ("-" if best is None else f"{best:.4f}")
     )
+    comparison = metrics.get("baseline")
+    if comparison:
+        evolved, random_median = (
+            comparison["evolved_best_fitness"],
+            comparison["random_median_fitness"],
+        )
+        print(
+            f"evolved best fitness {evolved:.4f} against the median {random_median:.4f} "
+            f"of {comparison['random_pairs']} random pairs"
+        )
     return 0
 
 

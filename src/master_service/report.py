@@ -34,6 +34,7 @@ from master_service.rundir import (
 )
 from sim_stub import metrics as sim_metrics
 from surprise.config import ExperimentConfig
+from surprise.errors import ConfigError
 
 __all__ = ["SIMULATION_FILE", "compute_metrics", "status_text", "write_report"]
 
@@ -204,10 +205,45 @@ def _metrics(data: _Run) -> dict[str, Any]:
     return metrics
 
 
-def write_report(path: str | Path) -> dict[str, Any]:
-    """Write ``metrics.json`` and the plots of the run in ``path``; return the metrics."""
+def _baseline_metrics(metrics: dict[str, Any], baseline: dict[str, Any]) -> dict[str, Any]:
+    random_fitness = [pair["fitness"] for pair in baseline["pairs"]]
+    return {
+        "scenario": baseline["scenario"],
+        "random_pairs": len(random_fitness),
+        "random_fitness": random_fitness,
+        "random_median_fitness": float(np.median(random_fitness)),
+        "random_max_fitness": float(np.max(random_fitness)),
+        "evolved_best_fitness": metrics.get("best_fitness"),
+        "random_behaviour": {
+            key: sum(pair["behaviour"][key] == value for pair in baseline["pairs"])
+            for key, value in (("motion", "stopped"), ("grouping", "grouped"))
+        },
+    }
+
+
+def write_report(path: str | Path, *, baseline: str | Path | None = None) -> dict[str, Any]:
+    """Write ``metrics.json`` and the plots of the run in ``path``; return the metrics.
+
+    ``baseline`` names a ``surprise-master baseline`` directory: the metrics then compare the
+    evolved best fitness with the random pairs' fitness (``baseline`` key), with a plot.
+    """
     data = _load(path)
     metrics = _metrics(data)
+    if baseline is not None:
+        from master_service.baseline import load_baseline
+
+        try:
+            loaded = load_baseline(baseline)
+        except (OSError, ValueError, KeyError) as exc:
+            raise ConfigError(f"not a baseline: {exc}", file=str(baseline)) from None
+        if loaded["scenario"] != data.experiment.scenario:
+            raise ConfigError(
+                f"the baseline is of the {loaded['scenario']} scenario, the run of "
+                f"{data.experiment.scenario}",
+                file=str(baseline),
+                key="scenario",
+            )
+        metrics["baseline"] = _baseline_metrics(metrics, loaded)
     write_atomic(data.run.file(METRICS), json.dumps(metrics, indent=2).encode("utf-8"))
     _plot(data, metrics)
     return metrics
@@ -255,6 +291,16 @@ def _plot(data: _Run, metrics: dict[str, Any]) -> None:
         ax.legend()
         fig.tight_layout()
         fig.savefig(plots / "predictions.png", dpi=100)
+
+    comparison = metrics.get("baseline")
+    if comparison and comparison["evolved_best_fitness"] is not None:
+        fig = Figure(figsize=(5, 4.5))
+        ax = fig.add_subplot()
+        ax.boxplot([comparison["random_fitness"]], positions=[0], widths=0.5)
+        ax.plot([1], [comparison["evolved_best_fitness"]], "o", color="black")
+        ax.set_xticks([0, 1], [f"{comparison['random_pairs']} random pairs", "evolved (best)"])
+        ax.set(ylabel="fitness", title="Evolved against random pairs", xlim=(-0.6, 1.6))
+        fig.savefig(plots / "evolved_vs_random.png", dpi=100)
 
     poses = {robot: t["poses"] for robot, t in data.traces.items() if "poses" in t}
     if poses:

@@ -214,9 +214,37 @@ class SimulatedSwarm:
         write_atomic(run_dir / SIMULATION_FILE, json.dumps(data).encode("utf-8"))
 
 
+def summary_text(metrics: dict[str, Any], out: Path, seconds: float) -> str:
+    """What ``surprise-master sim`` prints at the end: where, how good, which behaviour."""
+    best = metrics.get("best_fitness")
+    lines = [
+        f"run directory: {out}",
+        f"evaluations: {metrics['evaluations']} in {seconds:.1f} s",
+        f"best fitness: {'-' if best is None else f'{best:.4f}'}",
+    ]
+    post = metrics.get("post_evaluation") or {}
+    if post.get("swarm_fitness") is not None:
+        lines.append(
+            f"post-evaluation fitness: {post['swarm_fitness']:.4f} ({post['steps']} steps)"
+        )
+    b = post.get("behaviour")
+    if b:
+        kind = f"{b['motion']}, {b['grouping']}"
+        figures = (
+            f"rotation c_o {b['rotation']:.1f} rad, mean cluster size "
+            f"{b['mean_cluster_size']:.2f}, distance d_R {b['distance_covered']:.2f} m"
+        )
+        if b.get("box_displacement") is not None:
+            kind += ", pushing" if b["pushing"] else ", not pushing"
+            figures += f", box displacement d_B {b['box_displacement']:.3f} m"
+        lines.append(f"behaviour: {kind} ({figures})")
+    lines.append(f"plots: {out / 'plots'}")
+    return "\n".join(lines)
+
+
 def quiet_agents() -> None:
     """In-process agents log their connections at INFO: keep them out of the progress display."""
     logging.getLogger("robot_agent").setLevel(logging.WARNING)
 
 
-__all__ += ["SCENARIOS", "SimulatedRun", "quiet_agents", "world_config"]
+__all__ += ["SCENARIOS", "SimulatedRun", "quiet_agents", "summary_text", "world_config"]

@@ -1,0 +1,152 @@
+"""``surprise-master sim`` and ``baseline``: the whole system on one machine, lockstep.
+
+The master and real agents on simulated Thymios talk over loopback TCP. A run completes with a
+complete run directory, its fitness rises, and it repeats exactly for a seed.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import csv
+import json
+
+import msgspec
+import pytest
+
+from master_service.baseline import run_baseline
+from master_service.cli import main
+from master_service.simulate import SimulatedSwarm, simulation_experiment
+from surprise.errors import ConfigError
+
+
+def small(scenario: str = "basic", evaluations: int = 60, **kw):
+    experiment = simulation_experiment(scenario, robots=4, evaluations=evaluations, seed=2)
+    return msgspec.structs.replace(experiment, post_evaluation_steps=60, **kw)
+
+
+def rows(run) -> list[dict[str, str]]:
+    with open(run / "evaluations.csv", newline="") as f:
+        return list(csv.DictReader(f))
+
+
+@pytest.fixture(scope="module")
+def basic_run(tmp_path_factory):
+    """One lockstep run of 4 robots in the basic arena, 60 evaluations of 100 steps."""
+    run = tmp_path_factory.mktemp("sim") / "run"
+    result = asyncio.run(SimulatedSwarm(small()).run(run))
+    return run, result
+
+
+def test_a_lockstep_run_completes_with_a_complete_run_directory(basic_run):
+    run, result = basic_run
+    table = rows(run)
+    assert [int(r["evaluation"]) for r in table] == list(range(1, 61))
+    assert all(r["attempts"] == "1" for r in table)  # nothing was lost in a healthy swarm
+    assert {f"fitness_sim-{i}" for i in range(4)} <= set(table[0])
+    for name in ("config.yaml", "checkpoint.json", "best_genome.json", "master.log",
+                 "post_evaluation.json", "metrics.json", "simulation.json"):  # fmt: skip
+        assert (run / name).is_file(), name
+    assert sorted(p.name for p in (run / "traces").iterdir()) == [f"sim-{i}.npz" for i in range(4)]
+    assert {p.name for p in (run / "plots").iterdir()} >= {
+        "best_fitness.png", "robot_fitness.png", "predictions.png", "trajectories.png",
+    }  # fmt: skip
+    post = result.metrics["post_evaluation"]
+    assert post["steps"] == 60 and set(post["robots"]) == {f"sim-{i}" for i in range(4)}
+    assert post["behaviour"]["motion"] in {"stopped", "diverse", "circling"}
+
+
+def test_fitness_rises_over_the_run(basic_run):
+    run, result = basic_run
+    fitness = [float(r["fitness"]) for r in rows(run)]
+    best = [float(r["best_fitness"]) for r in rows(run)]
+    assert best[-1] > fitness[0] + 0.02
+    assert sum(fitness[-15:]) / 15 > sum(fitness[:15]) / 15
+    assert result.summary.best_fitness == pytest.approx(best[-1])
+
+
+def test_the_same_seed_gives_the_same_run(basic_run, tmp_path):
+    run, _ = basic_run
+    asyncio.run(SimulatedSwarm(small()).run(tmp_path / "again"))
+    columns = ("evaluation", "kind", "fitness", "best_fitness", "accepted")
+    first = [[r[c] for c in columns if c in r] + [v for k, v in r.items() if k.startswith("fit")]
+             for r in rows(run)]  # fmt: skip
+    again = [[r[c] for c in columns if c in r] + [v for k, v in r.items() if k.startswith("fit")]
+             for r in rows(tmp_path / "again")]  # fmt: skip
+    assert first == again
+
+
+def test_object_manipulation_measures_box_displacement(tmp_path):
+    experiment = small("boxes", evaluations=3)
+    result = asyncio.run(SimulatedSwarm(experiment).run(tmp_path / "run"))
+    behaviour = result.metrics["post_evaluation"]["behaviour"]
+    assert behaviour["box_displacement"] is not None and behaviour["pushing"] is not None
+    boxes = json.loads((tmp_path / "run" / "simulation.json").read_text())
+    assert len(boxes["post_evaluation_boxes"]["start"]) == boxes["world"]["boxes"] > 100
+
+
+def test_experiment_layers_scenario_file_and_options(tmp_path):
+    assert simulation_experiment("gradient").sensors[-2:] == ["light.0", "light.1"]
+    assert simulation_experiment("gradient").robots == 4
+    assert simulation_experiment("basic").robots == 10
+    path = tmp_path / "exp.yaml"
+    path.write_text("scenario: boxes\nevaluation_steps: 50\nevolution: {mutation_range: 0.3}\n")
+    exp = simulation_experiment(None, config_file=path, evaluations=7, seed=5)
+    assert exp.scenario == "boxes" and "force" in exp.sensors and exp.evaluation_steps == 50
+    assert exp.evolution.evaluations == 7 and exp.evolution.mutation_range == 0.3
+    assert exp.seed == 5
+
+
+@pytest.mark.parametrize(
+    "text, key",
+    [
+        ("sensors: [ir.f0, force]", "sensors"),  # basic robots carry no force sensor
+        ("simulation: {arena_side: -1}", "simulation.arena_side"),
+        ("scenario: moon", "scenario"),
+        ("evolution: {evaluations: 0}", "evolution.evaluations"),
+    ],
+)
+def test_bad_experiment_names_file_and_key(tmp_path, text, key):
+    path = tmp_path / "exp.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as info:
+        simulation_experiment(None, config_file=path)
+    assert info.value.key == key and info.value.file == str(path)
+
+
+def test_baseline_is_reproducible_and_report_compares(basic_run, tmp_path):
+    run, _ = basic_run
+    experiment = small()
+    first = asyncio.run(run_baseline(experiment, 3, tmp_path / "base"))
+    again = asyncio.run(run_baseline(experiment, 3, tmp_path / "again"))
+    assert [p["fitness"] for p in first["pairs"]] == [p["fitness"] for p in again["pairs"]]
+    assert all(0.0 < p["fitness"] < 1.0 for p in first["pairs"])
+    assert main(["report", str(run), "--baseline", str(tmp_path / "base")]) == 0
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["baseline"]["random_pairs"] == 3
+    assert metrics["baseline"]["random_median_fitness"] == pytest.approx(first["median_fitness"])
+    assert (run / "plots" / "evolved_vs_random.png").is_file()
+
+
+def test_report_refuses_a_baseline_of_another_scenario(basic_run, tmp_path):
+    run, _ = basic_run
+    asyncio.run(run_baseline(small("boxes"), 1, tmp_path / "base"))
+    assert main(["report", str(run), "--baseline", str(tmp_path / "base")]) == 2
+
+
+def test_sim_command_prints_the_summary(tmp_path, capsys):
+    out = tmp_path / "run"
+    code = main(["sim", "--robots", "3", "--evaluations", "4", "--seed", "1", "--out", str(out)])
+    assert code == 0
+    text = capsys.readouterr().out
+    assert f"run directory: {out}" in text and "best fitness: 0." in text
+    assert "behaviour: " in text and (out / "metrics.json").is_file()
+
+
+@pytest.mark.parametrize(
+    "argv, words",
+    [(["--robots", "0"], "--robots"), (["--config", "missing.yaml"], "cannot read")],
+)
+def test_sim_command_refuses_bad_options(tmp_path, capsys, argv, words):
+    assert main(["sim", "--out", str(tmp_path / "run"), *argv]) == 2
+    assert words in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()
