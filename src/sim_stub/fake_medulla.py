@@ -20,13 +20,16 @@ This module imports ``dbus_fast`` at the top: it is a test double, not part of t
 
 import asyncio
 import contextlib
+import ctypes
 import re
 import shutil
+import signal
+import sys
 import tempfile
 import xml.etree.ElementTree as ET
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from pathlib import Path
-from typing import Protocol
+from typing import Any, Protocol
 
 from dbus_fast import RequestNameReply
 from dbus_fast.aio import MessageBus
@@ -300,6 +303,13 @@ class _AsebaNetwork(ServiceInterface):
         self._fake.load_scripts(path)
 
 
+def _die_with_parent() -> None:
+    # Runs in the child before exec: SIGKILL of the simulator skips our clean-up, and a daemon
+    # must not outlive it. PR_SET_PDEATHSIG (1) is Linux's; elsewhere the daemon may linger.
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)
+
+
 @contextlib.asynccontextmanager
 async def private_bus() -> AsyncIterator[str]:
     """Start a private ``dbus-daemon`` for the duration of the context; yields its address."""
@@ -319,6 +329,7 @@ async def private_bus() -> AsyncIterator[str]:
                 stdin=asyncio.subprocess.DEVNULL,
                 stdout=asyncio.subprocess.PIPE,
                 stderr=stderr,
+                preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None,
             )
             try:
                 assert process.stdout is not None
@@ -343,11 +354,19 @@ async def private_bus() -> AsyncIterator[str]:
 
 @contextlib.asynccontextmanager
 async def serve_fake_medulla(
-    address: str, model: ThymioModel, *, node: str = "thymio-II"
+    address: str,
+    model: ThymioModel,
+    *,
+    node: str = "thymio-II",
+    medulla: Callable[[Any, str], FakeMedulla] | None = None,
 ) -> AsyncIterator[FakeMedulla]:
-    """Serve a :class:`FakeMedulla` for ``model`` on the bus at ``address`` during the context."""
+    """Serve a :class:`FakeMedulla` for ``model`` on the bus at ``address`` during the context.
+
+    ``medulla(model, node)`` builds it (default :class:`FakeMedulla`; the simulator's waiting
+    medulla is a subclass).
+    """
     bus = await MessageBus(bus_address=address).connect()
-    fake = FakeMedulla(model, node)
+    fake = (medulla or FakeMedulla)(model, node)
     try:
         bus.export(ASEBA_PATH, fake.interface)
         reply = await bus.request_name(ASEBA_SERVICE)

@@ -25,16 +25,14 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
-from collections.abc import AsyncIterator, Callable
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
-from dbus_fast import RequestNameReply
-from dbus_fast.aio import MessageBus
 
 from drivers.config import SPEED_SCALE
-from drivers.thymio import ASEBA_PATH, ASEBA_SERVICE, GROUND_MAX, IR_MAX, PROX_HORIZONTAL
-from sim_stub.fake_medulla import DAEMON_TIMEOUT, GROUND_VARIABLES, FakeMedulla
+from drivers.thymio import GROUND_MAX, IR_MAX, PROX_HORIZONTAL
+from sim_stub.fake_medulla import GROUND_VARIABLES, FakeMedulla, serve_fake_medulla
 from sim_stub.scenarios import WorldConfig
 from sim_stub.world import World
 from surprise.sensors import GROUND_SENSORS, IR_SENSORS
@@ -210,30 +208,8 @@ class SimMedulla(FakeMedulla):
         await super().wait_idle()
 
 
-@contextlib.asynccontextmanager
-async def serve_sim_thymio(
+def serve_sim_thymio(
     address: str, model: SimThymio, *, node: str = "thymio-II"
-) -> AsyncIterator[SimMedulla]:
-    """Serve a :class:`SimMedulla` for ``model`` on the bus at ``address`` during the context.
-
-    The same steps as :func:`~sim_stub.fake_medulla.serve_fake_medulla`, with the waiting medulla.
-    """
-    bus = await MessageBus(bus_address=address).connect()
-    fake = SimMedulla(model, node)
-    try:
-        bus.export(ASEBA_PATH, fake.interface)
-        reply = await bus.request_name(ASEBA_SERVICE)
-        if reply != RequestNameReply.PRIMARY_OWNER:
-            raise RuntimeError(f"cannot own {ASEBA_SERVICE} on {address}: {reply}")
-        yield fake
-    finally:
-        # Answer the waiting calls before hanging up, so no handler is left pending.
-        fake.close()
-        with contextlib.suppress(TimeoutError):
-            async with asyncio.timeout(DAEMON_TIMEOUT):
-                await fake.wait_idle()
-        for _ in range(3):  # let the released calls' reply callbacks run
-            await asyncio.sleep(0)
-        bus.disconnect()
-        with contextlib.suppress(Exception):
-            await bus.wait_for_disconnect()
+) -> contextlib.AbstractAsyncContextManager[FakeMedulla]:
+    """Serve a :class:`SimMedulla` for ``model`` on the bus at ``address`` during the context."""
+    return serve_fake_medulla(address, model, node=node, medulla=SimMedulla)

@@ -3,6 +3,11 @@
 from __future__ import annotations
 
 import asyncio
+import shutil
+import signal
+import subprocess
+import sys
+import time
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
@@ -104,3 +109,35 @@ async def test_load_scripts_declares_the_program_variables(
     assert reply.body == [[0]]
     await client.call(_message("LoadScripts", "s", [str(tmp_path / "missing.aesl")]))
     assert len(medulla.rejected) == 1 and medulla.loaded_scripts == [str(program)]
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
+def test_a_private_bus_dies_with_a_killed_parent(tmp_path):
+    """``surprise-sim-robots`` killed with SIGKILL must not leave its dbus-daemons behind."""
+    if shutil.which("dbus-daemon") is None:  # the other D-Bus tests fail loudly in CI
+        pytest.skip("dbus-daemon is not installed")
+    code = (
+        "import asyncio\n"
+        "from sim_stub.fake_medulla import private_bus\n"
+        "async def main():\n"
+        "    async with private_bus() as address:\n"
+        "        print(address, flush=True)\n"
+        "        await asyncio.sleep(60)\n"
+        "asyncio.run(main())\n"
+    )
+    parent = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        address = parent.stdout.readline().strip()
+        socket_dir = address.split("path=")[1].split(",")[0].rsplit("/", 1)[0]
+        find = ["pgrep", "-f", socket_dir]
+        assert subprocess.run(find, capture_output=True).stdout.split()
+        parent.send_signal(signal.SIGKILL)
+        parent.wait(timeout=5)
+        for _ in range(50):  # the kernel signals the daemon at once; it exits within moments
+            if not subprocess.run(find, capture_output=True).stdout.split():
+                break
+            time.sleep(0.05)
+        assert not subprocess.run(find, capture_output=True).stdout.split()
+    finally:
+        parent.kill()
+        parent.wait()
