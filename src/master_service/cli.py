@@ -12,6 +12,8 @@ Subcommands::
     surprise-master baseline --scenario S --random N [--out DIR] [--seed S] [--config FILE]
                                                     random network pairs in the same arena
     surprise-master report DIR --baseline BASE      ... and evolved against random
+    surprise-master watch --broker URL [--prefix P] [--once]
+                                                    live view of a run's MQTT telemetry
 
 Exit status: 0 done; 1 the run stopped on an error (a busy port, a full disk); 2 bad configuration
 or run directory (one message naming the file and key; nothing was started); 128 + N stopped by
@@ -88,6 +90,12 @@ def _parser() -> argparse.ArgumentParser:
     status = sub.add_parser("status", help="show where a run stands")
     status.add_argument("dir", type=Path, metavar="DIR", help="the run directory")
     status.set_defaults(handler=_status)
+
+    watch = sub.add_parser("watch", help="live view of a swarm's MQTT telemetry")
+    watch.add_argument("--broker", required=True, metavar="URL", help="mqtt://host[:port]")
+    watch.add_argument("--prefix", default="surprise", help="topic prefix (default: surprise)")
+    watch.add_argument("--once", action="store_true", help="print one snapshot and exit")
+    watch.set_defaults(handler=_watch)
     return parser
 
 
@@ -289,3 +297,9 @@ def _status(args: argparse.Namespace) -> int:
 
     print(status_text(args.dir))
     return 0
+
+
+def _watch(args: argparse.Namespace) -> int:
+    from master_service.watch import run_watch  # rich and aiomqtt only for this command
+
+    return run_watch(args.broker, prefix=args.prefix, once=args.once)

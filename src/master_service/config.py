@@ -15,6 +15,7 @@ Example::
     allowed_robots: [thymio-1, thymio-2, thymio-3, thymio-4]
     round_margin: 5.0
     heartbeat_interval: 2.0
+    telemetry: {broker: mqtt://localhost:1883}   # optional; see docs/telemetry.md
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ import msgspec
 from surprise.config import ExperimentConfig, Strict, decode, load_experiment, load_yaml
 from surprise.errors import ConfigError
 from surprise.wire import MAX_FRAME_SIZE
+from telemetry.config import TelemetryConfig
 
 __all__ = [
     "DEFAULT_HANDSHAKE_TIMEOUT",
@@ -87,7 +89,8 @@ class MasterConfig(Strict):
     with spares in ``allowed_robots`` the first robots to connect take part. ``round_margin`` is
     added to ``steps * 0.1 s`` for a round's deadline; ``heartbeat_interval`` is how often the
     master pings (a link is dead after three silent intervals); ``handshake_timeout`` bounds each
-    handshake step; ``max_frame_size`` bounds one incoming message (bytes).
+    handshake step; ``max_frame_size`` bounds one incoming message (bytes). ``telemetry``
+    (optional) publishes the run's status over MQTT (``docs/telemetry.md``).
     """
 
     experiment: ExperimentConfig | None = None
@@ -102,6 +105,7 @@ class MasterConfig(Strict):
     heartbeat_interval: _PositiveSeconds = DEFAULT_HEARTBEAT_INTERVAL
     handshake_timeout: _PositiveSeconds = DEFAULT_HANDSHAKE_TIMEOUT
     max_frame_size: Annotated[int, msgspec.Meta(ge=1024)] = MAX_FRAME_SIZE
+    telemetry: TelemetryConfig | None = None
 
     def __post_init__(self) -> None:
         if (self.experiment is None) == (self.experiment_file is None):

@@ -59,6 +59,9 @@ from surprise.evolution import OnePlusOne
 from surprise.fitness import swarm_fitness
 from surprise.network import GenomeLayout, spec_from_config
 from surprise.wire import REFUSED_UNKNOWN_ROBOT, Failed, Result
+from telemetry.config import require_client_library
+from telemetry.payloads import RunStatus, master_status_suffix, now, run_status_suffix
+from telemetry.publisher import TelemetryPublisher
 
 __all__ = ["Master", "Progress", "RunSummary"]
 
@@ -152,6 +155,14 @@ class Master:
         self._listeners: list[Callable[[Progress], None]] = []
         if on_progress is not None:
             self._listeners.append(on_progress)
+        #: the MQTT publisher of the run's status, when a broker is configured
+        self.telemetry: TelemetryPublisher | None = None
+        if config.telemetry is not None and config.telemetry.enabled:
+            require_client_library(config.telemetry)
+            self.telemetry = TelemetryPublisher(
+                config.telemetry, status_suffix=master_status_suffix(), name="telemetry[master]"
+            )
+            self._listeners.append(self._publish_status)
         # One logger per run; the run's log file hangs on it, so two masters in one process
         # (tests, the sim command) keep separate logs and there is no global state.
         self.log = logging.getLogger(f"master_service.run.{self.run_id}")
@@ -244,6 +255,8 @@ class Master:
             self.experiment.evolution.evaluations,
             self.config.robot_count,
         )
+        if self.telemetry is not None:
+            self.telemetry.start()  # connects in the background; returns at once
         self._emit()
 
     async def close(self) -> None:
@@ -267,6 +280,10 @@ class Master:
             self.log.removeHandler(self._log_handler)
             self._log_handler.close()
             self._log_handler = None
+        if self.telemetry is not None:
+            if self.state is not None:
+                self._publish_status(self.progress, online=False)
+            await self.telemetry.aclose()  # bounded by telemetry.publisher.CLOSE_TIMEOUT
 
     async def __aenter__(self) -> Master:
         await self.start()
@@ -618,6 +635,29 @@ class Master:
         if left is not None:
             suffix += f" | {format_duration(left)} left"
         return suffix
+
+    def _publish_status(self, progress: Progress, *, online: bool = True) -> None:
+        """Progress listener: the retained ``<prefix>/run/status``. Only queues (latest wins)."""
+        if self.telemetry is None:
+            return
+        status = RunStatus(
+            t=now(),
+            online=online,
+            run_id=progress.run_id,
+            phase=progress.phase,
+            waiting=progress.waiting,
+            evaluations=progress.evaluations,
+            total=progress.total,
+            best_fitness=progress.best_fitness,
+            last_fitness=progress.last_fitness,
+            robots_connected=progress.robots_connected,
+            robots_expected=progress.robots_expected,
+            robots=self.connected_robots,
+            failed_attempts=progress.failed_attempts,
+            elapsed_s=round(progress.elapsed_s, 3),
+            time_left_s=None if progress.time_left_s is None else round(progress.time_left_s, 1),
+        )
+        self.telemetry.publish_nowait(run_status_suffix(), status, retain=True)
 
     def _emit(self) -> None:
         self._live_changed.set()

@@ -9,6 +9,10 @@ Several agents can share one event loop (the master's ``sim`` command runs N of 
 bodies over loopback TCP): an Agent holds no global state and installs no signal handlers; the
 composition root (``robot_agent.cli``) does that. The agent does not open or close the body (its
 owner does) but it stops the motors when it ends, whatever the reason.
+
+With ``telemetry.broker`` configured, the agent also runs a
+:class:`~telemetry.publisher.TelemetryPublisher` (its own background task, outside the task group:
+telemetry failing never stops the agent) that publishes evaluation summaries and step samples.
 """
 
 from __future__ import annotations
@@ -28,6 +32,9 @@ from robot_agent.config import AgentConfig, make_ssl_context
 from robot_agent.link import Link
 from robot_agent.runner import EvaluationRunner, stop_motors
 from robot_agent.watchdog import Watchdog
+from telemetry.payloads import robot_suffix
+from telemetry.publisher import TelemetryPublisher
+from telemetry.robot import RobotTelemetry
 
 __all__ = ["Agent"]
 
@@ -71,6 +78,20 @@ class Agent:
         self.watchdog = Watchdog(
             body.stop, stop_timeout=config.loop.stop_timeout, now=_watchdog_time(clock)
         )
+        #: the MQTT publisher, when a broker is configured
+        self.telemetry: TelemetryPublisher | None = None
+        robot_telemetry = None
+        if config.telemetry is not None and config.telemetry.enabled:
+            self.telemetry = TelemetryPublisher(
+                config.telemetry,
+                status_suffix=robot_suffix(config.robot_id, "status"),
+                # Stable per robot: a restarted agent takes over its old session on the broker.
+                client_id=f"surprise-{config.robot_id}",
+                name=f"telemetry[{config.robot_id}]",
+            )
+            robot_telemetry = RobotTelemetry(
+                self.telemetry, config.robot_id, period=config.loop.period
+            )
         self.runner = EvaluationRunner(
             body,
             clock,
@@ -79,6 +100,7 @@ class Agent:
             watchdog=self.watchdog,
             # Stable per robot, different between robots: their escape turns should not agree.
             safety_seed=zlib.crc32(config.robot_id.encode("utf-8")),
+            telemetry=robot_telemetry,
         )
         self.link = Link(
             config,
@@ -110,6 +132,8 @@ class Agent:
             self._link_task = group.create_task(
                 self.link.run(), name=f"link[{self.config.robot_id}]"
             )
+            if self.telemetry is not None:
+                self.telemetry.start()  # connects in the background; returns at once
         except BaseException:
             await stack.aclose()
             raise
@@ -131,9 +155,15 @@ class Agent:
                 return await stack.__aexit__(exc_type, exc, tb)
             return None
         finally:
-            # The link's clean-up already stopped a running evaluation; this covers every other
-            # way out (an error in the group, a cancellation between steps).
-            await stop_motors(self.body, self.config.loop.stop_timeout)
+            try:
+                # The link's clean-up already stopped a running evaluation; this covers every
+                # other way out (an error in the group, a cancellation between steps).
+                await stop_motors(self.body, self.config.loop.stop_timeout)
+            finally:
+                # After the motors, so a slow broker never delays the stop (the close is
+                # bounded by telemetry.publisher.CLOSE_TIMEOUT anyway).
+                if self.telemetry is not None:
+                    await self.telemetry.aclose()
 
     async def run(self) -> None:
         """Serve the master until cancelled (entering the context first if not done yet)."""

@@ -32,6 +32,7 @@ from robot_agent.agent import Agent
 from robot_agent.config import AgentConfig, load_agent_config, make_ssl_context, read_secret
 from robot_agent.runner import finish, stop_motors
 from surprise.errors import ConfigError
+from telemetry.config import require_client_library
 
 __all__ = ["EXIT_CONFIG", "EXIT_FAILURE", "EXIT_OK", "amain", "main", "run_agent"]
 
@@ -195,6 +196,7 @@ async def amain(
             return await stop_motors_once(config, body_factory=body_factory)
         secret = read_secret(config, config_file=args.config)
         make_ssl_context(config, config_file=args.config)  # fail now, not at the first connect
+        require_client_library(config.telemetry, file=args.config)  # a broker needs aiomqtt
     except ConfigError as exc:
         print(f"surprise-agent: {exc}", file=sys.stderr)
         return EXIT_CONFIG

@@ -16,6 +16,7 @@ One YAML file per robot::
     safety: {profile: stop}                              # robot_agent.safety.SafetyConfig
     loop: {period: 0.1, read_timeout: 0.15, max_read_failures: 3}
     reconnect: {initial: 0.5, max: 30, jitter: 0.25}
+    telemetry: {broker: mqtt://192.168.1.10:1883}        # optional; see docs/telemetry.md
 
 The optional Aseba failsafe (the Thymio stops itself when the Pi stops commanding it) is
 ``body.thymio.failsafe``; it lives with the other Thymio settings rather than twice.
@@ -39,6 +40,7 @@ from robot_agent.safety import SafetyConfig
 from robot_agent.watchdog import TIMEOUT as WATCHDOG_TIMEOUT
 from surprise.config import Probability, Strict, load_yaml
 from surprise.errors import ConfigError
+from telemetry.config import TelemetryConfig
 
 __all__ = [
     "DEFAULT_PORT",
@@ -149,6 +151,8 @@ class AgentConfig(Strict):
     safety: SafetyConfig = msgspec.field(default_factory=SafetyConfig)
     loop: LoopConfig = msgspec.field(default_factory=LoopConfig)
     reconnect: BackoffConfig = msgspec.field(default_factory=BackoffConfig)
+    #: MQTT telemetry (telemetry.config.TelemetryConfig); absent or without a broker: off
+    telemetry: TelemetryConfig | None = None
 
     def __post_init__(self) -> None:
         if not _ROBOT_ID.fullmatch(self.robot_id):

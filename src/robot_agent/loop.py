@@ -26,6 +26,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,9 +40,21 @@ from surprise.fitness import SurpriseScore
 from surprise.network import NetworkPair
 from surprise.wire import EvaluationStats, Trace
 
-__all__ = ["ControlLoop", "Deadlines", "LoopOutcome", "MissingSensorsError", "sensor_index"]
+__all__ = [
+    "ControlLoop",
+    "Deadlines",
+    "LoopOutcome",
+    "MissingSensorsError",
+    "StepSink",
+    "sensor_index",
+]
 
 log = logging.getLogger(__name__)
+
+#: Called after the safety layer on every step that had a reading, with (step from 1, s(t),
+#: p(t+1), the command to apply, the safety reason). It runs inside the step: it must return at
+#: once and copy what it keeps (the loop reuses its sensor buffer). Telemetry's sampler is one.
+StepSink = Callable[[int, np.ndarray, np.ndarray, tuple[float, float], str | None], None]
 
 
 class MissingSensorsError(ValueError):
@@ -173,12 +186,14 @@ class ControlLoop:
         state: SafetyState,
         *,
         record: bool = False,
+        sink: StepSink | None = None,
     ) -> LoopOutcome:
         """Run ``steps`` control steps of ``network`` (already reset) from where the robot stands.
 
         ``index`` maps a body frame to the network's sensor order (see :func:`sensor_index`);
-        ``state`` is the safety state to start from. Exceptions of the body's ``drive`` and of the
-        network propagate, as does cancellation; the motors keep their last command then.
+        ``state`` is the safety state to start from; ``sink`` (optional) sees every step with a
+        reading (see :data:`StepSink`). Exceptions of the body's ``drive`` and of the network
+        propagate, as does cancellation; the motors keep their last command then.
         """
         # Locals: attribute look-ups add up at 10 Hz on a Pi; this is the hot path.
         body, clock, layer, watchdog = self.body, self.clock, self.layer, self.watchdog
@@ -259,6 +274,8 @@ class ControlLoop:
                 if reason is not None:
                     interventions[reason] = interventions.get(reason, 0) + 1
                 command = decision.command
+                if sink is not None:
+                    sink(step, s, prediction, command, reason)
                 if record:
                     trace_sensors.append(s.tolist())
                     trace_predictions.append(prediction.tolist())

@@ -23,7 +23,8 @@ from robot_agent.safety import SafetyConfig, SafetyLayer
 from robot_agent.watchdog import Watchdog
 from surprise.errors import HardwareError, ProtocolError
 from surprise.network import NetworkPair
-from surprise.wire import Evaluate, Failed, Result, genome_from_bytes
+from surprise.wire import Evaluate, EvaluationStats, Failed, Result, genome_from_bytes
+from telemetry.robot import RobotTelemetry
 
 __all__ = [
     "FAILED_GENOME",
@@ -103,7 +104,8 @@ class EvaluationRunner:
 
     ``loop`` and ``safety`` are the agent's settings; ``watchdog`` (optional) is armed for the
     duration of each evaluation; ``safety_seed`` seeds the safety layer's escape turns (use a
-    different one per robot).
+    different one per robot); ``telemetry`` (optional) receives a summary of every evaluation
+    and hands the control loop its step sampler.
     """
 
     def __init__(
@@ -115,8 +117,10 @@ class EvaluationRunner:
         safety: SafetyConfig | None = None,
         watchdog: Watchdog | None = None,
         safety_seed: int = 0,
+        telemetry: RobotTelemetry | None = None,
     ) -> None:
         self.body = body
+        self.telemetry = telemetry
         self.clock = clock
         self.config = loop if loop is not None else LoopConfig()
         self.watchdog = watchdog
@@ -160,6 +164,7 @@ class EvaluationRunner:
         prepared = self.prepare(msg)
         if isinstance(prepared, Failed):
             log.warning("evaluation %d refused: %s", msg.evaluation_id, prepared.reason)
+            self._summarise(msg, prepared, None, None)
             return prepared
         network, index = prepared
         async with self._lock:
@@ -174,10 +179,21 @@ class EvaluationRunner:
             )
             failure: str | None = None
             outcome: LoopOutcome | None = None
+            telemetry = self.telemetry
+            # Telemetry's sampler rate-limits and copies; it never formats or sends in a step.
+            sampler = telemetry.sampler(msg.evaluation_id, msg.spec.sensors) if telemetry else None
+            started = self.clock.now()
             if self.watchdog is not None:
                 self.watchdog.arm()
             try:
-                outcome = await self.loop.run(network, index, msg.steps, state, record=msg.record)
+                outcome = await self.loop.run(
+                    network,
+                    index,
+                    msg.steps,
+                    state,
+                    record=msg.record,
+                    sink=None if sampler is None else sampler.sample,
+                )
             except HardwareError as exc:
                 failure = f"{FAILED_HARDWARE}: {exc}"
             except Exception as exc:  # a bug must not leave the robot driving or kill the agent
@@ -194,9 +210,12 @@ class EvaluationRunner:
             failure = outcome.failure
             if failure is None and not math.isfinite(outcome.fitness):
                 failure = f"{FAILED_INTERNAL}: non-finite fitness {outcome.fitness}"
+        duration = self.clock.now() - started
         if failure is not None:
             log.warning("evaluation %d failed: %s", msg.evaluation_id, failure)
-            return Failed(evaluation_id=msg.evaluation_id, reason=failure)
+            failed = Failed(evaluation_id=msg.evaluation_id, reason=failure)
+            self._summarise(msg, failed, outcome.stats if outcome else None, duration)
+            return failed
         assert outcome is not None
         stats = outcome.stats
         log.info(
@@ -207,9 +226,33 @@ class EvaluationRunner:
             stats.read_failures,
             stats.interventions or "none",
         )
-        return Result(
+        result = Result(
             evaluation_id=msg.evaluation_id,
             fitness=outcome.fitness,
             stats=stats,
             trace=outcome.trace,
+        )
+        self._summarise(msg, result, stats, duration)
+        return result
+
+    def _summarise(
+        self,
+        msg: Evaluate,
+        outcome: Result | Failed,
+        stats: EvaluationStats | None,
+        duration: float | None,
+    ) -> None:
+        # Queued for the publisher's task; returns at once and never raises.
+        if self.telemetry is None:
+            return
+        self.telemetry.evaluation(
+            msg.evaluation_id,
+            requested=msg.steps,
+            steps=stats.steps_run if stats is not None else 0,
+            fitness=outcome.fitness if isinstance(outcome, Result) else None,
+            failure=outcome.reason if isinstance(outcome, Failed) else None,
+            interventions=stats.interventions if stats is not None else None,
+            overruns=stats.overruns if stats is not None else 0,
+            read_failures=stats.read_failures if stats is not None else 0,
+            duration_s=duration,
         )
