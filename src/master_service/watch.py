@@ -36,10 +36,10 @@ from rich.table import Table
 from rich.text import Text
 
 from master_service.master import format_duration
+from surprise.backoff import Backoff, BackoffConfig
 from telemetry.config import (
     DEFAULT_PREFIX,
     BrokerAddress,
-    ReconnectConfig,
     check_prefix,
     parse_broker_url,
 )
@@ -51,7 +51,7 @@ from telemetry.payloads import (
     decode_payload,
     parse_topic,
 )
-from telemetry.publisher import BROKER_TIMEOUT, Backoff
+from telemetry.publisher import BROKER_TIMEOUT
 
 __all__ = [
     "ONCE_COLLECT",
@@ -73,7 +73,7 @@ REFRESH_PER_SECOND: Final = 4
 PLAIN_WIDTH: Final = 160
 #: Reconnection delays of the live view: a person is watching, so retry often, never slower
 #: than every 5 s.
-_RECONNECT = ReconnectConfig(initial=0.5, max=5.0, jitter=0.25)
+_RECONNECT = BackoffConfig(initial=0.5, max=5.0, jitter=0.25)
 #: |reading - prediction| below which a sensor is shown as well predicted, and above which as
 #: badly (a surprise); between them it is shown as middling.
 GOOD_ERROR: Final = 0.1

@@ -38,7 +38,8 @@ import msgspec
 from drivers.config import BodyConfig
 from robot_agent.safety import SafetyConfig
 from robot_agent.watchdog import TIMEOUT as WATCHDOG_TIMEOUT
-from surprise.config import Probability, Strict, load_yaml
+from surprise.backoff import BackoffConfig
+from surprise.config import Strict, load_yaml
 from surprise.errors import ConfigError
 from telemetry.config import TelemetryConfig
 
@@ -127,19 +128,6 @@ class LoopConfig(Strict):
                 f"`read_timeout`: at most {WATCHDOG_TIMEOUT - margin:.2f} s, so that a hung read "
                 f"is given up before the watchdog ({WATCHDOG_TIMEOUT} s) trips"
             )
-
-
-class BackoffConfig(Strict):
-    """Reconnection delays: ``initial`` doubling per failed attempt up to ``max`` (seconds), each
-    shortened by a random fraction of up to ``jitter`` so that robots do not retry in step."""
-
-    initial: Seconds = 0.5
-    max: Seconds = 30.0
-    jitter: Probability = 0.25
-
-    def __post_init__(self) -> None:
-        if self.max < self.initial:
-            raise ValueError(f"`max`: must be at least initial ({self.initial})")
 
 
 class AgentConfig(Strict):

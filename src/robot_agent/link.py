@@ -23,9 +23,10 @@ from collections.abc import Callable
 from typing import Any, Final, TypeVar
 
 import surprise
-from robot_agent.config import AgentConfig, BackoffConfig
+from robot_agent.config import AgentConfig
 from robot_agent.runner import EvaluationRunner, finish
 from robot_agent.watchdog import Watchdog
+from surprise.backoff import Backoff
 from surprise.errors import FrameTooLargeError, ProtocolError, SurpriseError
 from surprise.wire import (
     PROTOCOL_VERSION,
@@ -95,32 +96,6 @@ class RefusedError(SurpriseError, ConnectionError):
 
 class LinkDeadError(SurpriseError, ConnectionError):
     """Nothing arrived from the master for ``DEAD_AFTER_HEARTBEATS`` heartbeat intervals."""
-
-
-class Backoff:
-    """Capped exponential delays with jitter: ``min(max, initial * 2**n)``, shortened by up to
-    ``jitter`` of itself at random (so delays never exceed ``max`` and robots spread out).
-
-    ``rng`` is injectable so tests are deterministic.
-    """
-
-    def __init__(self, config: BackoffConfig, rng: random.Random | None = None) -> None:
-        self.config = config
-        self.rng = rng if rng is not None else random.Random()
-        #: failed attempts since the last :meth:`reset`
-        self.attempts = 0
-
-    def reset(self) -> None:
-        """A session succeeded: the next delay is the initial one again."""
-        self.attempts = 0
-
-    def next_delay(self) -> float:
-        """The delay before the next attempt, in seconds."""
-        c = self.config
-        # min() before the power would overflow for a very long outage; cap the exponent instead.
-        base = min(c.max, c.initial * 2.0 ** min(self.attempts, 64))
-        self.attempts += 1
-        return base * (1.0 - c.jitter * self.rng.random())
 
 
 Spawn = Callable[..., asyncio.Task[Any]]

@@ -52,7 +52,7 @@ class HardwareError(SurpriseError, OSError):
 
 
 class HardwareTimeoutError(HardwareError, TimeoutError):
-    """A call to a robot part did not answer in time; ``operation`` and ``timeout`` (s) say which."""
+    """A call to a robot part did not answer in time; ``operation`` and ``timeout`` (s) say so."""
 
     def __init__(self, operation: str, timeout: float) -> None:
         self.operation = operation

@@ -27,14 +27,14 @@ from urllib.parse import urlsplit
 
 import msgspec
 
-from surprise.config import Probability, Strict
+from surprise.backoff import BackoffConfig
+from surprise.config import Strict
 from surprise.errors import ConfigError
 
 __all__ = [
     "DEFAULT_MQTT_PORT",
     "DEFAULT_PREFIX",
     "BrokerAddress",
-    "ReconnectConfig",
     "TelemetryConfig",
     "check_prefix",
     "parse_broker_url",
@@ -100,20 +100,6 @@ def check_prefix(prefix: str) -> str:
     return prefix
 
 
-class ReconnectConfig(Strict):
-    """Delays between connection attempts: ``initial`` doubling per failure up to ``max``
-    (seconds), each shortened by a random fraction of up to ``jitter`` so that a swarm whose
-    broker comes back does not reconnect in one burst."""
-
-    initial: _Seconds = 1.0
-    max: _Seconds = 30.0
-    jitter: Probability = 0.25
-
-    def __post_init__(self) -> None:
-        if self.max < self.initial:
-            raise ValueError(f"`max`: must be at least initial ({self.initial})")
-
-
 class TelemetryConfig(Strict):
     """The ``telemetry`` section; see the module docstring for an example.
 
@@ -129,7 +115,7 @@ class TelemetryConfig(Strict):
     queue_size: Annotated[int, msgspec.Meta(ge=1, le=1_000_000)] = 256
     client_id: Annotated[str, msgspec.Meta(min_length=1, max_length=128)] | None = None
     keepalive: Annotated[int, msgspec.Meta(ge=1, le=65535)] = 10
-    reconnect: ReconnectConfig = msgspec.field(default_factory=ReconnectConfig)
+    reconnect: BackoffConfig = msgspec.field(default_factory=lambda: BackoffConfig(initial=1.0))
 
     def __post_init__(self) -> None:
         if self.broker is not None:

@@ -33,7 +33,8 @@ import uuid
 from types import TracebackType
 from typing import Any, Final, Self
 
-from telemetry.config import ReconnectConfig, TelemetryConfig
+from surprise.backoff import Backoff
+from telemetry.config import TelemetryConfig
 from telemetry.payloads import ClientStatus, Payload, encode_payload, now
 
 __all__ = [
@@ -99,29 +100,6 @@ def _abandon(client: Any) -> None:
         return
     with contextlib.suppress(Exception):
         paho.disconnect()
-
-
-class Backoff:
-    """Capped exponential delays with jitter: ``min(max, initial * 2**n)`` shortened by up to
-    ``jitter`` of itself at random (never longer than ``max``). ``rng`` makes tests repeatable."""
-
-    def __init__(self, config: ReconnectConfig, rng: random.Random | None = None) -> None:
-        self.config = config
-        self.rng = rng if rng is not None else random.Random()
-        #: failed attempts since the last :meth:`reset`
-        self.attempts = 0
-
-    def reset(self) -> None:
-        """A connection succeeded: the next delay is the initial one again."""
-        self.attempts = 0
-
-    def next_delay(self) -> float:
-        """The delay before the next attempt, in seconds."""
-        c = self.config
-        # Cap the exponent, not the power: a week-long outage must not overflow a float.
-        delay = min(c.max, c.initial * 2.0 ** min(self.attempts, 32))
-        self.attempts += 1
-        return delay * (1.0 - c.jitter * self.rng.random())
 
 
 class TelemetryPublisher:

@@ -25,7 +25,7 @@ from agent_fakes import (
 import surprise
 from robot_agent.agent import Agent
 from robot_agent.config import BackoffConfig
-from robot_agent.link import Backoff
+from surprise.backoff import Backoff
 from surprise.wire import (
     PROTOCOL_VERSION,
     REFUSED_BAD_SECRET,

@@ -27,12 +27,13 @@ from telemetry_helpers import eventually
 
 from robot_agent.agent import Agent
 from robot_agent.runner import EvaluationRunner
+from surprise.backoff import BackoffConfig
 from surprise.wire import Evaluate, Failed, Result, genome_to_bytes
-from telemetry.config import ReconnectConfig, TelemetryConfig
+from telemetry.config import TelemetryConfig
 from telemetry.publisher import TelemetryPublisher
 from telemetry.robot import RobotTelemetry
 
-FAST = ReconnectConfig(initial=0.02, max=0.1, jitter=0.5)
+FAST = BackoffConfig(initial=0.02, max=0.1, jitter=0.5)
 
 
 def frames(i: int) -> np.ndarray:

@@ -29,9 +29,9 @@ from robot_agent.config import MasterConfig as LinkConfig
 from sim_stub.body import SimSwarm
 from sim_stub.scenarios import scenario_config
 from sim_stub.world import World
-from telemetry.config import ReconnectConfig, TelemetryConfig
+from telemetry.config import TelemetryConfig
 
-FAST = ReconnectConfig(initial=0.02, max=0.1, jitter=0.5)
+FAST = BackoffConfig(initial=0.02, max=0.1, jitter=0.5)
 ROBOTS = 3
 
 

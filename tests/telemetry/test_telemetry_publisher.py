@@ -10,12 +10,13 @@ import sys
 
 from telemetry_helpers import WAIT, eventually
 
-from telemetry.config import ReconnectConfig, TelemetryConfig
+from surprise.backoff import BackoffConfig
+from telemetry.config import TelemetryConfig
 from telemetry.payloads import ClientStatus, RunStatus
 from telemetry.publisher import TelemetryPublisher
 
 #: Fast retries, so that a test does not wait for the production delays.
-FAST = ReconnectConfig(initial=0.02, max=0.1, jitter=0.5)
+FAST = BackoffConfig(initial=0.02, max=0.1, jitter=0.5)
 
 
 def make(url: str, **config: object) -> TelemetryPublisher:

@@ -15,6 +15,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from surprise.backoff import Backoff
 from telemetry.config import TelemetryConfig
 from telemetry.payloads import (
     ClientStatus,
@@ -27,7 +28,7 @@ from telemetry.payloads import (
     parse_topic,
     robot_suffix,
 )
-from telemetry.publisher import Backoff, TelemetryPublisher
+from telemetry.publisher import TelemetryPublisher
 from telemetry.robot import RobotTelemetry, StepSampler, steps_between_samples
 
 BROKER = "mqtt://127.0.0.1:1"  # never contacted: these publishers are not started
@@ -191,9 +192,9 @@ async def test_closing_an_unstarted_publisher_is_a_no_op_and_later_messages_are_
 def test_backoff_doubles_up_to_the_cap_with_jitter_below_it():
     from random import Random
 
-    from telemetry.config import ReconnectConfig
+    from surprise.backoff import BackoffConfig
 
-    backoff = Backoff(ReconnectConfig(initial=1.0, max=8.0, jitter=0.5), Random(1))
+    backoff = Backoff(BackoffConfig(initial=1.0, max=8.0, jitter=0.5), Random(1))
     delays = [backoff.next_delay() for _ in range(8)]
     caps = [1, 2, 4, 8, 8, 8, 8, 8]
     assert all(cap / 2 <= d <= cap for d, cap in zip(delays, caps, strict=True))

@@ -13,7 +13,8 @@ from rich.console import Console
 from telemetry_helpers import eventually
 
 from master_service.watch import SwarmState, collect, render, run_watch
-from telemetry.config import ReconnectConfig, TelemetryConfig, parse_broker_url
+from surprise.backoff import BackoffConfig
+from telemetry.config import TelemetryConfig, parse_broker_url
 from telemetry.payloads import (
     ClientStatus,
     EvaluationSummary,
@@ -24,7 +25,7 @@ from telemetry.payloads import (
 from telemetry.publisher import TelemetryPublisher
 
 NOW = 1_700_000_000.0
-FAST = ReconnectConfig(initial=0.02, max=0.1, jitter=0.5)
+FAST = BackoffConfig(initial=0.02, max=0.1, jitter=0.5)
 
 
 def run_status(**overrides: object) -> RunStatus:
