@@ -236,9 +236,13 @@ def _sim(args: argparse.Namespace) -> int:
     experiment = _sim_experiment(args, args.evaluations)
     out = args.out or _default_out("sim", experiment.scenario)
     RunDir(out).check_new()
-    level = logging.DEBUG if args.verbose else logging.INFO
     quiet_agents()
-    with ProgressDisplay(level=level) as display:
+    display = ProgressDisplay(level=logging.DEBUG if args.verbose else logging.INFO)
+    if display.live and not args.verbose:
+        # A simulated run counts dozens of evaluations a second: the panel shows the progress,
+        # master.log keeps every line, the console only what needs a look.
+        display.level = logging.WARNING
+    with display:
         swarm = SimulatedSwarm(experiment, realtime=args.realtime, on_progress=display.update)
         print(
             f"simulating {experiment.scenario}: {experiment.robots} robots, "

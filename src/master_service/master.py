@@ -606,13 +606,12 @@ class Master:
         state = self._require_state()
         if state.phase == "done":
             return 0.0
-        post = self.experiment.post_evaluation_steps * STEP_PERIOD
+        steps = self.experiment.evaluation_steps
         remaining = self.experiment.evolution.evaluations - state.optimizer.evaluations
-        if self._intervals:
-            per_evaluation = statistics.fmean(self._intervals)
-        else:
-            per_evaluation = self.experiment.evaluation_steps * STEP_PERIOD
-        return remaining * per_evaluation + post
+        # Measured once possible, so a simulated swarm in lockstep (far faster than 10 Hz) is
+        # estimated right too, its post-evaluation included.
+        per_step = statistics.fmean(self._intervals) / steps if self._intervals else STEP_PERIOD
+        return (remaining * steps + self.experiment.post_evaluation_steps) * per_step
 
     def _counted(self, fitness: float) -> None:
         now = time.monotonic()
