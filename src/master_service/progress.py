@@ -77,8 +77,11 @@ class ProgressDisplay:
         else:
             self._handler = logging.StreamHandler(self.stream)
             self._handler.setFormatter(logging.Formatter(_FORMAT))
+        # The console's level is the handler's: the run's log file below keeps every INFO line
+        # whatever the console shows.
+        self._handler.setLevel(self.level)
         self._logger.addHandler(self._handler)
-        self._logger.setLevel(self.level)
+        self._logger.setLevel(min(self.level, logging.INFO))
         return self
 
     def __exit__(self, *exc_info: object) -> None:
