@@ -10,7 +10,8 @@ drives the wheels. Facts about the real medulla that shape this code:
 - ``SetVariable`` and ``LoadScripts`` are declared no-reply: they are sent with the
   ``NO_REPLY_EXPECTED`` flag, a failed write is silent, and a dead robot shows as read timeouts.
   :meth:`ThymioBase.is_connected` is a round trip on the same connection, so once it returns
-  medulla has processed every earlier write (``close()`` uses it to make sure the stop arrived).
+  medulla has processed every earlier write (``stop()`` uses it to confirm the stop, and fails
+  when medulla or the robot is gone).
 
 ``dbus-fast`` is imported inside the methods so that importing ``drivers`` does not need it.
 """
@@ -148,9 +149,7 @@ class ThymioBase:
             return
         try:
             try:
-                await self.stop()
-                # A round trip: medulla has processed the stop before we hang up.
-                await self.is_connected()
+                await self.stop()  # confirmed by a round trip before we hang up
             except Exception as exc:  # a broken bus is a common reason to close
                 log.warning("Thymio: stopping the motors on close failed: %s", exc)
         finally:
@@ -192,8 +191,17 @@ class ThymioBase:
         return targets
 
     async def stop(self) -> None:
-        """Set both motor targets to 0."""
+        """Set both motor targets to 0 and confirm that medulla delivered them to the robot.
+
+        The writes are no-reply, so a stop that medulla dropped (robot gone, medulla gone) would
+        otherwise look done; the :meth:`is_connected` round trip turns it into a
+        :class:`HardwareError`, so callers (the watchdog) know to retry.
+        """
         await self.set_speeds(0.0, 0.0)
+        if not await self.is_connected():
+            raise HardwareError(
+                f"Thymio: stop not confirmed: medulla has lost the robot {self.config.node!r}"
+            )
 
     async def is_connected(self) -> bool:
         """Whether medulla sees the robot; also a barrier for the writes sent before it."""

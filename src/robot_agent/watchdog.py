@@ -93,6 +93,8 @@ class Watchdog:
         self._tripped_reason: str | None = None
         self._stopped = False  # whether a stop succeeded since the trip
         self._failures = 0  # failed stop attempts since the trip, to log the first one loudly
+        # Bumped by arm(): a stop attempt that began before it says nothing about the new arming.
+        self._epoch = 0
         self._lock = asyncio.Lock()  # one stop attempt at a time (expiry and trip() may race)
         self._task: asyncio.Task[None] | None = None
 
@@ -130,6 +132,7 @@ class Watchdog:
         self._tripped_reason = None
         self._stopped = False
         self._failures = 0
+        self._epoch += 1
         self._last_feed = self._now()
         self._armed = True
 
@@ -206,11 +209,15 @@ class Watchdog:
 
     async def _stop_motors(self) -> bool:
         async with self._lock:
+            if self._tripped_reason is None:  # re-armed while this waited for the lock
+                return False
             if self._stopped:
                 return True
+            epoch = self._epoch
             error = await self._attempt_stop()
             if error is None:
-                self._stopped = True
+                # Only for the arming it began in: the motors may have been driven since arm().
+                self._stopped = epoch == self._epoch
                 if self._failures:
                     log.info("watchdog: motors stopped after %d failed attempts", self._failures)
                 self._failures = 0

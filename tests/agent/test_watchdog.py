@@ -263,3 +263,31 @@ async def test_real_time_smoke():
         await asyncio.wait_for(stopped.wait(), timeout=2.0)
     elapsed = time.monotonic() - start
     assert TIMEOUT < elapsed < 1.0
+
+
+async def test_a_stop_begun_before_arming_does_not_cover_the_next_trip(clock):
+    """A slow stop attempt that succeeds after ``arm()`` must not mark the new arming stopped.
+
+    Otherwise the next stall trips the watchdog but issues no stop ("already stopped").
+    """
+    calls: list[float] = []
+    release = asyncio.Event()
+
+    async def stop() -> None:
+        calls.append(clock.now)
+        if len(calls) == 1:
+            await release.wait()  # slow, but it succeeds
+
+    async with Watchdog(stop, now=clock.time, sleep=clock.sleep) as wd:
+        trip = asyncio.create_task(wd.trip("stop failed"))
+        await clock.advance(0.1)
+        assert len(calls) == 1 and not trip.done()
+        wd.arm()  # the next evaluation starts while that attempt is still in flight
+        release.set()
+        await clock.advance(0.0)
+        assert await trip is True
+        assert not wd.stopped and not wd.tripped
+        await clock.advance(0.3)  # the new evaluation's loop stalls
+        assert wd.tripped_reason == REASON_STALL
+        assert len(calls) == 2  # a fresh stop for the stall
+        assert wd.stopped

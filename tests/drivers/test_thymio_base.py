@@ -177,6 +177,32 @@ async def test_robot_gone_reads_time_out(medulla: FakeMedulla, thymio_config: Co
             await thymio.read_ir()
 
 
+async def test_stop_that_does_not_reach_the_robot_is_an_error(
+    medulla: FakeMedulla, model: StaticThymioModel, thymio_config: ConfigFactory
+):
+    # SetVariable is no-reply and medulla drops writes to a robot it lost: without a check, a
+    # stop that went nowhere would look done and nobody would retry it.
+    async with _opened(thymio_config(timeout=HANG_TIMEOUT)) as thymio:
+        await thymio.set_speeds(0.5, 0.5)
+        medulla.disconnect_robot()
+        with pytest.raises(HardwareError, match="stop not confirmed"):
+            await thymio.stop()
+        medulla.reconnect_robot()
+        await thymio.stop()  # a retry succeeds once the robot is reachable again
+        assert model.targets == {"left": 0, "right": 0}
+
+
+async def test_stop_without_medulla_is_an_error(
+    dbus_address: str, model: StaticThymioModel, thymio_config: ConfigFactory
+):
+    thymio = ThymioBase(thymio_config(timeout=HANG_TIMEOUT))
+    async with serve_fake_medulla(dbus_address, model):
+        await thymio.open()
+    with pytest.raises(HardwareError):  # the writes went to nobody
+        await thymio.stop()
+    await thymio.close()
+
+
 async def test_open_refuses_a_disconnected_robot(
     medulla: FakeMedulla, thymio_config: ConfigFactory
 ):
