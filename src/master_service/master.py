@@ -15,7 +15,8 @@ thread while the next Evaluate goes out, so the disk's fsync latency is not part
 overhead; a commit starts only when the previous one is on disk. A crash therefore loses at most
 the latest commit: its evaluation is done again from the previous checkpoint (whose rows the CSV is
 cut back to), and at most one id past the checkpointed counter can have been sent, so a resumed
-master starts one id further and never reuses an id.
+master starts one id further (1 when there is no checkpoint yet) and commits that counter before
+it sends anything; it never reuses an id, however often it is killed.
 
 Use in-process (the ``sim`` command starts agents in the same event loop)::
 
@@ -58,7 +59,7 @@ from surprise.errors import ConfigError
 from surprise.evolution import OnePlusOne
 from surprise.fitness import swarm_fitness
 from surprise.network import GenomeLayout, spec_from_config
-from surprise.wire import REFUSED_UNKNOWN_ROBOT, Failed, Result
+from surprise.wire import REFUSED_UNKNOWN_ROBOT, Evaluate, Failed, Result, encode
 from telemetry.config import require_client_library
 from telemetry.payloads import RunStatus, master_status_suffix, now, run_status_suffix
 from telemetry.publisher import TelemetryPublisher
@@ -147,6 +148,21 @@ class Master:
         self.experiment = config.experiment
         self.spec = spec_from_config(self.experiment)
         self.genome_size = GenomeLayout(self.spec).size
+        # The largest Evaluate this run can send (ids and step counts at their widest).
+        widest = 2**64 - 1
+        probe = Evaluate(
+            evaluation_id=widest,
+            genome=bytes(8 * self.genome_size),
+            spec=self.spec,
+            steps=widest,
+            record=True,
+        )
+        if len(encode(probe, max_frame_size=2**62)) - 4 > config.max_frame_size:
+            raise ConfigError(
+                f"{config.max_frame_size} bytes cannot hold the genome of "
+                f"{self.genome_size} values sent with every evaluation",
+                key="max_frame_size",
+            )
         self.run_dir = RunDir(run_dir)
         self.run_id = self.run_dir.path.resolve().name
         self.resume = resume
@@ -220,21 +236,27 @@ class Master:
                 state.next_evaluation_id += 1
         else:
             self.run_dir.check_new()
+        if state is None:
+            experiment = self.experiment
+            optimizer = OnePlusOne(experiment.evolution, self.genome_size, experiment.seed)
+            state = RunState(run_id=self.run_id, optimizer=optimizer)
+            if self.resume:
+                # A master stopped before its first commit may have sent id 0.
+                state.next_evaluation_id = 1
         await self.server.bind()
         try:
             if self.resume:
-                if state is not None:
-                    self.run_dir.prepare_resume(state)
+                self.run_dir.prepare_resume(state)
+                # Make the skipped id durable before any attempt goes out: a master killed
+                # before its own first commit would otherwise leave the old counter on disk,
+                # and the next resume would reuse the id this one sent.
+                self.run_dir.commit(state.to_json(), None, ())
             else:
                 self.run_dir.create(self.config)
             self._open_log()
         except BaseException:
             await self.server.close()
             raise
-        if state is None:
-            experiment = self.experiment
-            optimizer = OnePlusOne(experiment.evolution, self.genome_size, experiment.seed)
-            state = RunState(run_id=self.run_id, optimizer=optimizer)
         self.state = state
         self._elapsed_before = state.elapsed_s
         self._started_at = time.monotonic()
@@ -380,7 +402,15 @@ class Master:
                 await self._attempt_failed(attempt, f"evaluation {opt.evaluations + 1}")
                 continue
             fitnesses = attempt.fitnesses()
-            outcome = opt.tell(swarm_fitness(fitnesses))
+            with np.errstate(over="ignore"):
+                fitness = swarm_fitness(fitnesses)
+            if not np.isfinite(fitness):
+                # Finite fitnesses whose mean overflows: garbage from a robot must not stop the run.
+                attempt.failure = f"the robots' fitnesses {fitnesses} have no finite mean"
+                opt.tell_failed()
+                await self._attempt_failed(attempt, f"evaluation {opt.evaluations + 1}")
+                continue
+            outcome = opt.tell(fitness)
             duration = attempt.completed - attempt.started
             row = format_row(
                 outcome.evaluation,

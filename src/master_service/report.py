@@ -45,8 +45,10 @@ SIMULATION_FILE: Final = "simulation.json"
 _STALE_PERIODS: Final = 5
 
 
-def _rows(run: RunDir) -> tuple[list[dict[str, Any]], list[str]]:
-    rows = run.read_rows()
+def _rows(run: RunDir, limit: int | None) -> tuple[list[dict[str, Any]], list[str]]:
+    # Rows past the checkpoint's count belong to an unfinished commit (resume drops them); the
+    # last of them may be torn, so they are cut before being parsed.
+    rows = run.read_rows()[:limit]
     robots = []
     if rows:
         robots = [key[len("fitness_") :] for key in rows[0] if key.startswith("fitness_")]
@@ -151,10 +153,7 @@ def _load(path: str | Path) -> _Run:
     config = run.load_config()
     assert config.experiment is not None
     checkpoint = run.read_checkpoint_data() or {}
-    rows, robots = _rows(run)
-    # Rows past the checkpoint's count belong to an unfinished commit (resume drops them).
-    if "csv_rows" in checkpoint:
-        rows = rows[: checkpoint["csv_rows"]]
+    rows, robots = _rows(run, checkpoint.get("csv_rows"))
     post = run.read_json(POST_EVALUATION)
     simulation = run.read_json(SIMULATION_FILE)
     return _Run(

@@ -56,6 +56,10 @@ MAX_PENDING_OUTPUT: Final = 4 * 1024 * 1024
 #: How long a closing connection may take to flush its last message (a Refused, a Bye) before
 #: it is aborted; the peer is not worth more of our time.
 CLOSE_TIMEOUT: Final = 2.0
+#: Bytes one frame may have before the peer authenticated: far above any Hello or Authenticate,
+#: far below the limit for Results, so that unauthenticated peers cannot make the master buffer
+#: megabytes each until their handshake times out.
+HANDSHAKE_MAX_FRAME_SIZE: Final = 64 * 1024
 #: The listen backlog: a thousand robots (the benchmark) may connect at the same instant; the
 #: default of 100 would make some retry their SYN a second later.
 LISTEN_BACKLOG: Final = 1024
@@ -73,6 +77,8 @@ class Session:
         self.peer = peer
         #: Event-loop time of the last message received (any message counts as a sign of life).
         self.last_received = now
+        #: ``stream.bytes_received`` when the keep-alive last looked.
+        self.bytes_seen = stream.bytes_received
         self.closed = False
         self.close_reason: str | None = None
 
@@ -230,7 +236,8 @@ class RobotServer:
         assert task is not None
         self._handlers.add(task)
         peer = _peer_name(writer)
-        stream = MessageStream(reader, writer, max_frame_size=self.max_frame_size)
+        limit = min(HANDSHAKE_MAX_FRAME_SIZE, self.max_frame_size)
+        stream = MessageStream(reader, writer, max_frame_size=limit)
         session: Session | None = None
         reason = "connection closed"
         try:
@@ -318,6 +325,7 @@ class RobotServer:
             self.log.info("connection from %s closed during the handshake: %s", peer, exc)
             return None
 
+        stream.set_max_frame_size(self.max_frame_size)
         loop = asyncio.get_running_loop()
         session = Session(hello, stream, peer, loop.time())
         # Register and welcome without awaiting in between: the admission check above stays
@@ -385,6 +393,11 @@ class RobotServer:
             ping = encode(Ping(seq=seq))
             now = loop.time()
             for session in list(self.sessions.values()):
+                received = session.stream.bytes_received
+                if received != session.bytes_seen:
+                    # Part of a long message (a trace on a slow link) arrived: the link lives.
+                    session.bytes_seen = received
+                    session.last_received = max(session.last_received, now)
                 silent = now - session.last_received
                 if silent > limit:
                     self.drop(session, f"link dead: no message for {silent:.1f} s")

@@ -281,6 +281,19 @@ class Trace(msgspec.Struct, frozen=True, kw_only=True):
             lengths.append(len(self.poses))
         if any(n != steps for n in lengths):
             raise ValueError("every list of a trace must hold one entry per step")
+        # The receiver stores a trace as arrays: every row of a list has the same width.
+        if not steps:
+            return
+        width = len(self.sensors[0])
+        for name, rows, expected in (
+            ("sensors", self.sensors, width),
+            ("predictions", self.predictions, width),
+            ("actions", self.actions, 2),
+            ("commands", self.commands, 2),
+            ("poses", self.poses or (), 3),
+        ):
+            if any(len(row) != expected for row in rows):
+                raise ValueError(f"every row of a trace's {name} must hold {expected} values")
 
 
 class Result(_Message, tag="result"):
@@ -492,6 +505,14 @@ class MessageStream:
         self._decoder = FrameDecoder(max_frame_size)
         # One read may complete several frames; the extra messages wait here.
         self._queue: collections.deque[Message] = collections.deque()
+        #: Bytes read so far: a message still arriving is a sign of life too.
+        self.bytes_received = 0
+
+    def set_max_frame_size(self, max_frame_size: int) -> None:
+        """Change the frame size limit of both directions from the next frame on (a server keeps
+        it small until its peer has authenticated)."""
+        self.max_frame_size = max_frame_size
+        self._decoder.max_frame_size = max_frame_size
 
     async def receive(self) -> Message:
         """Return the next message.
@@ -515,6 +536,7 @@ class MessageStream:
                         mid_frame=True,
                     )
                 raise ConnectionClosedError()
+            self.bytes_received += len(data)
             self._queue.extend(self._decoder.feed(data))
         return self._queue.popleft()
 

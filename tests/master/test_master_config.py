@@ -6,7 +6,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from master_helpers import SECRET, master_config
 
+from master_service import Master
 from master_service.cli import main
 from master_service.config import (
     DEFAULT_PORT,
@@ -158,3 +160,11 @@ def test_cli_run_exits_1_when_the_port_is_busy(lab, capsys):
         assert main(["run", "--config", str(path), "--out", str(lab / "run")]) == 1
     assert "address already in use" in capsys.readouterr().err.lower()
     assert not (lab / "run").exists()
+
+
+async def test_a_frame_limit_too_small_for_the_genome_is_a_configuration_error(tmp_path):
+    # Otherwise the master starts, waits for the swarm, and dies on its first Evaluate.
+    with pytest.raises(ConfigError, match="genome") as info:
+        Master(master_config(max_frame_size=2048), tmp_path / "run", secret=SECRET)
+    assert info.value.key == "max_frame_size"
+    assert not (tmp_path / "run").exists()

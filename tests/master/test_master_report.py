@@ -142,3 +142,18 @@ def test_the_live_panel_renders():
         display.update(sample_progress())
         time.sleep(0)  # the panel refreshes on its own thread; stop() draws the last state
     assert "evaluations" in stream.getvalue() and "12/350" in stream.getvalue()
+
+
+async def test_report_and_status_of_a_crashed_run_ignore_a_torn_last_row(tmp_path):
+    # kill -9 in the middle of a commit leaves a torn row past the checkpoint's count; the report
+    # of that run (before any resume) must count the checkpointed rows and not crash on it.
+    run = tmp_path / "run"
+    async with Master(master_config(experiment(evaluations=4)), run, secret=SECRET) as master:
+        robots = make_robots(master.port, 3)
+        await run_with(master, robots)
+        await close(robots)
+    with open(run / "evaluations.csv", "a") as file:
+        file.write("5,offspring,0.5,0.")
+    metrics = write_report(run)
+    assert metrics["evaluations"] == 4
+    assert "4/4 evaluations counted" in status_text(run)

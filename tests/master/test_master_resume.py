@@ -265,3 +265,46 @@ async def test_sigterm_stops_the_command_cleanly(tmp_path):
     assert "left: master shutting down" in log
     assert "stopped by SIGTERM; continue with `surprise-master resume" in log
     assert json.loads((run / "live.json").read_text())["running"] is False
+
+
+@pytest.mark.parametrize("first_rows", [0, 3])
+async def test_ids_are_never_reused_when_a_resumed_master_dies_before_its_first_commit(
+    tmp_path, first_rows
+):
+    # Each master sends an attempt while the commit reserving its id is still being written. A
+    # master killed before its first commit reached the disk (a fresh one, or a resumed one) has
+    # sent an id the checkpoint on disk does not account for: the next resume must skip it too.
+    exp = experiment(evaluations=12)
+    run = tmp_path / "run"
+    sent: list[int] = []
+    if first_rows:
+        async with Master(master_config(exp), run, secret=SECRET) as master:
+            robots = make_robots(master.port, 3, delay=0.005)
+            task = asyncio.create_task(master.run())
+            await connect(robots)
+            await wait_rows(run / "evaluations.csv", first_rows)
+            task.cancel()
+            with pytest.raises(asyncio.CancelledError):
+                await task
+        await asyncio.gather(*(r.closed.wait() for r in robots))
+        sent += ids_of(robots)
+    for _ in range(2):
+        async with Master(master_config(exp), run, secret=SECRET, resume=run.exists()) as master:
+
+            def crash(state, row, header):
+                raise OSError("simulated kill before the commit reached the disk")
+
+            master.run_dir.commit = crash
+            robots = make_robots(master.port, 3)
+            with pytest.raises(OSError, match="simulated kill"):
+                await run_with(master, robots)
+        await asyncio.gather(*(r.closed.wait() for r in robots))
+        ids = ids_of(robots)
+        assert ids and not set(ids) & set(sent), f"ids {ids} were sent before: {sent}"
+        sent += ids
+    async with Master(master_config(exp), run, secret=SECRET, resume=True) as master:
+        again = make_robots(master.port, 3)
+        await run_with(master, again)
+        await close(again)
+    assert not set(ids_of(again)) & set(sent)
+    assert_matches_reference(run, exp, robot_ids(3))

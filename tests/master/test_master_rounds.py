@@ -35,6 +35,7 @@ from master_service.scripted import (
     LATE,
     REPLY,
     ScriptedRobot,
+    deterministic_fitness,
 )
 from surprise.wire import MAX_FRAME_SIZE, Evaluate
 
@@ -237,4 +238,21 @@ async def test_the_swarm_is_fixed_by_the_allow_list_order_independent(tmp_path):
         await close(robots)
     header = (tmp_path / "run" / "evaluations.csv").read_text().splitlines()[0]
     assert header.endswith("fitness_r0,fitness_r1,fitness_r2")
+    assert_matches_reference(tmp_path / "run", exp, robot_ids(3))
+
+
+async def test_fitnesses_whose_mean_overflows_do_not_stop_the_run(tmp_path):
+    # Each robot's fitness is finite (the codec checks that), but their mean may not be: such a
+    # round must not count, and must not crash the master either.
+    exp = experiment(evaluations=3)
+    huge = iter([1.7e308] * 3)
+
+    def fitness(genome, index):
+        return next(huge, None) or deterministic_fitness(genome, index)
+
+    async with Master(master_config(exp), tmp_path / "run", secret=SECRET) as master:
+        robots = make_robots(master.port, 3, fitness=fitness)
+        summary = await run_with(master, robots)
+        await close(robots)
+    assert summary.failed_attempts == 1
     assert_matches_reference(tmp_path / "run", exp, robot_ids(3))

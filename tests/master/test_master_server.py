@@ -27,6 +27,7 @@ from surprise.wire import (
     REFUSED_UNKNOWN_ROBOT,
     REFUSED_VERSION_MISMATCH,
     Authenticate,
+    Bye,
     FrameDecoder,
     Hello,
     MessageStream,
@@ -121,6 +122,9 @@ async def test_a_complete_swarm_refuses_a_further_robot(tmp_path):
         pytest.param(b"GET / HTTP/1.1\r\nHost: x\r\n\r\n", "exceeds the limit", id="http"),
         pytest.param(b"\x00\x00\x00\x05\xc1\xc1\xc1\xc1\xc1", "malformed", id="garbage"),
         pytest.param(struct.pack(">I", MAX_FRAME_SIZE + 1), "exceeds the limit", id="oversized"),
+        # Before authentication a frame cannot be large: an unauthenticated peer must not make
+        # the master buffer megabytes per connection until the handshake times out.
+        pytest.param(struct.pack(">I", 1024 * 1024), "exceeds the limit", id="large-before-auth"),
         pytest.param(b"\x00\x00\x00\x00", "empty frame", id="empty"),
         pytest.param(encode(Ping(seq=1)), "expected hello", id="ping-first"),
     ],
@@ -181,6 +185,22 @@ async def test_keep_alive_drops_a_dead_link_and_keeps_a_live_one(tmp_path):
         assert m.connected_robots == ["r0"]
         await live.close()
     assert "link dead: no message for" in (tmp_path / "run" / "master.log").read_text()
+
+
+async def test_a_long_message_still_arriving_keeps_the_link_alive(tmp_path):
+    # A post-evaluation trace over a slow, shared Wi-Fi can take longer than three heartbeats to
+    # arrive; its bytes are signs of life, and the robot must not be dropped in the middle of it.
+    async with Master(master_config(heartbeat_interval=0.1), tmp_path / "run", secret=SECRET) as m:
+        robot = ScriptedRobot("r0", SECRET, m.port, answer_pings=False)
+        await robot.connect()
+        frame = encode(Bye(reason="x" * 4000))
+        for i in range(0, len(frame) - 50, 50):  # 80 pieces over 1.6 s; dead after 0.3 s
+            robot.send_raw(frame[i : i + 50])
+            await asyncio.sleep(0.02)
+            assert not robot.closed.is_set(), f"dropped after {i + 50} bytes"
+        robot.send_raw(frame[i + 50 :])
+        await asyncio.wait_for(robot.closed.wait(), 3)
+    assert "the robot said bye: xxx" in (tmp_path / "run" / "master.log").read_text()
 
 
 async def test_the_master_answers_a_robots_ping(tmp_path):

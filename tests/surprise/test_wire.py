@@ -606,3 +606,29 @@ async def test_stream_send_refuses_oversized_message_before_writing() -> None:
             await client.send(Authenticate(mac=bytes(200)))
         await client.send(Ping(seq=1))
     assert received == [encode(Ping(seq=1))]
+
+
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("sensors", [[0.1, 0.2], [0.3]]),  # ragged
+        ("predictions", [[0.1], [0.2]]),  # not one prediction per sensor
+        ("actions", [[0.5], [0.5]]),  # not two wheel speeds
+        ("commands", [[0.5, 0.5, 0.5], [0.5, 0.5, 0.5]]),
+        ("poses", [[1.0, 2.0], [1.0, 2.0]]),  # not (x, y, theta)
+    ],
+)
+def test_a_trace_that_is_not_rectangular_is_a_protocol_error(field, value) -> None:
+    # The master stores a trace as arrays: a ragged one must be refused where it enters, not
+    # crash the run when the post-evaluation is written.
+    good = msgspec.to_builtins(
+        Result(
+            evaluation_id=1,
+            fitness=0.5,
+            stats=EvaluationStats(steps_run=2, overruns=0, interventions={}),
+            trace=sample_trace(2, 2),
+        )
+    )
+    good["trace"][field] = value
+    with pytest.raises(ProtocolError, match="malformed message"):
+        decode_payload(msgspec.msgpack.encode(good))
