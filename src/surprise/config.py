@@ -90,6 +90,12 @@ def to_builtins(config: msgspec.Struct) -> dict[str, Any]:
     return msgspec.to_builtins(config)
 
 
+#: The longest recorded evaluation (post-evaluation): its trace must fit one wire frame. A step of
+#: a 12-sensor trace is about 290 bytes of msgpack (31 floats), so 20,000 steps (33 minutes at
+#: 10 Hz) are about 5.8 MB, inside the 8 MiB frame limit with room to spare.
+MAX_RECORDED_STEPS = 20_000
+
+
 class NetworkConfig(Strict):
     """Sizes of the actor-predictor pair (REFERENCE section 1).
 
@@ -133,7 +139,7 @@ class ExperimentConfig(Strict):
     evolution: EvolutionConfig = msgspec.field(default_factory=EvolutionConfig)
     predefined: dict[str, float] = msgspec.field(default_factory=dict)
     evaluation_steps: PositiveInt = 100
-    post_evaluation_steps: Annotated[int, msgspec.Meta(ge=0)] = 1000
+    post_evaluation_steps: Annotated[int, msgspec.Meta(ge=0, le=MAX_RECORDED_STEPS)] = 1000
     scenario: str = "basic"
     robots: PositiveInt = 10
     seed: Annotated[int, msgspec.Meta(ge=0)] = 0

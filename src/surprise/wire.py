@@ -34,6 +34,7 @@ from typing import Annotated, Final
 import msgspec
 import numpy as np
 
+from surprise.config import MAX_RECORDED_STEPS
 from surprise.errors import FrameTooLargeError, GenomeError, ProtocolError, SurpriseError
 from surprise.network import NetworkSpec
 
@@ -244,6 +245,11 @@ class Evaluate(_Message, tag="eval"):
     def __post_init__(self) -> None:
         # Reject a malformed genome where it enters, not deep inside the robot's control loop.
         genome_from_bytes(self.genome)
+        if self.record and self.steps > MAX_RECORDED_STEPS:
+            # The trace would not fit one frame: the robot could never send its Result.
+            raise ProtocolError(
+                f"a recorded evaluation has at most {MAX_RECORDED_STEPS} steps, not {self.steps}"
+            )
 
 
 class EvaluationStats(msgspec.Struct, frozen=True, kw_only=True):

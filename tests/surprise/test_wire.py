@@ -12,8 +12,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from surprise.config import MAX_RECORDED_STEPS
 from surprise.errors import FrameTooLargeError, GenomeError, ProtocolError, SurpriseError
-from surprise.network import NetworkSpec
+from surprise.network import GenomeLayout, NetworkSpec
 from surprise.sensors import ALL_SENSORS
 from surprise.wire import (
     MAX_FRAME_SIZE,
@@ -126,7 +127,15 @@ messages: st.SearchStrategy[Message] = st.one_of(
         genome=genomes.map(genome_to_bytes),
         spec=network_specs(),
         steps=st.integers(1, 2**63 - 1),
-        record=st.booleans(),
+        record=st.just(False),
+    ),
+    st.builds(
+        Evaluate,
+        evaluation_id=u63,
+        genome=genomes.map(genome_to_bytes),
+        spec=network_specs(),
+        steps=st.integers(1, MAX_RECORDED_STEPS),
+        record=st.just(True),
     ),
     st.builds(
         Result,
@@ -632,3 +641,15 @@ def test_a_trace_that_is_not_rectangular_is_a_protocol_error(field, value) -> No
     good["trace"][field] = value
     with pytest.raises(ProtocolError, match="malformed message"):
         decode_payload(msgspec.msgpack.encode(good))
+
+
+def test_a_recorded_evaluation_too_long_for_one_frame_is_refused():
+    """Its trace could never be sent back: refuse it where it enters, on either side."""
+    spec = NetworkSpec(sensors=("ir.f0",), actor_hidden=1, predictor_hidden=1)
+    genome = genome_to_bytes(np.zeros(GenomeLayout(spec).size))
+    Evaluate(evaluation_id=1, genome=genome, spec=spec, steps=MAX_RECORDED_STEPS, record=True)
+    Evaluate(evaluation_id=1, genome=genome, spec=spec, steps=10 * MAX_RECORDED_STEPS)
+    with pytest.raises(ProtocolError, match="at most"):
+        Evaluate(
+            evaluation_id=1, genome=genome, spec=spec, steps=MAX_RECORDED_STEPS + 1, record=True
+        )
