@@ -23,8 +23,11 @@ from drivers.config import (
     MuxConfig,
     ThymioConfig,
 )
+from sim_stub.body import SimSwarm
 from sim_stub.fake_i2c import FakeADS1115, FakeI2C, FakeTCA9548A, FakeTSL45315
 from sim_stub.fake_medulla import StaticThymioModel, private_bus, serve_fake_medulla
+from sim_stub.scenarios import scenario_config
+from sim_stub.world import World
 
 #: The fake medulla answers in about a millisecond; this only bounds a broken test.
 CALL_TIMEOUT = 1.0
@@ -94,4 +97,35 @@ async def robot_thymio_only(stack: AsyncExitStack) -> BodyUnderTest:
 
 
 #: Every body the contract covers.
-FACTORIES: list[BodyFactory] = [robot_full, robot_thymio_only]
+async def _simulated(stack: AsyncExitStack, scenario: str, *, realtime: bool) -> BodyUnderTest:
+    """Robot 1 of a simulated world; the other robots stand still and take no part."""
+    world = World(scenario_config(scenario), seed=4)
+    swarm = SimSwarm(world, realtime=realtime)
+    if realtime:
+        await stack.enter_async_context(swarm)
+    body = swarm.body(1)
+    stack.push_async_callback(body.close)
+
+    async def observe_motors() -> tuple[float, float]:
+        left, right = world.commands[1]
+        return float(left), float(right)
+
+    return BodyUnderTest(body, observe_motors)
+
+
+async def sim_lockstep_all_sensors(stack: AsyncExitStack) -> BodyUnderTest:
+    """A simulated Thymio with blade, force and light sensors, in lockstep."""
+    return await _simulated(stack, "gradient", realtime=False)
+
+
+async def sim_realtime_basic(stack: AsyncExitStack) -> BodyUnderTest:
+    """A simulated basic Thymio in a world paced at 10 Hz of wall-clock time."""
+    return await _simulated(stack, "basic", realtime=True)
+
+
+FACTORIES: list[BodyFactory] = [
+    robot_full,
+    robot_thymio_only,
+    sim_lockstep_all_sensors,
+    sim_realtime_basic,
+]
