@@ -29,6 +29,7 @@ from sim_stub import metrics as sim_metrics
 from sim_stub.body import SimSwarm
 from sim_stub.world import World
 from surprise.config import ExperimentConfig
+from surprise.evolution import random_genome
 from surprise.fitness import surprise_fitness, swarm_fitness
 from surprise.network import GenomeLayout, spec_from_config
 from surprise.wire import Evaluate, Result, genome_to_bytes
@@ -39,9 +40,7 @@ __all__ = ["BASELINE_FILE", "load_baseline", "run_baseline"]
 BASELINE_FILE = "baseline.json"
 
 
-async def _evaluate_pair(
-    swarm: SimSwarm, runners: list[EvaluationRunner], msg: Evaluate
-) -> list[Result]:
+async def _evaluate_pair(runners: list[EvaluationRunner], msg: Evaluate) -> list[Result]:
     results = await asyncio.gather(*(runner.run(msg) for runner in runners))
     failed = [r for r in results if not isinstance(r, Result)]
     if failed:
@@ -97,9 +96,7 @@ async def run_baseline(experiment: ExperimentConfig, pairs: int, out: str | Path
             for i, body in enumerate(bodies)
         ]
         for k in range(pairs):
-            genome = rng.uniform(
-                -experiment.evolution.initial_range, experiment.evolution.initial_range, size
-            )
+            genome = random_genome(rng, size, experiment.evolution.initial_range)
             seed = experiment.seed + 1 + k
             world.reset(seed=seed)
             start = world.box_positions.copy()
@@ -110,7 +107,7 @@ async def run_baseline(experiment: ExperimentConfig, pairs: int, out: str | Path
                 steps=steps,
                 record=True,
             )
-            results = await _evaluate_pair(swarm, runners, msg)
+            results = await _evaluate_pair(runners, msg)
             boxes = {"start": start, "end": world.box_positions} if len(start) else {}
             entries.append(_pair_entry(k, seed, results, experiment.evaluation_steps, boxes))
     data = {

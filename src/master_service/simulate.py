@@ -41,10 +41,15 @@ from surprise.errors import ConfigError
 
 __all__ = [
     "SAFETY_PROFILES",
+    "SCENARIOS",
     "SIMULATION_FILE",
+    "SimulatedRun",
     "SimulatedSwarm",
+    "quiet_agents",
     "robot_ids",
     "simulation_experiment",
+    "summary_text",
+    "world_config",
 ]
 
 #: Basic behaviours stop at obstacles; object manipulation escapes (REFERENCE section 3).
@@ -246,6 +251,3 @@ def summary_text(metrics: dict[str, Any], out: Path, seconds: float) -> str:
 def quiet_agents() -> None:
     """In-process agents log their connections at INFO: keep them out of the progress display."""
     logging.getLogger("robot_agent").setLevel(logging.WARNING)
-
-
-__all__ += ["SCENARIOS", "SimulatedRun", "quiet_agents", "summary_text", "world_config"]

@@ -52,6 +52,12 @@ class Outcome:
     best_fitness: float
 
 
+def random_genome(rng: np.random.Generator, size: int, half_range: float) -> np.ndarray:
+    """A genome drawn uniformly from [-half_range, half_range], as the first one of a run (the
+    paper: 0.5); the random pairs of a baseline are drawn the same way."""
+    return rng.uniform(-half_range, half_range, size)
+
+
 class OnePlusOne:
     """The (1+1) online evolution of REFERENCE section 2.
 
@@ -94,7 +100,7 @@ class OnePlusOne:
     def _draw(self) -> Candidate:
         cfg = self.config
         if self.best is None:
-            genome = self.rng.uniform(-cfg.initial_range, cfg.initial_range, self.genome_size)
+            genome = random_genome(self.rng, self.genome_size, cfg.initial_range)
             return Candidate(genome, "initial")
         if self.rng.random() < cfg.reevaluation_probability:
             return Candidate(self.best, "reevaluation")

@@ -116,10 +116,6 @@ class GenomeLayout:
             for name, (start, shape) in self.blocks.items()
         }
 
-    def random_genome(self, rng: np.random.Generator, half_range: float) -> np.ndarray:
-        """A genome drawn uniformly from [-half_range, half_range] (paper: 0.5)."""
-        return rng.uniform(-half_range, half_range, self.size)
-
 
 def _sigmoid(x: np.ndarray) -> np.ndarray:
     # The tanh form is exact and never overflows, unlike 1 / (1 + exp(-x)) for large |x|.
