@@ -20,8 +20,10 @@ fi
 
 echo "== Debian packages"
 apt-get update -qq
-# aseba: asebamedulla; i2c-tools: i2cdetect to check the light and force sensors' wiring;
-# locales: LoadScripts needs en_US.UTF-8.
+# aseba: asebamedulla; i2c-tools: i2cdetect to check the light and force sensors' wiring.
+# locales: medulla reports an Aseba compile error only if the en_US.UTF-8 locale is installed;
+# without it, it aborts instead (whatever locale it runs under). Our programs compile, so this
+# only matters when someone edits them, but then the reason is worth having.
 apt-get install -y -qq aseba i2c-tools python3-venv dbus locales
 if ! locale -a | grep -qi '^en_US.utf-\?8$'; then
   sed -i 's/^# *en_US.UTF-8 UTF-8/en_US.UTF-8 UTF-8/' /etc/locale.gen

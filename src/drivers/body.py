@@ -46,6 +46,11 @@ class Body(ABC):
         """Stop the motors and release the hardware. Called by ``__aexit__``; idempotent."""
         await self.stop()
 
+    async def recover(self) -> None:  # noqa: B027 - optional hook, a simulated body never fails
+        """Get the hardware back after ``surprise.errors.RobotUnreachableError`` (reconnect,
+        reattach, reload); raises ``HardwareError`` while that is not possible yet. Called again
+        and again, with pauses, until it returns; also for a body whose ``open()`` failed."""
+
     @abstractmethod
     async def read(self) -> SensorFrame:
         """Read every sensor once. Raises ``surprise.errors.HardwareError`` on failure."""

@@ -65,6 +65,14 @@ class RobotBody(Body):
             await self.close()
             raise
 
+    async def recover(self) -> None:
+        """Open the body if it never opened; otherwise get the Thymio back (see
+        :meth:`ThymioBase.recover`: a new medulla, the program loaded again)."""
+        if not self._opened:
+            await self.open()
+        else:
+            await self.thymio.recover()
+
     async def close(self) -> None:
         """Stop the motors, then release every part. Idempotent; never raises."""
         opened, self._opened = self._opened, []

@@ -20,27 +20,41 @@ from surprise.sensors import FORCE_SENSORS, GROUND_SENSORS, IR_SENSORS, LIGHT_SE
 CALL_TIMEOUT = 0.25
 #: Seconds to connect and authenticate to the D-Bus daemon; a local socket answers in milliseconds.
 CONNECT_TIMEOUT = 2.0
-#: Motor units for a normalised speed of 1.0: the authors' 315 (about 12.6 cm/s, REFERENCE 4).
-SPEED_SCALE = 315.0
-#: The Thymio accepts motor targets of about -500..500 (REFERENCE 4).
+#: Motor units for a normalised speed of 1.0. The Thymio's motor unit is about 0.04 cm/s
+#: (docs/thymio.md); the paper's real robots drove at most 10.6 cm/s to spare the motors, which is
+#: 265 units (its simulation used 12.6 cm/s, 315 units). Calibrate per robot.
+SPEED_SCALE = 265.0
+#: The Thymio accepts motor targets of about -500..500 (docs/thymio.md).
 MAX_MOTOR_TARGET = 500
+
+#: The node name a Thymio II announces, and the one the packaged Aseba programs are written for.
+PROGRAM_NODE = "thymio-II"
 
 PositiveSeconds = Annotated[float, msgspec.Meta(gt=0.0, le=60.0)]
 BusNumber = Annotated[int, msgspec.Meta(ge=0, le=255)]
 
 
 class ThymioConfig(Strict):
-    """The Thymio II base, reached through asebamedulla on D-Bus (REFERENCE 4).
+    """The Thymio II base, reached through asebamedulla on D-Bus (docs/thymio.md).
 
     ``bus`` is ``"session"``, ``"system"`` or an explicit D-Bus address (``"unix:path=..."``).
     ``speed_scale`` is the motor target for a normalised speed of 1.0 (calibrate per robot);
     targets are clamped to ``±max_target``. With ``failsafe`` the base loads an Aseba program that
     zeroes the motor targets when the host has not commanded the motors for ``failsafe_timeout``
-    seconds (see ``drivers/failsafe.aesl``).
+    seconds (see ``drivers/failsafe.aesl``); without it, it loads an empty program, so that no
+    program left on the Thymio (an earlier run's failsafe, the Thymio's own behaviours) sets the
+    motor targets.
+
+    medulla reads the programs from files: the ones installed with the package, or, for a node
+    not named ``thymio-II``, copies written into ``program_dir`` (a directory medulla can read;
+    not a private ``/tmp``). ``restart_medulla``: medulla never reconnects to a robot that went
+    away, so when the robot cannot be reached through it the agent ends it (SIGTERM) and waits
+    for its service to start a fresh one; this needs medulla to run as the agent's user under a
+    unit with ``Restart=always`` (deploy/systemd/asebamedulla.service).
     """
 
     bus: str = "session"
-    node: str = "thymio-II"
+    node: str = PROGRAM_NODE
     timeout: PositiveSeconds = CALL_TIMEOUT
     connect_timeout: PositiveSeconds = CONNECT_TIMEOUT
     ground: Literal["prox.ground.reflected", "prox.ground.delta"] = "prox.ground.reflected"
@@ -50,6 +64,8 @@ class ThymioConfig(Strict):
     # The Aseba program counts 100 ms ticks in an int16; 0.2 s is the shortest sensible window for
     # a 10 Hz host (two missed commands), 300 s keeps the count far from overflow.
     failsafe_timeout: Annotated[float, msgspec.Meta(ge=0.2, le=300.0)] = 1.0
+    program_dir: str | None = None
+    restart_medulla: bool = True
 
     def __post_init__(self) -> None:
         if self.bus not in ("session", "system") and ":" not in self.bus:
@@ -59,6 +75,12 @@ class ThymioConfig(Strict):
             )
         if not self.node:
             raise ValueError("`node`: the Aseba node name must not be empty")
+        if self.node != PROGRAM_NODE and self.program_dir is None:
+            raise ValueError(
+                f"`program_dir`: the Aseba programs are installed for the node {PROGRAM_NODE!r}; "
+                f"for node {self.node!r} they are written into program_dir, a directory "
+                "asebamedulla can read (e.g. /run/minimize-surprise)"
+            )
 
 
 class MuxConfig(Strict):

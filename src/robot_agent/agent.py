@@ -1,5 +1,8 @@
 """The agent of one robot: a body, a clock and a link to the master, run until cancelled.
 
+Its tasks: the link to the master (which starts evaluations), the watchdog, and the recovery of
+the robot when it cannot be reached (:class:`~robot_agent.health.RobotHealth`).
+
 ::
 
     async with body, Agent(config, body, clock, secret) as agent:
@@ -19,6 +22,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import random
 import time
 import zlib
@@ -29,7 +33,8 @@ from typing import Self
 from drivers.body import Body
 from drivers.clock import Clock, MonotonicClock
 from robot_agent.config import AgentConfig, make_ssl_context
-from robot_agent.link import Link
+from robot_agent.health import RobotHealth
+from robot_agent.link import Link, robot_logger
 from robot_agent.runner import EvaluationRunner, stop_motors
 from robot_agent.watchdog import Watchdog
 from telemetry.payloads import robot_suffix
@@ -78,6 +83,12 @@ class Agent:
         self.watchdog = Watchdog(
             body.stop, stop_timeout=config.loop.stop_timeout, now=_watchdog_time(clock)
         )
+        #: whether the robot can be reached, and its recovery when it cannot
+        self.health = RobotHealth(
+            body,
+            rng=rng,
+            logger=robot_logger(logging.getLogger("robot_agent.health"), config.robot_id),
+        )
         #: the MQTT publisher, when a broker is configured
         self.telemetry: TelemetryPublisher | None = None
         robot_telemetry = None
@@ -101,6 +112,7 @@ class Agent:
             # Stable per robot, different between robots: their escape turns should not agree.
             safety_seed=zlib.crc32(config.robot_id.encode("utf-8")),
             telemetry=robot_telemetry,
+            health=self.health,
         )
         self.link = Link(
             config,
@@ -113,6 +125,7 @@ class Agent:
         )
         self._stack: contextlib.AsyncExitStack | None = None
         self._link_task: asyncio.Task[None] | None = None
+        self._health_task: asyncio.Task[None] | None = None
 
     @property
     def connected(self) -> asyncio.Event:
@@ -132,6 +145,9 @@ class Agent:
             self._link_task = group.create_task(
                 self.link.run(), name=f"link[{self.config.robot_id}]"
             )
+            self._health_task = group.create_task(
+                self.health.run(), name=f"recovery[{self.config.robot_id}]"
+            )
             if self.telemetry is not None:
                 self.telemetry.start()  # connects in the background; returns at once
         except BaseException:
@@ -147,9 +163,10 @@ class Agent:
         tb: TracebackType | None,
     ) -> bool | None:
         stack, self._stack = self._stack, None
-        if self._link_task is not None:
-            self._link_task.cancel()  # the group would otherwise wait for it forever
-            self._link_task = None
+        for task in (self._link_task, self._health_task):
+            if task is not None:
+                task.cancel()  # the group would otherwise wait for it forever
+        self._link_task = self._health_task = None
         try:
             if stack is not None:
                 return await stack.__aexit__(exc_type, exc, tb)

@@ -6,11 +6,14 @@
 
 Loads the configuration (a bad one exits with code 2 and one message on stderr; nothing starts),
 builds the real body (``drivers.compose.build_body``, imported only here), opens it, and runs the
-:class:`~robot_agent.agent.Agent` with a :class:`~drivers.clock.MonotonicClock` until SIGTERM or
-SIGINT, which stop the motors and exit with code 0. Logs go to stdout, where systemd's journal
-collects them.
+:class:`~robot_agent.agent.Agent` with a :class:`~drivers.clock.MonotonicClock` until SIGTERM,
+SIGINT or SIGHUP (a closed SSH session), which stop the motors and exit with code 0. A robot that
+cannot be reached at start (switched on later, medulla not up yet) does not end the agent: it
+connects to the master, fails evaluations with the reason, and recovers the robot in the
+background. Logs go to stdout, where systemd's journal collects them.
 
-Exit codes: 0 stopped by a signal, 1 could not start (body absent) or crashed, 2 bad configuration.
+Exit codes: 0 stopped by a signal, 1 could not start (the body cannot be built) or crashed, 2 bad
+configuration.
 """
 
 from __future__ import annotations
@@ -27,11 +30,12 @@ from pathlib import Path
 import surprise
 from drivers.body import Body
 from drivers.clock import Clock, MonotonicClock
-from drivers.config import BodyConfig
+from drivers.config import BodyConfig, ThymioConfig
+from drivers.thymio import ThymioBase
 from robot_agent.agent import Agent
 from robot_agent.config import AgentConfig, load_agent_config, make_ssl_context, read_secret
 from robot_agent.runner import finish, stop_motors
-from surprise.errors import ConfigError
+from surprise.errors import ConfigError, HardwareError
 from telemetry.config import require_client_library
 
 __all__ = ["EXIT_CONFIG", "EXIT_FAILURE", "EXIT_OK", "amain", "main", "run_agent"]
@@ -45,10 +49,12 @@ EXIT_FAILURE = 1
 #: Exit code for a bad configuration (the usual code for usage errors).
 EXIT_CONFIG = 2
 
-_SIGNALS = (signal.SIGTERM, signal.SIGINT)
-#: Seconds ``--stop-motors`` waits for the body to open: connecting to medulla and loading the
-#: failsafe take a second or two on a Pi; systemd's stop timeout (5 s) bounds the whole.
-OPEN_TIMEOUT = 3.0
+#: Each stops the agent and its motors. SIGHUP too: an agent started by hand over SSH gets it when
+#: the session drops, and its default action would end the process with the motors running.
+_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
+#: Seconds ``--stop-motors`` may take to reach D-Bus and stop the Thymio (a connection and four
+#: calls, each bounded by the driver's own timeout); systemd's stop timeout (5 s) bounds the whole.
+STOP_ONCE_TIMEOUT = 3.0
 
 BodyFactory = Callable[[BodyConfig], Body]
 
@@ -90,7 +96,7 @@ async def run_agent(
     body_factory: BodyFactory = _build_real_body,
     clock: Clock | None = None,
 ) -> int:
-    """Run the agent until SIGTERM or SIGINT; returns the exit code.
+    """Run the agent until SIGTERM, SIGINT or SIGHUP; returns the exit code.
 
     The signal handlers are installed on the running loop for the duration of the call and the
     previous handlers restored afterwards. ``body_factory`` builds the (unopened) body; tests pass
@@ -120,10 +126,13 @@ async def run_agent(
         except Exception as exc:  # e.g. the drivers' libraries are missing
             print(f"surprise-agent: cannot build the robot's body: {exc}", file=sys.stderr)
             return EXIT_FAILURE
+        unreachable: str | None = None
         try:
             await body.open()
-        except Exception as exc:  # e.g. asebamedulla absent, an I2C device not answering
-            print(f"surprise-agent: cannot open the robot's body: {exc}", file=sys.stderr)
+        except HardwareError as exc:  # e.g. asebamedulla not up yet, the robot switched off
+            unreachable = str(exc)
+        except Exception as exc:  # a bug, or a library the drivers need is broken
+            print(f"surprise-agent: cannot open the robot's body: {exc!r}", file=sys.stderr)
             # close() is idempotent and stops whatever part did open; a stop() on a body that
             # never opened would only add a misleading error to the log.
             await finish(body.close(), 2 * config.loop.stop_timeout)
@@ -131,6 +140,8 @@ async def run_agent(
         try:
             log.info("robot %s: sensors %s", config.robot_id, ", ".join(body.sensors))
             async with Agent(config, body, clock or MonotonicClock(), secret) as agent:
+                if unreachable is not None:
+                    agent.health.lost(f"the body did not open: {unreachable}")
                 await agent.run()
         finally:
             await _close(body, config)
@@ -149,28 +160,25 @@ async def run_agent(
 
 
 async def stop_motors_once(
-    config: AgentConfig, *, body_factory: BodyFactory = _build_real_body
+    config: AgentConfig, *, thymio_factory: Callable[[ThymioConfig], ThymioBase] | None = None
 ) -> int:
-    """Open the body, set the motors to zero, close it; returns the exit code.
+    """Set the Thymio's motor targets to zero and confirm it; returns the exit code.
 
     This is the last line of defence after the agent ended, however it ended (even SIGKILL): it
-    must not depend on the master, the secret or anything but the robot's own configuration.
+    must not depend on the master, the secret or anything but the robot's own configuration. It
+    only connects to D-Bus and stops the motors through whichever medulla runs now; it loads no
+    program and opens no other part of the body.
     """
-    try:
-        body = body_factory(config.body)
-    except Exception as exc:
-        print(f"surprise-agent: cannot build the robot's body: {exc}", file=sys.stderr)
-        return EXIT_FAILURE
-    # Opening includes connecting to medulla (and loading the failsafe): allow it some seconds.
-    error = await finish(body.open(), OPEN_TIMEOUT)
+    thymio = (thymio_factory or ThymioBase)(config.body.thymio)
+
+    async def stop() -> None:
+        await thymio.connect()
+        await thymio.stop()
+
+    error = await finish(stop(), STOP_ONCE_TIMEOUT)
+    await finish(thymio.close(), 2 * config.loop.stop_timeout)
     if error is not None:
-        print(f"surprise-agent: cannot open the robot's body to stop it: {error}", file=sys.stderr)
-        await finish(body.close(), 2 * config.loop.stop_timeout)
-        return EXIT_FAILURE
-    stopped = await stop_motors(body, config.loop.stop_timeout)
-    await _close(body, config)
-    if not stopped:
-        print("surprise-agent: the motor stop was not confirmed", file=sys.stderr)
+        print(f"surprise-agent: the motor stop was not confirmed: {error}", file=sys.stderr)
         return EXIT_FAILURE
     log.info("motors stopped")
     return EXIT_OK
@@ -193,7 +201,7 @@ async def amain(
     try:
         config = load_agent_config(args.config)
         if args.stop_motors:
-            return await stop_motors_once(config, body_factory=body_factory)
+            return await stop_motors_once(config)
         secret = read_secret(config, config_file=args.config)
         make_ssl_context(config, config_file=args.config)  # fail now, not at the first connect
         require_client_library(config.telemetry, file=args.config)  # a broker needs aiomqtt

@@ -107,6 +107,11 @@ class _Prefixed(logging.LoggerAdapter):
         return f"[{self.extra['robot']}] {msg}", kwargs
 
 
+def robot_logger(logger: logging.Logger, robot_id: str) -> logging.LoggerAdapter:
+    """``logger`` with every message prefixed by ``[robot_id]``."""
+    return _Prefixed(logger, {"robot": robot_id})
+
+
 class Link:
     """The link of one robot to the master.
 
@@ -138,7 +143,7 @@ class Link:
         self.ssl_context = ssl_context
         self.spawn: Spawn = spawn if spawn is not None else asyncio.create_task
         self.backoff = Backoff(config.reconnect, rng)
-        self.log = _Prefixed(log, {"robot": config.robot_id})
+        self.log = robot_logger(log, config.robot_id)
         #: set while the master has welcomed us
         self.connected = asyncio.Event()
         #: the current session's run id and heartbeat interval (after Welcome)

@@ -1,6 +1,6 @@
 """The control loop: the steps of one evaluation at a fixed period on absolute deadlines.
 
-One step (DESIGN, "One control step on the robot")::
+One step (docs/robot-agent.md, "One control step")::
 
     read s(t) (bounded by a timeout) -> score p(t), made at t-1, against s(t)
     -> actor a(t) from s(t), a(t-1) -> predictor p(t+1) from s(t), a(t)
@@ -35,12 +35,13 @@ from drivers.body import Body
 from drivers.clock import Clock
 from robot_agent.safety import STOP, SafetyLayer, SafetyState
 from robot_agent.watchdog import Watchdog
-from surprise.errors import HardwareTimeoutError
+from surprise.errors import HardwareTimeoutError, RobotUnreachableError
 from surprise.fitness import SurpriseScore
 from surprise.network import NetworkPair
 from surprise.wire import EvaluationStats, Trace
 
 __all__ = [
+    "FAILED_UNREACHABLE",
     "ControlLoop",
     "Deadlines",
     "LoopOutcome",
@@ -50,6 +51,10 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+#: Failed reasons of evaluations that ended because the robot cannot be reached (the body raised
+#: :class:`~surprise.errors.RobotUnreachableError`) start with this word.
+FAILED_UNREACHABLE = "robot-unreachable"
 
 #: Called after the safety layer on every step that had a reading, with (step from 1, s(t),
 #: p(t+1), the command to apply, the safety reason). It runs inside the step: it must return at
@@ -143,7 +148,7 @@ class LoopOutcome:
 
 
 class ControlLoop:
-    """Runs evaluations on one body: the per-step work of DESIGN's "One control step".
+    """Runs evaluations on one body: the per-step work of one control step (docs/robot-agent.md).
 
     ``layer`` is the safety layer for ``body.sensors`` (it sees every sensor of the body, not just
     the experiment's). ``watchdog``, if given, is fed every step and checked before every drive;
@@ -239,6 +244,11 @@ class ControlLoop:
                     error = "the reading holds a non-finite value"
             except TimeoutError:
                 error = f"no reading within {read_timeout} s"
+            except RobotUnreachableError as exc:
+                # Gone for longer than an evaluation lasts: no point in counting to the limit.
+                read_failures += 1
+                failure = f"{FAILED_UNREACHABLE}: {exc}"
+                break
             except Exception as exc:  # any failing read is a lost reading, counted below
                 error = f"read failed: {exc!r}"
 

@@ -12,25 +12,36 @@ import asyncio
 import logging
 import math
 from collections.abc import Awaitable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from drivers.body import Body
 from drivers.clock import Clock
 from robot_agent.config import LoopConfig
-from robot_agent.loop import ControlLoop, LoopOutcome, MissingSensorsError, sensor_index
+from robot_agent.loop import (
+    FAILED_UNREACHABLE,
+    ControlLoop,
+    LoopOutcome,
+    MissingSensorsError,
+    sensor_index,
+)
 from robot_agent.safety import SafetyConfig, SafetyLayer
 from robot_agent.watchdog import Watchdog
-from surprise.errors import HardwareError, ProtocolError
+from surprise.errors import HardwareError, ProtocolError, RobotUnreachableError
 from surprise.network import NetworkPair
 from surprise.wire import Evaluate, EvaluationStats, Failed, Result, genome_from_bytes
 from telemetry.robot import RobotTelemetry
+
+if TYPE_CHECKING:
+    from robot_agent.health import RobotHealth
 
 __all__ = [
     "FAILED_GENOME",
     "FAILED_HARDWARE",
     "FAILED_INTERNAL",
     "FAILED_MISSING_SENSORS",
+    "FAILED_UNREACHABLE",
     "EvaluationRunner",
     "finish",
     "stop_motors",
@@ -39,7 +50,8 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 # Failed reasons start with one of these words (then ": " and the details), so the master can
-# group failures without parsing prose. The loop adds "sensor-read" and "watchdog".
+# group failures without parsing prose. The loop adds "sensor-read", "watchdog" and
+# FAILED_UNREACHABLE ("robot-unreachable").
 #: the spec needs a sensor the body does not have
 FAILED_MISSING_SENSORS = "missing-sensors"
 #: the genome does not fit the spec
@@ -85,17 +97,12 @@ async def finish(awaitable: Awaitable[object], timeout: float) -> BaseException 
     return error
 
 
-async def stop_motors(body: Body, timeout: float, watchdog: Watchdog | None = None) -> bool:
-    """Stop the motors (see :func:`finish`); returns whether that is known to have worked.
-
-    If the stop fails and a ``watchdog`` is given, it is tripped so that it keeps retrying.
-    """
+async def stop_motors(body: Body, timeout: float) -> bool:
+    """Stop the motors (see :func:`finish`); returns whether that is known to have worked."""
     error = await finish(body.stop(), timeout)
     if error is None:
         return True
     log.error("stopping the motors failed: %r", error)
-    if watchdog is not None:
-        await finish(watchdog.trip("stop failed"), timeout)
     return False
 
 
@@ -105,7 +112,8 @@ class EvaluationRunner:
     ``loop`` and ``safety`` are the agent's settings; ``watchdog`` (optional) is armed for the
     duration of each evaluation; ``safety_seed`` seeds the safety layer's escape turns (use a
     different one per robot); ``telemetry`` (optional) receives a summary of every evaluation
-    and hands the control loop its step sampler.
+    and hands the control loop its step sampler; ``health`` (optional) is told when the robot
+    cannot be reached, and while it cannot, evaluations fail at once with its reason.
     """
 
     def __init__(
@@ -118,8 +126,10 @@ class EvaluationRunner:
         watchdog: Watchdog | None = None,
         safety_seed: int = 0,
         telemetry: RobotTelemetry | None = None,
+        health: RobotHealth | None = None,
     ) -> None:
         self.body = body
+        self.health = health
         self.telemetry = telemetry
         self.clock = clock
         self.config = loop if loop is not None else LoopConfig()
@@ -166,6 +176,11 @@ class EvaluationRunner:
             log.warning("evaluation %d refused: %s", msg.evaluation_id, prepared.reason)
             self._summarise(msg, prepared, None, None)
             return prepared
+        if self.health is not None and not self.health.reachable:
+            failed = Failed(evaluation_id=msg.evaluation_id, reason=self.health.failure())
+            log.warning("evaluation %d not run: %s", msg.evaluation_id, failed.reason)
+            self._summarise(msg, failed, None, None)
+            return failed
         network, index = prepared
         async with self._lock:
             self.running = msg.evaluation_id
@@ -178,6 +193,7 @@ class EvaluationRunner:
                 " (recorded)" * msg.record,
             )
             failure: str | None = None
+            unreachable: str | None = None
             outcome: LoopOutcome | None = None
             telemetry = self.telemetry
             # Telemetry's sampler rate-limits and copies; it never formats or sends in a step.
@@ -194,6 +210,8 @@ class EvaluationRunner:
                     record=msg.record,
                     sink=None if sampler is None else sampler.sample,
                 )
+            except RobotUnreachableError as exc:
+                unreachable = str(exc)
             except HardwareError as exc:
                 failure = f"{FAILED_HARDWARE}: {exc}"
             except Exception as exc:  # a bug must not leave the robot driving or kill the agent
@@ -201,7 +219,15 @@ class EvaluationRunner:
                 failure = f"{FAILED_INTERNAL}: {exc!r}"
             finally:
                 self.running = None
-                await stop_motors(self.body, self.config.stop_timeout, self.watchdog)
+                # The stop is confirmed by the robot itself; a robot that does not confirm it
+                # is unreachable, whatever the evaluation looked like (the master must know).
+                stop_error = await finish(self.body.stop(), self.config.stop_timeout)
+                if stop_error is not None:
+                    log.error("stopping the motors failed: %r", stop_error)
+                    if self.watchdog is not None:
+                        await finish(self.watchdog.trip("stop failed"), self.config.stop_timeout)
+                    if isinstance(stop_error, RobotUnreachableError | TimeoutError):
+                        unreachable = unreachable or f"the motor stop: {stop_error}"
                 if self.watchdog is not None:
                     self.watchdog.disarm()
 
@@ -210,6 +236,12 @@ class EvaluationRunner:
             failure = outcome.failure
             if failure is None and not math.isfinite(outcome.fitness):
                 failure = f"{FAILED_INTERNAL}: non-finite fitness {outcome.fitness}"
+            if failure is not None and failure.startswith(f"{FAILED_UNREACHABLE}:"):
+                unreachable = unreachable or failure.partition(": ")[2]
+        if unreachable is not None:
+            failure = f"{FAILED_UNREACHABLE}: {unreachable}"
+            if self.health is not None:
+                self.health.lost(unreachable)
         duration = self.clock.now() - started
         if failure is not None:
             log.warning("evaluation %d failed: %s", msg.evaluation_id, failure)

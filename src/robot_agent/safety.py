@@ -1,4 +1,4 @@
-"""The safety layer: the last step before the motors (DESIGN, seam 5; REFERENCE section 3).
+"""The safety layer: the last step before the motors (docs/safety.md).
 
 It is a pure function of (sensor values, intended command, safety state): it returns the command to
 apply, the next state and why it intervened, and does no I/O, reads no clock and holds no mutable
@@ -96,49 +96,52 @@ Speed = Annotated[float, msgspec.Meta(gt=0.0, le=1.0)]
 
 
 class SafetyConfig(Strict):
-    """Thresholds and timings of the safety layer; defaults are the authors' (REFERENCE section 3).
+    """Thresholds and timings of the safety layer on the real robots (docs/safety.md).
 
     Sensor thresholds are on normalised values in [0, 1]; steps are control steps (0.1 s at 10 Hz);
-    speeds are normalised wheel speeds.
+    speeds are normalised wheel speeds. Each default says where it comes from: the paper's Sec. V
+    (the rules), or the authors' code for their real Thymios (the numbers the paper leaves out).
     """
 
-    #: ``stop`` for the basic behaviours, ``escape`` for object manipulation
+    #: ``stop`` for the basic behaviours, ``escape`` for object manipulation (paper Sec. V-B, V-C)
     profile: Literal["stop", "escape"] = "stop"
     #: a frame older than this (seconds) is stale; ``None`` trusts the caller's ``fresh`` flag only.
-    #: 0.25 s is 2.5 periods of the 10 Hz loop, about 2.6 cm at the real robots' top speed.
+    #: Ours: 0.25 s is 2.5 periods of the 10 Hz loop, about 2.7 cm at the real robots' top speed.
     max_frame_age: NonNegativeFloat | None = 0.25
-    #: a ground value at least this high is the arena boundary (both profiles)
+    #: a ground value at least this high is the arena boundary (both profiles; the authors' code)
     ground_threshold: Probability = 0.55
 
     # --- stop profile
     #: IR value above which a robot ahead (or behind, when reversing) stops a straight drive
+    #: (the authors' code)
     stop_ir_threshold: Probability = 0.75
-    #: a command is "straight" when |(l + r) / (r - l)| >= this ratio
+    #: a command is "straight" when |(l + r) / (r - l)| >= this ratio (the authors' code)
     straight_ratio: NonNegativeFloat = 1.0
-    #: apply the ground rule to straight backward driving too. The paper (Sec. V) notes that robots
-    #: driving backward see the boundary only when almost out of the arena, which is this rule
-    #: firing late; without it nothing would stop a reversing robot at the boundary.
-    stop_ground_when_reversing: bool = True
+    #: apply the ground rule to straight backward driving too. Off, as in the paper: the ground
+    #: sensors sit at the front, so a robot reversing away from the edge still sees the boundary
+    #: and the rule would hold it there for good; the arena's walls keep reversing robots in.
+    stop_ground_when_reversing: bool = False
 
     # --- escape profile
     #: a front IR above this starts an escape backward (the authors used 0.35 to 0.4)
     escape_front_threshold: Probability = 0.4
-    #: a rear IR above this starts an escape forward
+    #: a rear IR above this starts an escape forward (the authors' code)
     escape_rear_threshold: Probability = 0.4
     #: force above this turns the robot away from the boxes. The authors' code used 0.45; the
     #: paper states P > 0.25 (about 10 boxes) for its own normalisation.
     force_threshold: Probability = 0.45
-    #: steps of the straight part of an escape (0: turn at once)
+    #: steps of the straight part of an escape (0: turn at once; the authors' code: 30)
     escape_drive_steps: Annotated[int, msgspec.Meta(ge=0)] = 30
-    #: wheel speed of the straight part of an escape
+    #: wheel speed of the straight part of an escape (the authors' code: full speed)
     escape_speed: Speed = 1.0
-    #: the turn on the spot lasts a uniformly drawn number of steps in [min, max]
+    #: the turn on the spot lasts a uniformly drawn number of steps in [min, max] (the authors'
+    #: code: 25 to 44)
     turn_steps_min: PositiveInt = 25
     turn_steps_max: PositiveInt = 44
     #: wheel speed of the turn on the spot (the sources give none; full speed, like the reverse)
     turn_speed: Speed = 1.0
-    #: more consecutive intended backward steps than this stop the robot (90 = 9 s at 10 Hz);
-    #: ``None`` switches the rule off
+    #: more consecutive intended backward steps than this stop the robot (paper: 9 s; 90 steps
+    #: at 10 Hz); ``None`` switches the rule off
     backward_limit_steps: PositiveInt | None = 90
 
     def __post_init__(self) -> None:

@@ -1,4 +1,4 @@
-"""The watchdog: stop the motors within 300 ms when the control loop stalls (DESIGN, "Faults").
+"""The watchdog: stop the motors within 300 ms when the control loop stalls (docs/robot-agent.md).
 
 The Thymio keeps driving at its last motor targets until told otherwise, so a control loop that
 hangs (a sensor read that never returns, a bug, a lost master the loop waits for) would leave the
@@ -17,7 +17,9 @@ blocked by synchronous code (which is why blocking I2C stays off the loop); a bl
 Pi is covered by the optional Aseba failsafe on the Thymio itself.
 
 Once tripped (by expiry or :meth:`Watchdog.trip`), the watchdog stays tripped, ignores feeds and
-retries a failed or hung stop every check until it succeeds; :meth:`Watchdog.arm` starts afresh.
+retries a failed or hung stop until it succeeds, at first on the next check and then with pauses
+doubling up to :data:`RETRY_MAX` (a robot that went away would otherwise get 40 stop attempts, and
+some 160 D-Bus messages, a second for as long as it is gone); :meth:`Watchdog.arm` starts afresh.
 The control loop must check :attr:`Watchdog.tripped` before it drives, and end the evaluation with
 :attr:`Watchdog.tripped_reason` if it is set.
 """
@@ -42,8 +44,12 @@ CHECK_PERIOD = 0.025
 #: The requirement: motors stop at most this long (seconds) after the last feed.
 MAX_STOP_DELAY = 0.3
 #: How long one stop attempt may take (seconds) before it is abandoned, logged and retried; a D-Bus
-#: call to a vanished robot never returns on its own (REFERENCE section 4).
+#: call to a vanished robot never returns on its own (docs/thymio.md).
 STOP_TIMEOUT = 0.5
+
+#: The longest pause (seconds) between retries of a stop that keeps failing: a robot that does not
+#: answer still gets a stop attempt every second, in case it comes back.
+RETRY_MAX = 1.0
 
 #: ``tripped_reason`` when the loop stopped feeding.
 REASON_STALL = "stall"
@@ -93,6 +99,7 @@ class Watchdog:
         self._tripped_reason: str | None = None
         self._stopped = False  # whether a stop succeeded since the trip
         self._failures = 0  # failed stop attempts since the trip, to log the first one loudly
+        self._next_retry = 0.0  # when a failed stop may be tried again (on ``now``)
         # Bumped by arm(): a stop attempt that began before it says nothing about the new arming.
         self._epoch = 0
         self._lock = asyncio.Lock()  # one stop attempt at a time (expiry and trip() may race)
@@ -132,6 +139,7 @@ class Watchdog:
         self._tripped_reason = None
         self._stopped = False
         self._failures = 0
+        self._next_retry = 0.0
         self._epoch += 1
         self._last_feed = self._now()
         self._armed = True
@@ -190,7 +198,7 @@ class Watchdog:
 
     async def _check(self) -> None:
         if self._tripped_reason is not None:
-            if not self._stopped:
+            if not self._stopped and self._now() >= self._next_retry:
                 await self._stop_motors()  # retry a stop that failed or hung
             return
         if not self._armed:
@@ -223,7 +231,9 @@ class Watchdog:
                 self._failures = 0
                 return True
             self._failures += 1
-            # Loud once, then quiet: a vanished robot would otherwise log 40 lines a second.
+            pause = min(RETRY_MAX, self._period * 2.0 ** min(self._failures - 1, 16))
+            self._next_retry = self._now() + pause
+            # Loud once, then quiet: a vanished robot would otherwise log a line a second.
             level = logging.ERROR if self._failures == 1 else logging.DEBUG
             log.log(level, "watchdog: stopping the motors failed (%s); retrying", error)
             return False

@@ -3,17 +3,22 @@
 :func:`private_bus` starts a throw-away ``dbus-daemon`` and yields its address;
 :func:`serve_fake_medulla` exports ``ch.epfl.mobots.AsebaNetwork`` at ``/`` under the name
 ``ch.epfl.mobots.Aseba`` on it, backed by a :class:`ThymioModel` (raw sensor values in, motor
-targets out). The fake follows the real medulla where the drivers can tell (REFERENCE 4):
+targets out). The fake follows the real medulla (with Aseba Playground as the robot) where the
+drivers can tell; docs/thymio.md lists what was observed:
 
 - unknown nodes and variables are ``org.freedesktop.DBus.Error.InvalidArgs`` errors;
 - ``GetVariable`` never answers while the robot is disconnected or the fake is in ``hang``
   mode (the calls are released with an error when the fake shuts down);
-- ``SetVariable`` and ``LoadScripts`` fail silently (their rejections are only recorded in
+- ``IsConnected`` stays true for :data:`IS_CONNECTED_LAG` seconds after the robot went away;
+- ``SetVariable`` fails silently (its rejections are only recorded in
   :attr:`FakeMedulla.rejected`); dbus-fast sends no reply when the caller set
-  ``NO_REPLY_EXPECTED``, as the real drivers do, and an empty one otherwise (dbus-fast cannot
-  declare a method no-reply on the service side);
-- ``LoadScripts`` reads the ``.aesl`` file at once and declares the node's ``var`` variables,
-  so the user variables of the program become readable and writable.
+  ``NO_REPLY_EXPECTED``, as the drivers do for writes, and an empty one otherwise;
+- ``LoadScripts`` answers a missing file or a malformed program with an error when the caller
+  expects a reply (the real one aborts on malformed XML; it answers compile errors), resets the
+  robot's VM (the program's variables start from their initial values) and makes the program's
+  ``var`` variables known *to this medulla only*: a medulla started later does not know them,
+  although the program keeps running on the robot (:class:`ThymioVM`, which outlives any one
+  medulla and runs the failsafe program's timer).
 
 This module imports ``dbus_fast`` at the top: it is a test double, not part of the drivers.
 """
@@ -26,6 +31,8 @@ import shutil
 import signal
 import sys
 import tempfile
+import time
+import weakref
 import xml.etree.ElementTree as ET
 from collections.abc import AsyncIterator, Callable
 from pathlib import Path
@@ -37,10 +44,19 @@ from dbus_fast.constants import ErrorType
 from dbus_fast.errors import DBusError
 from dbus_fast.service import ServiceInterface, dbus_method
 
-from drivers.thymio import ASEBA_INTERFACE, ASEBA_PATH, ASEBA_SERVICE
+from drivers.thymio import (
+    ASEBA_INTERFACE,
+    ASEBA_PATH,
+    ASEBA_SERVICE,
+    FAILSAFE_TICK,
+    HEARTBEAT,
+)
 
 #: Seconds to wait for dbus-daemon to print its address, and for it to exit.
 DAEMON_TIMEOUT = 10.0
+#: Seconds the real medulla keeps answering ``IsConnected`` with true after the robot went away
+#: (measured against Aseba Playground: 3.5 to 4.3 s).
+IS_CONNECTED_LAG = 3.8
 GROUND_VARIABLES = ("prox.ground.reflected", "prox.ground.delta", "prox.ground.ambiant")
 MOTOR_TARGETS = {"motor.left.target": "left", "motor.right.target": "right"}
 _VAR_RE = re.compile(r"^\s*var\s+([A-Za-z_][\w.]*)\s*(?:\[\s*(\d+)\s*\])?\s*(?:=\s*(-?\d+))?", re.M)
@@ -49,7 +65,7 @@ _BUS_CONFIG = """<!DOCTYPE busconfig PUBLIC "-//freedesktop//DTD D-Bus Bus Confi
  "http://www.freedesktop.org/standards/dbus/1.0/busconfig.dtd">
 <busconfig>
   <type>session</type>
-  <listen>unix:path={socket}</listen>
+  <listen>{listen}</listen>
   <auth>EXTERNAL</auth>
   <policy context="default">
     <allow send_destination="*" eavesdrop="true"/>
@@ -116,29 +132,116 @@ def _int16(values: list[int]) -> list[int]:
     return [max(-32768, min(32767, int(v))) for v in values]
 
 
+def _declared(code: str) -> dict[str, list[int]]:
+    """The ``var`` declarations of an Aseba program with their initial values."""
+    return {
+        name: [int(initial or 0)] * int(size or 1) for name, size, initial in _VAR_RE.findall(code)
+    }
+
+
+class ThymioVM:
+    """The robot's Aseba VM, as far as this project's programs need it.
+
+    It belongs to the robot, not to medulla: a program keeps running, with its variables, when
+    the medulla that loaded it ends. :meth:`load` resets the VM with a new program (its variables
+    start from their initial values). A program with a ``heartbeat`` variable and a ``timer0``
+    handler is run as the failsafe program (drivers/failsafe.aesl): every tick the heartbeat
+    counts down, and at 0 both motor targets are held at 0.
+    """
+
+    def __init__(self, model: ThymioModel) -> None:
+        self.model = model
+        #: The code of the running program, or None.
+        self.program: str | None = None
+        #: Ticks of the failsafe timer so far.
+        self.ticks = 0
+        self._timer: asyncio.Task[None] | None = None
+
+    def load(self, code: str) -> dict[str, list[int]]:
+        """Reset the VM with ``code``; returns the program's variables with their values."""
+        declared = _declared(code)
+        for name in _declared(self.program or ""):
+            self.model.variables.pop(name, None)
+        self.model.variables.update({k: list(v) for k, v in declared.items()})
+        self.program = code
+        failsafe = HEARTBEAT in declared and "onevent timer0" in code
+        if failsafe and self._timer is None:
+            self._timer = asyncio.get_running_loop().create_task(self._run_timer())
+        elif not failsafe:
+            self.close()
+        return declared
+
+    def close(self) -> None:
+        """Stop the program's timer (the robot was switched off, or the test ends)."""
+        timer, self._timer = self._timer, None
+        if timer is not None:
+            timer.cancel()
+
+    async def _run_timer(self) -> None:
+        while True:
+            await asyncio.sleep(FAILSAFE_TICK)
+            self.ticks += 1
+            variables = self.model.variables
+            beat = variables.get(HEARTBEAT, [0])[0]
+            if beat > 0:
+                beat -= 1
+                variables[HEARTBEAT] = [beat]
+            if beat == 0:
+                for variable, side in MOTOR_TARGETS.items():
+                    if model_target(self.model, variable) != 0:
+                        variables[variable] = [0]
+                        self.model.set_target(side, 0)
+
+
+def model_target(model: ThymioModel, variable: str) -> int:
+    """The motor target ``variable`` of ``model`` now (its ``targets`` if it keeps them)."""
+    targets = getattr(model, "targets", None)
+    if isinstance(targets, dict):
+        return int(targets.get(MOTOR_TARGETS[variable], 0))
+    return int(model.variables.get(variable, [0])[0])
+
+
+#: The VM of each robot model, shared by every medulla serving that model.
+_VMS: weakref.WeakKeyDictionary[Any, ThymioVM] = weakref.WeakKeyDictionary()
+
+
+def vm_of(model: ThymioModel) -> ThymioVM:
+    """The :class:`ThymioVM` of ``model`` (created on first use, shared by its medullas)."""
+    vm = _VMS.get(model)
+    if vm is None:
+        vm = _VMS[model] = ThymioVM(model)
+    return vm
+
+
 class FakeMedulla:
     """The fake's state: the model, fault switches and what clients did.
 
     Switches: :attr:`hang` (``GetVariable`` never answers), :meth:`disconnect_robot` (the robot
-    went away: ``IsConnected`` is false, reads hang, writes are dropped), :attr:`errors`
-    (variable name -> error text returned by ``GetVariable``), :attr:`latency` (seconds before
-    ``GetVariable`` answers). Records: :attr:`calls`, :attr:`rejected`, :attr:`program`,
-    :attr:`loaded_scripts`, :attr:`max_in_flight` (most ``GetVariable`` calls pending at once).
+    went away: reads hang, writes are dropped, ``IsConnected`` turns false after
+    :attr:`connected_lag` seconds), :attr:`errors` (variable name -> error text returned by
+    ``GetVariable``), :attr:`latency` (seconds before ``GetVariable`` answers). Records:
+    :attr:`calls`, :attr:`rejected`, :attr:`program`, :attr:`loaded_scripts`,
+    :attr:`max_in_flight` (most ``GetVariable`` calls pending at once).
     """
 
     def __init__(self, model: ThymioModel, node: str = "thymio-II") -> None:
         self.model = model
         self.node = node
+        self.vm = vm_of(model)
         self.errors: dict[str, str] = {}
         self.latency = 0.0
+        self.connected_lag = IS_CONNECTED_LAG
         self.calls: list[tuple[str, tuple[object, ...]]] = []
         self.rejected: list[str] = []
         self.program: str | None = None
         self.loaded_scripts: list[str] = []
         self.max_in_flight = 0
+        #: The program variables this medulla knows (declared by programs it loaded).
+        self.known: set[str] = set()
         self._in_flight = 0
         self._hang = False
         self._robot_connected = True
+        self._lost_at = 0.0
         self._closing = False
         self._wake = asyncio.Event()
         self._idle = asyncio.Event()
@@ -162,6 +265,8 @@ class FakeMedulla:
 
     def disconnect_robot(self) -> None:
         """The robot goes away: reads hang, writes are dropped, the node stays listed."""
+        if self._robot_connected:
+            self._lost_at = time.monotonic()
         self._robot_connected = False
 
     def reconnect_robot(self) -> None:
@@ -188,20 +293,28 @@ class FakeMedulla:
         if node != self.node:
             raise DBusError(ErrorType.INVALID_ARGS, f"node {node} does not exists")
 
+    def _known(self, variable: str) -> bool:
+        return (
+            variable in MOTOR_TARGETS
+            or variable in self.known
+            or variable == "prox.horizontal"
+            or variable in GROUND_VARIABLES
+        )
+
     def _lookup(self, variable: str) -> list[int]:
         if variable in self.errors:
             raise DBusError(ErrorType.FAILED, self.errors[variable])
+        if not self._known(variable):
+            raise DBusError(
+                ErrorType.INVALID_ARGS, f"variable {variable} does not exists in node {self.node}"
+            )
         if variable == "prox.horizontal":
             return self.model.prox_horizontal()
         if variable in GROUND_VARIABLES:
             return self.model.ground(variable)
-        if variable in self.model.variables:
-            return list(self.model.variables[variable])
         if variable in MOTOR_TARGETS:
-            return [0]
-        raise DBusError(
-            ErrorType.INVALID_ARGS, f"variable {variable} does not exists in node {self.node}"
-        )
+            return [model_target(self.model, variable)]
+        return list(self.model.variables.get(variable, [0]))
 
     async def get_variable(self, node: str, variable: str) -> list[int]:
         """``GetVariable``: check the names at once, then answer when the robot does."""
@@ -230,13 +343,7 @@ class FakeMedulla:
         if node != self.node:
             self.rejected.append(f"SetVariable: node {node} does not exists")
             return
-        known = (
-            variable in MOTOR_TARGETS
-            or variable in self.model.variables
-            or variable == "prox.horizontal"
-            or variable in GROUND_VARIABLES
-        )
-        if not known:
+        if not self._known(variable):
             self.rejected.append(f"SetVariable: variable {variable} does not exists")
             return
         if not self._robot_connected:
@@ -246,28 +353,40 @@ class FakeMedulla:
             self.model.set_target(MOTOR_TARGETS[variable], _int16(values)[0])
 
     def load_scripts(self, path: str) -> None:
-        """``LoadScripts``: read the ``.aesl`` file and declare its variables. Never fails."""
+        """``LoadScripts``: load the ``.aesl`` program into the robot's VM.
+
+        A missing file or a malformed program raises a D-Bus error, which reaches only a caller
+        that expects a reply, as with the real medulla.
+        """
         self.calls.append(("LoadScripts", (path,)))
         try:
-            root = ET.fromstring(Path(path).read_text(encoding="utf-8"))
-        except (OSError, ET.ParseError) as exc:
+            text = Path(path).read_text(encoding="utf-8")
+        except OSError:
+            self.rejected.append(f"LoadScripts: file {path} does not exists")
+            raise DBusError(ErrorType.INVALID_ARGS, f"file {path} does not exists") from None
+        try:
+            root = ET.fromstring(text)
+        except ET.ParseError as exc:
             self.rejected.append(f"LoadScripts: {exc}")
-            return
+            raise DBusError(ErrorType.FAILED, f"error while parsing {path}: {exc}") from None
         nodes = [n for n in root.iter("node") if n.get("name") == self.node]
         if root.tag != "network" or not nodes:
+            # medulla ignores a program for other nodes; it only says so on its stderr
             self.rejected.append(f"LoadScripts: no script for node {self.node} in {path}")
             return
         code = nodes[0].text or ""
-        for name, size, initial in _VAR_RE.findall(code):
-            self.model.variables[name] = [int(initial or 0)] * int(size or 1)
+        if self._robot_connected:
+            self.known = set(self.vm.load(code))
         self.program = code
         self.loaded_scripts.append(path)
 
     def is_connected(self, node: str) -> bool:
-        """``IsConnected``: whether the robot is reachable."""
+        """``IsConnected``: whether the robot is reachable, :attr:`connected_lag` late."""
         self.calls.append(("IsConnected", (node,)))
         self._check_node(node)
-        return self._robot_connected
+        if self._robot_connected:
+            return True
+        return time.monotonic() - self._lost_at < self.connected_lag
 
 
 class _AsebaNetwork(ServiceInterface):
@@ -310,15 +429,30 @@ def _die_with_parent() -> None:
         ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)
 
 
+def bus_config(listen: str) -> str:
+    """A ``dbus-daemon`` configuration for a private test bus listening on ``listen`` (a D-Bus
+    address such as ``unix:path=/tmp/x/socket``); anyone may own names and eavesdrop."""
+    return _BUS_CONFIG.format(listen=listen)
+
+
 @contextlib.asynccontextmanager
-async def private_bus() -> AsyncIterator[str]:
-    """Start a private ``dbus-daemon`` for the duration of the context; yields its address."""
+async def private_bus(*, abstract: bool = False) -> AsyncIterator[str]:
+    """Start a private ``dbus-daemon`` for the duration of the context; yields its address.
+
+    With ``abstract`` the socket is in Linux's abstract namespace instead of a directory under
+    /tmp, so that a process with a private /tmp (systemd's ``PrivateTmp=yes``) reaches it too.
+    """
     executable = shutil.which("dbus-daemon")
     if executable is None:
         raise FileNotFoundError("dbus-daemon is not installed (Debian package dbus-daemon)")
     with tempfile.TemporaryDirectory(prefix="fake-dbus-") as tmp:
         config = Path(tmp) / "bus.conf"
-        config.write_text(_BUS_CONFIG.format(socket=Path(tmp) / "socket"), encoding="utf-8")
+        listen = (
+            f"unix:abstract=minimize-surprise-{Path(tmp).name}"
+            if abstract
+            else f"unix:path={Path(tmp) / 'socket'}"
+        )
+        config.write_text(bus_config(listen), encoding="utf-8")
         with open(Path(tmp) / "stderr", "wb") as stderr:
             process = await asyncio.create_subprocess_exec(
                 executable,
@@ -359,11 +493,14 @@ async def serve_fake_medulla(
     *,
     node: str = "thymio-II",
     medulla: Callable[[Any, str], FakeMedulla] | None = None,
+    keep_vm: bool = False,
 ) -> AsyncIterator[FakeMedulla]:
     """Serve a :class:`FakeMedulla` for ``model`` on the bus at ``address`` during the context.
 
     ``medulla(model, node)`` builds it (default :class:`FakeMedulla`; the simulator's waiting
-    medulla is a subclass).
+    medulla is a subclass). Leaving the context ends this medulla; the robot's program stops
+    too unless ``keep_vm`` (a medulla restart: serve another one for the same model, and close
+    ``vm_of(model)`` at the end).
     """
     bus = await MessageBus(bus_address=address).connect()
     fake = (medulla or FakeMedulla)(model, node)
@@ -381,6 +518,8 @@ async def serve_fake_medulla(
                 await fake.wait_idle()
         for _ in range(3):  # let the released calls' reply callbacks run
             await asyncio.sleep(0)
+        if not keep_vm:
+            fake.vm.close()
         bus.disconnect()
         with contextlib.suppress(Exception):
             await bus.wait_for_disconnect()

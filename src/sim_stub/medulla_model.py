@@ -88,9 +88,9 @@ class SimThymio:
     """Robot ``index`` of ``world`` as a :class:`~sim_stub.fake_medulla.ThymioModel`.
 
     ``speed_scale`` is the motor target of a normalised speed of 1, as in the agent's
-    :class:`~drivers.config.ThymioConfig` (the same default, 315). See the module docstring for
-    the conversions. :meth:`next_update` waits for the world's next step; :meth:`release` ends
-    every such wait for good (on shutdown).
+    :class:`~drivers.config.ThymioConfig` (the same default, ``drivers.config.SPEED_SCALE``).
+    See the module docstring for the conversions. :meth:`next_update` waits for the world's
+    next step; :meth:`release` ends every such wait for good (on shutdown).
     """
 
     def __init__(

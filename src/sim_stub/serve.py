@@ -4,7 +4,7 @@
 
     surprise-sim-robots --scenario basic --robots 4 --seed 1 --dir robots \\
         [--master-host 127.0.0.1] [--master-port 7474] [--secret-file secret.key] \\
-        [--reconnect-initial 0.5] [--reconnect-max 30] [--speed-scale 315] [--poses]
+        [--reconnect-initial 0.5] [--reconnect-max 30] [--speed-scale 265] [--poses]
 
 One process holds a real-time world (:class:`~sim_stub.body.SimSwarm`, one step every 0.1 s of
 wall-clock time) and serves each of its robots as an asebamedulla-like service

@@ -58,3 +58,8 @@ class HardwareTimeoutError(HardwareError, TimeoutError):
         self.operation = operation
         self.timeout = timeout
         super().__init__(f"{operation} did not answer within {timeout:.3f} s")
+
+
+class RobotUnreachableError(HardwareError):
+    """The robot cannot be reached: it is switched off or unplugged, or the software that reaches
+    it (asebamedulla) ended or lost it. The body must ``recover()`` before it can drive again."""

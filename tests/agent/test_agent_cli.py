@@ -1,13 +1,17 @@
 """The agent's configuration and ``surprise-agent``: bad configuration exits with 2 and one message
-naming file and key; a body that cannot open exits with 1; SIGTERM stops the motors, exits 0."""
+naming file and key; a robot that cannot be reached at start is recovered, a bug opening the body
+exits with 1; SIGTERM, SIGINT and SIGHUP stop the motors and exit 0."""
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import logging
 import os
 import signal
 from pathlib import Path
 
+import msgspec
 import pytest
 from agent_fakes import SECRET, FakeBody, FakeClock, ScriptedMaster, genome, spec
 
@@ -19,8 +23,16 @@ from robot_agent.config import (
     make_ssl_context,
     read_secret,
 )
+from sim_stub.fake_medulla import StaticThymioModel, serve_fake_medulla
 from surprise.errors import ConfigError, HardwareError
-from surprise.wire import Bye, ConnectionClosedError, Evaluate, genome_to_bytes
+from surprise.wire import (
+    Bye,
+    ConnectionClosedError,
+    Evaluate,
+    Failed,
+    Result,
+    genome_to_bytes,
+)
 
 MINIMAL = """
 robot_id: thymio-01
@@ -134,17 +146,78 @@ def test_cli_exits_2_for_an_unreadable_tls_file(tmp_path, capsys):
 
 
 class BrokenBody(FakeBody):
+    """A robot that cannot be reached at start: open() fails, recover() once ``back`` is set."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.back = asyncio.Event()
+        self.recover_calls = 0
+
     async def open(self) -> None:
-        raise HardwareError("asebamedulla is not on the bus")
+        raise HardwareError("asebamedulla has no node 'thymio-II'")
+
+    async def recover(self) -> None:
+        self.recover_calls += 1
+        if not self.back.is_set():
+            raise HardwareError("asebamedulla has no node 'thymio-II'")
+        self.opened = True
 
 
-def test_cli_exits_1_when_the_body_cannot_open(tmp_path, capsys):
+class BuggyBody(FakeBody):
+    async def open(self) -> None:
+        raise RuntimeError("a bug in a driver")
+
+
+def test_cli_exits_1_when_opening_the_body_hits_a_bug(tmp_path, capsys):
     path = write(tmp_path, MINIMAL)
-    body = BrokenBody()
+    body = BuggyBody()
     code = asyncio.run(cli.amain(["--config", str(path)], body_factory=lambda config: body))
     err = capsys.readouterr().err
-    assert code == 1 and "cannot open the robot's body" in err and "asebamedulla" in err
+    assert code == 1 and "cannot open the robot's body" in err and "a bug in a driver" in err
     assert body.closed  # closed anyway: open() may have got part of the way
+
+
+async def test_a_robot_switched_on_later_is_served_once_it_is_there(tmp_path, caplog):
+    """The Thymio is off when the Pi boots: the agent does not exit (systemd would restart it
+    against a medulla that never finds the robot); it tells the master why each evaluation
+    fails, recovers the robot in the background and then evaluates."""
+    caplog.set_level(logging.INFO)
+    master = ScriptedMaster()
+    await master.start()
+    clock = FakeClock()
+    body = BrokenBody(clock=clock)
+    path = write(tmp_path, MINIMAL.replace("192.168.1.10", f"127.0.0.1, port: {master.port}"))
+    config = load_agent_config(path)
+    network = spec()
+    try:
+        task = asyncio.create_task(
+            cli.run_agent(config, SECRET, body_factory=lambda c: body, clock=clock)
+        )
+        stream = await master.next()
+        await master.welcome(stream)
+        evaluate = Evaluate(
+            evaluation_id=1, genome=genome_to_bytes(genome(network)), spec=network, steps=5
+        )
+        await stream.send(evaluate)
+        failed = await asyncio.wait_for(stream.receive(), 5)
+        assert isinstance(failed, Failed) and failed.evaluation_id == 1
+        assert failed.reason.startswith("robot-unreachable: ") and "no node" in failed.reason
+        assert body.reads == 0 and body.drives == []  # nothing was driven
+        assert "robot unreachable" in caplog.text
+        body.back.set()
+        for attempt in range(2, 40):
+            await stream.send(msgspec.structs.replace(evaluate, evaluation_id=attempt))
+            outcome = await asyncio.wait_for(stream.receive(), 5)
+            if isinstance(outcome, Result):
+                break
+            await asyncio.sleep(0.25)
+        assert isinstance(outcome, Result) and body.reads == 5
+        assert "robot reachable again after" in caplog.text
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+    finally:
+        await master.close()
 
 
 def test_cli_exits_2_when_the_body_configuration_is_refused(tmp_path, capsys):
@@ -160,7 +233,7 @@ def test_cli_exits_2_when_the_body_configuration_is_refused(tmp_path, capsys):
 # --------------------------------------------------------------------------- signals
 
 
-@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT, signal.SIGHUP])
 async def test_a_signal_stops_the_motors_and_exits_0(tmp_path, signum):
     master = ScriptedMaster()
     await master.start()
@@ -169,7 +242,7 @@ async def test_a_signal_stops_the_motors_and_exits_0(tmp_path, signum):
     path = write(tmp_path, MINIMAL.replace("192.168.1.10", f"127.0.0.1, port: {master.port}"))
     config = load_agent_config(path)
     (tmp_path / "secret.key").write_bytes(SECRET)
-    before = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGINT)}
+    before = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)}
     try:
         task = asyncio.create_task(
             cli.run_agent(config, read_secret(config), body_factory=lambda c: body, clock=clock)
@@ -200,22 +273,29 @@ async def test_a_signal_stops_the_motors_and_exits_0(tmp_path, signum):
 # --------------------------------------------------------------------------- --stop-motors
 
 
-def test_stop_motors_zeroes_a_running_robot_without_needing_the_secret(tmp_path, capsys):
+async def test_stop_motors_zeroes_a_running_robot_without_needing_the_secret(
+    tmp_path, capsys, dbus_address
+):
     """systemd's ExecStopPost: after the agent ended in any way (even SIGKILL), the motors are
-    set to zero from the robot's configuration alone."""
-    path = write(tmp_path, MINIMAL, secret=None)
-    body = FakeBody()
-    body.motors = (0.7, -0.4)  # what a killed agent may have left behind
-    code = asyncio.run(
-        cli.amain(["--config", str(path), "--stop-motors"], body_factory=lambda c: body)
-    )
-    assert code == cli.EXIT_OK and body.motors == (0.0, 0.0) and body.closed
+    set to zero from the robot's configuration alone, through whichever medulla runs, loading
+    no program; the stop is confirmed by the robot."""
+    text = MINIMAL + f"body: {{thymio: {{bus: '{dbus_address}', failsafe: true}}}}\n"
+    path = write(tmp_path, text, secret=None)
+    model = StaticThymioModel()
+    model.targets = {"left": 200, "right": -120}  # what a killed agent may have left behind
+    async with serve_fake_medulla(dbus_address, model) as fake:
+        code = await cli.amain(["--config", str(path), "--stop-motors"])
+    assert code == cli.EXIT_OK and model.targets == {"left": 0, "right": 0}
+    assert fake.loaded_scripts == []
 
 
-def test_stop_motors_exits_1_when_the_robot_is_unreachable(tmp_path, capsys):
-    path = write(tmp_path, MINIMAL, secret=None)
-    body = BrokenBody()
-    code = asyncio.run(
-        cli.amain(["--config", str(path), "--stop-motors"], body_factory=lambda c: body)
-    )
-    assert code == cli.EXIT_FAILURE and "cannot open" in capsys.readouterr().err
+async def test_stop_motors_exits_1_when_the_robot_is_unreachable(tmp_path, capsys, dbus_address):
+    text = MINIMAL + f"body: {{thymio: {{bus: '{dbus_address}', timeout: 0.05}}}}\n"
+    path = write(tmp_path, text, secret=None)
+    async with serve_fake_medulla(dbus_address, StaticThymioModel()) as fake:
+        fake.disconnect_robot()  # medulla still says "connected", as the real one does
+        code = await cli.amain(["--config", str(path), "--stop-motors"])
+    assert code == cli.EXIT_FAILURE
+    assert "stop was not confirmed" in capsys.readouterr().err
+    code = await cli.amain(["--config", str(path), "--stop-motors"])  # no medulla at all
+    assert code == cli.EXIT_FAILURE and "not running" in capsys.readouterr().err

@@ -69,7 +69,8 @@ STOP_CASES = [
     ("backward-rear-b0", (-0.5, -0.5), {"ir_b0": 0.8}, STOP, REASON_REAR),
     ("backward-rear-b1", (-0.5, -0.5), {"ir_b1": 0.8}, STOP, REASON_REAR),
     ("backward-front-ignored", (-0.5, -0.5), {"ir_f2": 0.9}, (-0.5, -0.5), None),
-    ("backward-ground", (-0.5, -0.5), {"ground_1": 0.6}, STOP, REASON_GROUND),
+    # The ground sensors sit at the front: a robot reversing away from the edge still sees it.
+    ("backward-ground-passes", (-0.5, -0.5), {"ground_1": 0.6}, (-0.5, -0.5), None),
     ("spin-front-passes", (0.5, -0.5), {"ir_f2": 0.9}, (0.5, -0.5), None),
     ("spin-ground-passes", (-0.5, 0.5), {"ground_0": 0.9}, (-0.5, 0.5), None),
     ("pivot-ratio-1-is-straight", (1.0, 0.0), {"ir_f2": 0.9}, STOP, REASON_FRONT),
@@ -101,11 +102,19 @@ def test_stop_profile(command, sensors, expected, reason):
     assert decision.intervened is (reason is not None)
 
 
-def test_stop_profile_ground_rule_can_be_limited_to_forward_driving():
-    layer = SafetyLayer(BASIC, SafetyConfig(stop_ground_when_reversing=False))
+def test_stop_profile_lets_a_robot_at_the_edge_back_away():
+    # The paper keeps reversing robots in with the walls; stopping them too would trap a robot
+    # that reached the edge for good (forward: stopped; backward: stopped as well).
+    layer = SafetyLayer(BASIC, SafetyConfig())
     state = layer.initial_state()
     assert layer.step(state, frame(ground_0=0.9), (-1, -1)) == Decision((-1.0, -1.0), state, None)
     assert layer.step(state, frame(ground_0=0.9), (1, 1)).reason == REASON_GROUND
+
+
+def test_stop_profile_ground_rule_can_cover_reversing_too():
+    layer = SafetyLayer(BASIC, SafetyConfig(stop_ground_when_reversing=True))
+    state = layer.initial_state()
+    assert layer.step(state, frame(ground_1=0.6), (-0.5, -0.5)).reason == REASON_GROUND
 
 
 def test_stop_profile_straight_ratio_is_configurable():

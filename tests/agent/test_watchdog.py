@@ -13,6 +13,7 @@ from robot_agent.watchdog import (
     CHECK_PERIOD,
     MAX_STOP_DELAY,
     REASON_STALL,
+    RETRY_MAX,
     STOP_TIMEOUT,
     TIMEOUT,
     Watchdog,
@@ -189,6 +190,19 @@ async def test_a_tripped_watchdog_ignores_feeds_until_armed_again(clock, motors)
         assert len(motors.calls) == 2 and wd.tripped_reason == REASON_STALL
 
 
+async def test_a_stop_that_keeps_failing_is_retried_at_a_bounded_rate(clock, motors):
+    # A robot that went away: every stop fails at once. Retrying on every check (40 a second)
+    # would flood medulla with some 160 messages a second for as long as the robot is gone.
+    motors.mode = "fail"
+    async with watchdog(clock, motors) as wd:
+        wd.arm()
+        await clock.advance(0.3)
+        first = len(motors.calls)
+        await clock.advance(10.0)
+        retries = len(motors.calls) - first
+    assert 8 <= retries <= 10 / RETRY_MAX + 6  # at most one a second once the pauses have grown
+
+
 @pytest.mark.parametrize("mode", ["hang", "fail"])
 async def test_a_failing_or_hanging_stop_is_logged_and_retried(clock, motors, caplog, mode):
     caplog.set_level(logging.INFO, logger="robot_agent.watchdog")
@@ -207,7 +221,7 @@ async def test_a_failing_or_hanging_stop_is_logged_and_retried(clock, motors, ca
         assert len(motors.calls) > 2
         assert len([r for r in caplog.records if r.levelno >= logging.WARNING]) == 2  # stall, fail
         motors.mode = "ok"
-        await clock.advance(STOP_TIMEOUT + 0.1)
+        await clock.advance(RETRY_MAX + STOP_TIMEOUT + 0.1)
         assert wd.stopped and wd.tripped_reason == REASON_STALL
         assert "motors stopped after" in caplog.text
         calls = len(motors.calls)

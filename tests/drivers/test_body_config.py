@@ -13,7 +13,7 @@ from surprise.sensors import ALL_SENSORS, GROUND_SENSORS, IR_SENSORS
 def test_defaults_are_a_bare_thymio():
     config = decode({}, BodyConfig)
     assert config.thymio == ThymioConfig()
-    assert config.thymio.speed_scale == 315 and config.thymio.max_target == 500
+    assert config.thymio.speed_scale == 265 and config.thymio.max_target == 500
     assert config.thymio.timeout == 0.25 and config.thymio.node == "thymio-II"
     assert config.sensor_names() == IR_SENSORS + GROUND_SENSORS
 

@@ -99,7 +99,7 @@ async def test_close_stops_the_motors_first(
     async with body:
         await body.drive(1.0, 0.5)
         await body.thymio.is_connected()
-        assert model.targets == {"left": 315, "right": 158}
+        assert model.targets == {"left": 265, "right": 132}
     # The stop had reached medulla before any other part released its hardware.
     assert seen_at_part_close == [{"left": 0, "right": 0}] * 3
 

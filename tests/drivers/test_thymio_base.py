@@ -7,16 +7,26 @@ import math
 import os
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+import drivers
+import drivers.thymio as thymio_module
 from drivers.config import ThymioConfig
-from drivers.thymio import HEARTBEAT, ThymioBase
-from sim_stub.fake_medulla import FakeMedulla, StaticThymioModel, serve_fake_medulla
-from surprise.errors import HardwareError, HardwareTimeoutError
+from drivers.thymio import (
+    EMPTY_PROGRAM,
+    FAILSAFE_PROGRAM,
+    FAILSAFE_TICK,
+    HEARTBEAT,
+    ThymioBase,
+    end_process,
+)
+from sim_stub.fake_medulla import FakeMedulla, StaticThymioModel, serve_fake_medulla, vm_of
+from surprise.errors import HardwareError, HardwareTimeoutError, RobotUnreachableError
 
 ConfigFactory = Callable[..., ThymioConfig]
 HANG_TIMEOUT = 0.05
@@ -52,14 +62,15 @@ async def test_ir_and_ground_are_requested_concurrently(
 @pytest.mark.parametrize(
     ("left", "right", "expected"),
     [
-        (1.0, -1.0, (315, -315)),
-        (0.5, 0.1, (158, 32)),  # round(157.5) == 158, round(31.5) == 32
-        (3.0, -7.0, (315, -315)),
-        (math.nan, math.inf, (0, 315)),
-        (-math.inf, 0.0, (-315, 0)),
+        (1.0, -1.0, (265, -265)),
+        (0.5, 0.1, (132, 26)),  # round(132.5) == 132 (to even), round(26.5) == 26
+        (3.0, -7.0, (265, -265)),
+        (math.nan, math.inf, (0, 265)),
+        (-math.inf, 0.0, (-265, 0)),
     ],
 )
 def test_targets_default_calibration(left: float, right: float, expected: tuple[int, int]):
+    # 265 motor units: the paper's real robots drove at most 10.6 cm/s (0.04 cm/s per unit).
     assert ThymioBase(ThymioConfig()).targets(left, right) == expected
 
 
@@ -87,22 +98,21 @@ def test_targets_always_within_limits(value: float, scale: float, limit: int):
 async def test_set_speeds_writes_motor_targets(
     medulla: FakeMedulla, model: StaticThymioModel, thymio_config: ConfigFactory
 ):
-    async with _opened(thymio_config()) as thymio:
+    async with _opened(thymio_config(speed_scale=315)) as thymio:
         assert await thymio.set_speeds(0.5, -0.25) == (158, -79)
         await thymio.is_connected()  # barrier: medulla has processed the writes
         assert model.targets == {"left": 158, "right": -79}
         assert thymio.last_targets == (158, -79)
         await thymio.stop()
-        await thymio.is_connected()
         assert model.targets == {"left": 0, "right": 0}
+        assert thymio.last_targets == (0, 0)
 
 
 async def test_open_stops_the_motors(
     medulla: FakeMedulla, model: StaticThymioModel, thymio_config: ConfigFactory
 ):
     model.targets = {"left": 200, "right": 200}  # left running by an earlier process
-    async with _opened(thymio_config()) as thymio:
-        await thymio.is_connected()
+    async with _opened(thymio_config()):
         assert model.targets == {"left": 0, "right": 0}
 
 
@@ -116,18 +126,20 @@ async def test_writes_are_sent_without_expecting_a_reply(
     assert medulla.rejected == ["SetVariable: variable no.such.variable does not exists"]
 
 
-async def test_unknown_node_is_a_clear_error(medulla: FakeMedulla, thymio_config: ConfigFactory):
-    thymio = ThymioBase(thymio_config(node="thymio-7"))
-    with pytest.raises(HardwareError, match=r"no node 'thymio-7' \(nodes: 'thymio-II'\)"):
-        await thymio.open()
+async def test_unknown_node_is_a_clear_error(dbus_address: str, model: StaticThymioModel):
+    async with serve_fake_medulla(dbus_address, model):
+        thymio = ThymioBase(ThymioConfig(bus=dbus_address, node="thymio-7", program_dir="."))
+        with pytest.raises(
+            RobotUnreachableError, match=r"no node 'thymio-7' \(nodes: 'thymio-II'\)"
+        ):
+            await thymio.open()
     assert not thymio.is_open
 
 
 async def test_missing_medulla_is_a_clear_error(thymio_config: ConfigFactory):
     thymio = ThymioBase(thymio_config())
-    with pytest.raises(HardwareError, match=r"does not answer.*is it running") as info:
+    with pytest.raises(RobotUnreachableError, match=r"asebamedulla is not running on the D-Bus"):
         await thymio.open()
-    assert "ServiceUnknown" in str(info.value)
 
 
 async def test_unreachable_bus_is_a_hardware_error(tmp_path):
@@ -143,7 +155,7 @@ async def test_dbus_error_becomes_hardware_error(
         medulla.errors["prox.horizontal"] = "the robot is on fire"
         with pytest.raises(HardwareError, match="the robot is on fire") as info:
             await thymio.read()
-    assert not isinstance(info.value, HardwareTimeoutError)
+    assert not isinstance(info.value, HardwareTimeoutError | RobotUnreachableError)
 
 
 async def test_wrong_number_of_values_is_a_hardware_error(
@@ -169,27 +181,50 @@ async def test_hung_get_variable_times_out(medulla: FakeMedulla, thymio_config: 
     assert HANG_TIMEOUT <= elapsed < HANG_TIMEOUT + 0.5
 
 
-async def test_robot_gone_reads_time_out(medulla: FakeMedulla, thymio_config: ConfigFactory):
+async def test_robot_gone_reads_time_out_while_medulla_still_says_connected(
+    medulla: FakeMedulla, thymio_config: ConfigFactory
+):
     async with _opened(thymio_config(timeout=HANG_TIMEOUT)) as thymio:
         medulla.disconnect_robot()
-        assert not await thymio.is_connected()
+        assert await thymio.is_connected()  # the real medulla lags by seconds
         with pytest.raises(HardwareTimeoutError):
             await thymio.read_ir()
+        medulla.connected_lag = 0.0
+        assert not await thymio.is_connected()
 
 
-async def test_stop_that_does_not_reach_the_robot_is_an_error(
+async def test_stop_is_confirmed_by_reading_the_targets_back(
     medulla: FakeMedulla, model: StaticThymioModel, thymio_config: ConfigFactory
 ):
-    # SetVariable is no-reply and medulla drops writes to a robot it lost: without a check, a
-    # stop that went nowhere would look done and nobody would retry it.
+    # SetVariable is no-reply, medulla drops writes to a robot it lost, and IsConnected stays
+    # true for seconds: only the robot's own answer shows that the stop arrived.
     async with _opened(thymio_config(timeout=HANG_TIMEOUT)) as thymio:
         await thymio.set_speeds(0.5, 0.5)
+        await thymio.is_connected()  # barrier: the writes arrived before the robot left
         medulla.disconnect_robot()
-        with pytest.raises(HardwareError, match="stop not confirmed"):
+        with pytest.raises(RobotUnreachableError, match=r"stop not confirmed.*does not answer"):
             await thymio.stop()
+        assert model.targets == {"left": 132, "right": 132}  # the robot never got it
         medulla.reconnect_robot()
         await thymio.stop()  # a retry succeeds once the robot is reachable again
         assert model.targets == {"left": 0, "right": 0}
+    reads = [args[1] for name, args in medulla.calls if name == "GetVariable"]
+    assert reads.count("motor.left.target") >= 2 and reads.count("motor.right.target") >= 2
+
+
+async def test_stop_that_a_program_overrides_is_not_confirmed(
+    medulla: FakeMedulla, model: StaticThymioModel, thymio_config: ConfigFactory
+):
+    async with _opened(thymio_config()) as thymio:
+        original = medulla.set_variable
+
+        def stuck(node: str, variable: str, values: list[int]) -> None:
+            original(node, variable, [77] if variable.startswith("motor.") else values)
+
+        medulla.set_variable = stuck  # type: ignore[method-assign]
+        with pytest.raises(HardwareError, match=r"read back as \(77, 77\)"):
+            await thymio.stop()
+        medulla.set_variable = original  # type: ignore[method-assign]
 
 
 async def test_stop_without_medulla_is_an_error(
@@ -198,17 +233,20 @@ async def test_stop_without_medulla_is_an_error(
     thymio = ThymioBase(thymio_config(timeout=HANG_TIMEOUT))
     async with serve_fake_medulla(dbus_address, model):
         await thymio.open()
-    with pytest.raises(HardwareError):  # the writes went to nobody
+    with pytest.raises(RobotUnreachableError, match="not running"):  # the writes went nowhere
         await thymio.stop()
     await thymio.close()
 
 
-async def test_open_refuses_a_disconnected_robot(
+async def test_open_refuses_a_robot_that_does_not_answer(
     medulla: FakeMedulla, thymio_config: ConfigFactory
 ):
-    medulla.disconnect_robot()
-    with pytest.raises(HardwareError, match="disconnected"):
-        await ThymioBase(thymio_config()).open()
+    medulla.disconnect_robot()  # IsConnected still says true: the read-back finds out
+    with pytest.raises(RobotUnreachableError, match="does not answer"):
+        await ThymioBase(thymio_config(timeout=HANG_TIMEOUT)).open()
+    medulla.connected_lag = 0.0
+    with pytest.raises(RobotUnreachableError, match="disconnected"):
+        await ThymioBase(thymio_config(timeout=HANG_TIMEOUT)).open()
 
 
 async def test_close_stops_the_motors_even_when_medulla_hangs(
@@ -220,7 +258,7 @@ async def test_close_stops_the_motors_even_when_medulla_hangs(
     medulla.hang = True
     with pytest.raises(HardwareTimeoutError):
         await thymio.read()
-    await thymio.close()
+    await thymio.close()  # the read-back hangs too: logged, not raised
     assert model.targets == {"left": 0, "right": 0}
     assert model.target_log[-2:] == [("left", 0), ("right", 0)]
     assert not thymio.is_open
@@ -246,7 +284,7 @@ async def test_close_never_raises_when_the_bus_is_gone(model: StaticThymioModel)
     await asyncio.sleep(0.01)  # the daemon is gone; let the client notice the closed socket
     await thymio.close()
     await thymio.close()
-    with pytest.raises(HardwareError, match="closed"):
+    with pytest.raises(RobotUnreachableError, match="not attached"):
         await thymio.read()
 
 
@@ -259,18 +297,24 @@ async def test_close_is_idempotent_and_calls_after_close_fail(
     await thymio.open()  # already open: nothing to do
     await thymio.close()
     await thymio.close()
-    with pytest.raises(HardwareError, match="connection is closed"):
+    with pytest.raises(RobotUnreachableError, match="not attached"):
         await thymio.set_speeds(0.1, 0.1)
 
 
-async def test_failsafe_is_loaded_and_heartbeat_refreshed(
+# -- the programs -------------------------------------------------------------------------------
+
+
+async def test_failsafe_is_loaded_from_the_installed_file_expecting_a_reply(
     medulla: FakeMedulla, model: StaticThymioModel, thymio_config: ConfigFactory
 ):
     async with _opened(thymio_config(failsafe=True, failsafe_timeout=1.0)) as thymio:
         assert thymio.failsafe_active
         assert medulla.program is not None and "var heartbeat" in medulla.program
         (path,) = medulla.loaded_scripts
-        assert not os.path.exists(path)  # the temporary copy is removed after loading
+        # The packaged file, not a copy in the agent's /tmp: under systemd's PrivateTmp=yes
+        # medulla (another unit) would not see a file there.
+        assert Path(path) == Path(drivers.__file__).parent / FAILSAFE_PROGRAM
+        assert os.stat(path).st_mode & 0o004  # readable by medulla's user
         model.variables[HEARTBEAT] = [0]  # as if the program had counted down
         medulla.calls.clear()
         await thymio.set_speeds(0.2, 0.2)
@@ -279,16 +323,65 @@ async def test_failsafe_is_loaded_and_heartbeat_refreshed(
     writes = [args[1] for name, args in medulla.calls if name == "SetVariable"]
     # The heartbeat goes first, so fresh targets never meet an expired heartbeat.
     assert writes[:3] == [HEARTBEAT, "motor.left.target", "motor.right.target"]
-    assert writes[3:6] == [HEARTBEAT, "motor.left.target", "motor.right.target"]  # close()
+
+
+async def test_without_failsafe_an_empty_program_replaces_a_left_over_one(
+    dbus_address: str, model: StaticThymioModel, thymio_config: ConfigFactory
+):
+    # An earlier run left the failsafe on the Thymio, and medulla has restarted since: the new
+    # medulla does not know `heartbeat`, and the program keeps zeroing the motor targets.
+    async with (
+        serve_fake_medulla(dbus_address, model, keep_vm=True),
+        _opened(thymio_config(failsafe=True)),
+    ):
+        pass
+    async with serve_fake_medulla(dbus_address, model) as fake:
+        async with _opened(thymio_config(failsafe=False)) as thymio:
+            assert not thymio.failsafe_active
+            (path,) = fake.loaded_scripts
+            assert Path(path).name == EMPTY_PROGRAM
+            await thymio.set_speeds(0.5, 0.5)
+            await asyncio.sleep(3 * FAILSAFE_TICK)
+            assert model.targets == {"left": 132, "right": 132}  # nothing zeroes them now
+        assert vm_of(model).program is not None and "heartbeat" not in vm_of(model).program
+
+
+async def test_a_program_medulla_cannot_find_is_reported_with_its_reason(
+    medulla: FakeMedulla, thymio_config: ConfigFactory, tmp_path: Path
+):
+    (tmp_path / "programs").write_text("a file where a directory should be")
+    thymio = ThymioBase(
+        thymio_config(node="thymio-II", program_dir=str(tmp_path / "programs"), failsafe=True)
+    )
+    with pytest.raises(HardwareError, match="cannot write the Aseba program"):
+        await thymio.open()
+    original = medulla.load_scripts
+
+    def missing(path: str) -> None:
+        original(path + ".gone")
+
+    medulla.load_scripts = missing  # type: ignore[method-assign]
+    thymio = ThymioBase(thymio_config(failsafe=True))
+    with pytest.raises(HardwareError, match=r"could not load the failsafe.*does not exists"):
+        await thymio.open()
+    assert not thymio.is_open
 
 
 async def test_failsafe_uses_the_configured_node_name(
-    dbus_address: str, model: StaticThymioModel, thymio_config: ConfigFactory
+    dbus_address: str, model: StaticThymioModel, thymio_config: ConfigFactory, tmp_path: Path
 ):
     async with serve_fake_medulla(dbus_address, model, node="thymio-7") as fake:
-        async with _opened(thymio_config(node="thymio-7", failsafe=True)) as thymio:
+        config = thymio_config(node="thymio-7", failsafe=True, program_dir=str(tmp_path))
+        async with _opened(config) as thymio:
             assert thymio.failsafe_active
-        assert fake.loaded_scripts and not fake.rejected
+        (path,) = fake.loaded_scripts
+        assert Path(path).parent == tmp_path and 'name="thymio-7"' in Path(path).read_text()
+        assert not fake.rejected
+
+
+def test_a_node_of_another_name_needs_a_program_dir():
+    with pytest.raises(ValueError, match="program_dir"):
+        ThymioConfig(node="thymio-7")
 
 
 async def test_failsafe_that_does_not_load_is_a_clear_error(
@@ -296,7 +389,7 @@ async def test_failsafe_that_does_not_load_is_a_clear_error(
 ):
     medulla.load_scripts = lambda path: None  # type: ignore[method-assign]  # silently ignored
     thymio = ThymioBase(thymio_config(failsafe=True))
-    with pytest.raises(HardwareError, match=r"failsafe program did not load.*en_US\.UTF-8"):
+    with pytest.raises(HardwareError, match=r"failsafe program .* did not load into node"):
         await thymio.open()
     assert not thymio.is_open
 
@@ -308,6 +401,70 @@ def test_heartbeat_ticks(seconds: float, ticks: int):
 
 def test_failsafe_heartbeat_not_written_without_failsafe():
     assert not ThymioBase(ThymioConfig()).failsafe_active
+
+
+# -- a medulla restarted, a robot lost ---------------------------------------------------------
+
+
+async def test_a_restarted_medulla_is_detected_and_the_failsafe_reloaded(
+    dbus_address: str, model: StaticThymioModel, thymio_config: ConfigFactory
+):
+    config = thymio_config(failsafe=True, timeout=HANG_TIMEOUT)
+    thymio = ThymioBase(config)
+    try:
+        async with serve_fake_medulla(dbus_address, model, keep_vm=True) as first:
+            await thymio.open()
+            old = thymio.attached
+            await thymio.set_speeds(0.5, 0.5)
+            await first.wait_idle()
+        async with serve_fake_medulla(dbus_address, model) as second:
+            # The old medulla is gone: reads fail at once (no timeout), and nothing drives
+            # through the new one before the program is loaded there.
+            start = time.monotonic()
+            with pytest.raises(RobotUnreachableError, match="has ended"):
+                await thymio.read()
+            assert time.monotonic() - start < HANG_TIMEOUT
+            with pytest.raises(RobotUnreachableError, match="not attached"):
+                await thymio.set_speeds(0.5, 0.5)
+            assert HEARTBEAT not in second.known  # it would drop every heartbeat write
+            await thymio.recover()
+            assert thymio.attached not in (None, old)
+            assert second.loaded_scripts and HEARTBEAT in second.known
+            await thymio.set_speeds(0.5, 0.5)
+            await asyncio.sleep(4 * FAILSAFE_TICK)  # the program runs, the heartbeat holds
+            assert model.targets == {"left": 132, "right": 132}
+            await thymio.close()
+    finally:
+        await thymio.close()
+
+
+async def test_recover_ends_a_medulla_that_lost_the_robot(
+    medulla: FakeMedulla, thymio_config: ConfigFactory, monkeypatch: pytest.MonkeyPatch
+):
+    ended: list[tuple[str, int]] = []
+
+    async def end(name: str, pid: int) -> None:
+        ended.append((name, pid))
+
+    thymio = ThymioBase(thymio_config(timeout=HANG_TIMEOUT), end_medulla=end)
+    await thymio.open()
+    medulla.disconnect_robot()
+    with pytest.raises(RobotUnreachableError):
+        await thymio.recover()
+    assert ended == []  # a medulla gets MEDULLA_GRACE seconds to find its robot
+    monkeypatch.setattr(thymio_module, "MEDULLA_GRACE", 0.0)
+    with pytest.raises(RobotUnreachableError):
+        await thymio.recover()
+    assert ended == [(thymio._first_seen and next(iter(thymio._first_seen)), os.getpid())]
+    medulla.reconnect_robot()
+    await thymio.recover()
+    assert thymio.attached is not None
+    await thymio.close()
+
+
+async def test_a_medulla_in_this_process_is_never_signalled():
+    with pytest.raises(HardwareError, match="runs in this process"):
+        await end_process(":1.7", os.getpid())
 
 
 class _opened:

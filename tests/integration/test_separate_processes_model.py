@@ -12,7 +12,7 @@ import time
 import numpy as np
 import pytest
 
-from drivers.config import ThymioConfig
+from drivers.config import SPEED_SCALE, ThymioConfig
 from drivers.thymio import ThymioBase
 from sim_stub import serve
 from sim_stub.body import SimSwarm
@@ -87,7 +87,9 @@ async def test_each_read_waits_for_the_next_world_step(dbus_address: str):
             assert values[7:].tolist() == pytest.approx([round(0.4 * 1023) / 1023] * 2)
             await base.set_speeds(0.5, 0.5)
             await base.is_connected()  # a round trip: the targets have arrived
-            assert w.commands[0].tolist() == pytest.approx([round(0.5 * 315) / 315] * 2)
+            assert w.commands[0].tolist() == pytest.approx(
+                [round(0.5 * SPEED_SCALE) / SPEED_SCALE] * 2
+            )
         finally:
             await base.close()
         assert w.commands[0].tolist() == [0.0, 0.0]  # close() stopped the motors
