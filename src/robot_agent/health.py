@@ -38,7 +38,8 @@ class RobotHealth:
     """Tracks whether ``body`` is reachable and recovers it in :meth:`run` (a background task).
 
     :meth:`lost` marks it unreachable (logged once); :attr:`reachable` and :meth:`failure` tell
-    the evaluation runner whether to run at all. ``clock`` is for the "since" in messages.
+    the evaluation runner whether to run at all. ``backoff`` paces the recovery attempts;
+    ``clock`` is for the "since" in messages.
     """
 
     def __init__(
@@ -46,13 +47,14 @@ class RobotHealth:
         body: Body,
         *,
         rng: random.Random | None = None,
+        backoff: BackoffConfig = RECOVERY_BACKOFF,
         logger: logging.Logger | logging.LoggerAdapter | None = None,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.body = body
         self.log = logger or log
         self._clock = clock
-        self._backoff = Backoff(RECOVERY_BACKOFF, rng)
+        self._backoff = Backoff(backoff, rng)
         self._reason: str | None = None
         self._since = 0.0
         self._lost = asyncio.Event()

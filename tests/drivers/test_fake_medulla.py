@@ -16,7 +16,7 @@ import pytest
 from dbus_fast import Message, MessageFlag, MessageType
 from dbus_fast.aio import MessageBus
 
-from drivers.thymio import ASEBA_INTERFACE, ASEBA_PATH, ASEBA_SERVICE
+from drivers.thymio import ASEBA_INTERFACE, ASEBA_PATH, ASEBA_SERVICE, FAILSAFE_TICK
 from sim_stub.fake_medulla import FakeMedulla, StaticThymioModel, serve_fake_medulla
 
 
@@ -109,6 +109,79 @@ async def test_load_scripts_declares_the_program_variables(
     assert reply.body == [[0]]
     await client.call(_message("LoadScripts", "s", [str(tmp_path / "missing.aesl")]))
     assert len(medulla.rejected) == 1 and medulla.loaded_scripts == [str(program)]
+
+
+async def test_load_scripts_answers_errors_only_to_a_caller_expecting_a_reply(
+    medulla: FakeMedulla, client: MessageBus, tmp_path: Path
+):
+    missing = str(tmp_path / "missing.aesl")
+    reply = await client.call(_message("LoadScripts", "s", [missing]))
+    assert reply.error_name == "org.freedesktop.DBus.Error.InvalidArgs"
+    assert reply.body == [f"file {missing} does not exists"]  # the real medulla's words
+    broken = tmp_path / "broken.aesl"
+    broken.write_text("<network><node")
+    reply = await client.call(_message("LoadScripts", "s", [str(broken)]))
+    assert reply.message_type == MessageType.ERROR
+    message = _message("LoadScripts", "s", [missing], flags=MessageFlag.NO_REPLY_EXPECTED)
+    message.serial = client.next_serial()
+    replies: list[Message] = []
+    client.add_message_handler(lambda m: replies.append(m) if m.reply_serial else None)
+    await client.send(message)
+    await client.call(_message("IsConnected", "s", ["thymio-II"]))  # barrier
+    assert [m for m in replies if m.reply_serial == message.serial] == []
+
+
+def _failsafe(tmp_path: Path) -> Path:
+    from importlib import resources
+
+    path = tmp_path / "failsafe.aesl"
+    path.write_text(resources.files("drivers").joinpath("failsafe.aesl").read_text())
+    return path
+
+
+async def test_loading_a_program_resets_the_vm(
+    medulla: FakeMedulla, model: StaticThymioModel, client: MessageBus, tmp_path: Path
+):
+    program = str(_failsafe(tmp_path))
+    await client.call(_message("LoadScripts", "s", [program]))
+    await client.call(_message("SetVariable", "ssan", ["thymio-II", "heartbeat", [40]]))
+    assert model.variables["heartbeat"] == [40]
+    await client.call(_message("LoadScripts", "s", [program]))
+    assert model.variables["heartbeat"] == [0]
+
+
+async def test_a_restarted_medulla_does_not_know_the_running_program(
+    dbus_address: str, client: MessageBus, tmp_path: Path
+):
+    model = StaticThymioModel()
+    program = str(_failsafe(tmp_path))
+    async with serve_fake_medulla(dbus_address, model, keep_vm=True):
+        await client.call(_message("LoadScripts", "s", [program]))
+    async with serve_fake_medulla(dbus_address, model) as second:
+        reply = await client.call(_message("GetVariable", "ss", ["thymio-II", "heartbeat"]))
+        assert reply.body == ["variable heartbeat does not exists in node thymio-II"]
+        # ...while the program still runs on the robot: its heartbeat is 0, so every tick of
+        # its timer sets the targets back to 0, whatever the host writes.
+        for _ in range(3):
+            await client.call(_message("SetVariable", "ssan", ["thymio-II", "heartbeat", [50]]))
+            await client.call(
+                _message("SetVariable", "ssan", ["thymio-II", "motor.left.target", [90]])
+            )
+        assert "SetVariable: variable heartbeat does not exists" in second.rejected
+        await asyncio.sleep(2.5 * FAILSAFE_TICK)
+        assert model.targets["left"] == 0 and second.vm.ticks >= 2
+
+
+async def test_is_connected_lags_behind_a_robot_that_went_away(
+    medulla: FakeMedulla, client: MessageBus
+):
+    medulla.connected_lag = 0.2
+    medulla.disconnect_robot()
+    reply = await client.call(_message("IsConnected", "s", ["thymio-II"]))
+    assert reply.body == [True]  # as the real medulla for about 3.8 s
+    await asyncio.sleep(0.25)
+    reply = await client.call(_message("IsConnected", "s", ["thymio-II"]))
+    assert reply.body == [False]
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
