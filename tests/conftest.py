@@ -17,3 +17,12 @@ async def dbus_address() -> AsyncIterator[str]:
 
     async with private_bus() as address:
         yield address
+
+
+@pytest.fixture(scope="session", autouse=True)
+def compiled_kernels() -> None:
+    """Compile the numba kernels once, before any test runs: a fresh clone compiles them on first
+    use (seconds each), which would otherwise land inside some test's real-time timeout."""
+    from sim_stub.warmup import warm_up
+
+    warm_up()

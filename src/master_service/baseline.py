@@ -24,7 +24,6 @@ from master_service.rundir import write_atomic
 from master_service.simulate import SAFETY_PROFILES, world_config
 from robot_agent.config import LoopConfig
 from robot_agent.runner import EvaluationRunner
-from robot_agent.safety import SafetyConfig
 from sim_stub import metrics as sim_metrics
 from sim_stub.body import SimSwarm
 from sim_stub.world import World
@@ -32,6 +31,7 @@ from surprise.config import ExperimentConfig
 from surprise.evolution import random_genome
 from surprise.fitness import surprise_fitness, swarm_fitness
 from surprise.network import GenomeLayout, spec_from_config
+from surprise.safety import SafetyConfig
 from surprise.wire import Evaluate, Result, genome_to_bytes
 
 __all__ = ["BASELINE_FILE", "load_baseline", "run_baseline"]

@@ -31,13 +31,13 @@ from master_service.rundir import write_atomic
 from robot_agent.agent import Agent
 from robot_agent.config import AgentConfig
 from robot_agent.config import MasterConfig as AgentMasterConfig
-from robot_agent.safety import SafetyConfig
 from sim_stub.body import SimSwarm
 from sim_stub.scenarios import SCENARIOS, WorldConfig, scenario_config
 from sim_stub.world import World
 from surprise.backoff import BackoffConfig
 from surprise.config import ExperimentConfig, decode, read_yaml
 from surprise.errors import ConfigError
+from surprise.safety import SafetyConfig
 
 __all__ = [
     "SAFETY_PROFILES",

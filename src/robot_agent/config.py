@@ -13,7 +13,7 @@ One YAML file per robot::
         key_file: robot.key
         server_hostname: master.lab
     body: {thymio: {speed_scale: 315, failsafe: true}}   # drivers.config.BodyConfig
-    safety: {profile: stop}                              # robot_agent.safety.SafetyConfig
+    safety: {profile: stop}                              # surprise.safety.SafetyConfig
     loop: {period: 0.1, read_timeout: 0.15, max_read_failures: 3}
     reconnect: {initial: 0.5, max: 30, jitter: 0.25}
     telemetry: {broker: mqtt://192.168.1.10:1883}        # optional; see docs/telemetry.md
@@ -36,11 +36,11 @@ from typing import Annotated
 import msgspec
 
 from drivers.config import BodyConfig
-from robot_agent.safety import SafetyConfig
 from robot_agent.watchdog import TIMEOUT as WATCHDOG_TIMEOUT
 from surprise.backoff import BackoffConfig
 from surprise.config import Strict, load_yaml
 from surprise.errors import ConfigError
+from surprise.safety import SafetyConfig
 from telemetry.config import TelemetryConfig
 
 __all__ = [

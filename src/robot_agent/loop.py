@@ -33,11 +33,11 @@ import numpy as np
 
 from drivers.body import Body
 from drivers.clock import Clock
-from robot_agent.safety import STOP, SafetyLayer, SafetyState
 from robot_agent.watchdog import Watchdog
 from surprise.errors import HardwareTimeoutError, RobotUnreachableError
 from surprise.fitness import SurpriseScore
 from surprise.network import NetworkPair
+from surprise.safety import STOP, SafetyLayer, SafetyState
 from surprise.wire import EvaluationStats, Trace
 
 __all__ = [

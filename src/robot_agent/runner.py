@@ -26,10 +26,10 @@ from robot_agent.loop import (
     MissingSensorsError,
     sensor_index,
 )
-from robot_agent.safety import SafetyConfig, SafetyLayer
 from robot_agent.watchdog import Watchdog
 from surprise.errors import HardwareError, ProtocolError, RobotUnreachableError
 from surprise.network import NetworkPair
+from surprise.safety import SafetyConfig, SafetyLayer
 from surprise.wire import Evaluate, EvaluationStats, Failed, Result, genome_from_bytes
 from telemetry.robot import RobotTelemetry
 

@@ -12,6 +12,7 @@ A robot's pose is the point between its wheels and its heading (REFERENCE sectio
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -76,11 +77,21 @@ class WorldConfig(Strict):
     # --- sensor models -----------------------------------------------------------------------
     #: standard deviation of the Gaussian noise added to every normalised value (then clipped)
     noise: NonNegative = 0.0
+    #: "cone": the nearest body within a cone, c / (d^2 + c) (Enki's Thymio II, the real robots);
+    #: "ray": the first body on the sensor's axis, looked up in ``ir_table`` (Webots' Thymio II)
+    ir_model: Literal["cone", "ray"] = "cone"
+    #: nothing is seen from this distance on
     ir_range: Positive = 0.14
     #: half opening angle of the IR cone (Enki's Thymio model: 15 degrees)
     ir_aperture: Annotated[float, msgspec.Meta(ge=0.0, lt=90.0)] = 15.0
     #: shape of the IR response c / (d^2 + c), in m^2 (Enki's Thymio model: 73 cm^2); 1 at contact
     ir_response_c: Positive = 0.0073
+    #: the ray model's (distance in m, normalised value) pairs, distances increasing
+    ir_table: tuple[tuple[float, float], ...] = ((0.0, 1.0), (0.14, 0.0))
+    #: the ray model's Gaussian noise, as a fraction of the value (0 when nothing is seen)
+    ir_noise: NonNegative = 0.0
+    #: the ray model: what a wall reads as a fraction of what a robot at that distance reads
+    ir_wall_factor: Unit = 1.0
     #: ground sensors over the carpet (Thymio ``prox.ground.reflected`` / 1023 on dark carpet)
     ground_carpet: Unit = 0.4
     #: ground sensors beyond the carpet's edge (bright boundary, above the safety limit of 0.55)
@@ -116,6 +127,11 @@ class WorldConfig(Strict):
             raise ValueError("`light_corner`: must be below light_centre")
         if self.box_size >= self.arena_side:
             raise ValueError("`box_size`: must be smaller than the arena")
+        distances = [d for d, _ in self.ir_table]
+        if len(distances) < 2 or any(b <= a for a, b in itertools.pairwise(distances)):
+            raise ValueError("`ir_table`: at least two rows, distances strictly increasing")
+        if any(not 0.0 <= v <= 1.0 for _, v in self.ir_table):
+            raise ValueError("`ir_table`: values must lie in [0, 1]")
 
     @property
     def has_blade(self) -> bool:

@@ -11,6 +11,18 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from surprise.jit import kernel
+
+
+@kernel
+def step_score(prediction: np.ndarray, sensors: np.ndarray) -> float:
+    """``1 - mean |p - s|`` over the sensors of one robot and step, summed in sensor order (the
+    kernel the engine runs too, so agent and engine agree to the last bit)."""
+    total = 0.0
+    for i in range(sensors.shape[0]):
+        total += abs(prediction[i] - sensors[i])
+    return 1.0 - total / sensors.shape[0]
+
 
 class SurpriseScore:
     """Running score of one robot (or a batch of robots) over an evaluation.
@@ -33,9 +45,12 @@ class SurpriseScore:
         """Score the pending prediction against ``sensors``; returns that step's score or None."""
         if self._pending is None:
             return None
-        # sum / R rather than mean(): mean's Python-level wrapper costs more than the arithmetic.
-        diff = np.abs(self._pending - sensors)
-        step = 1.0 - diff.sum(axis=-1) / diff.shape[-1]
+        pending = self._pending
+        sensors = np.asarray(sensors, dtype=np.float64)
+        if pending.ndim == 1:
+            step: np.ndarray | float = step_score(pending, sensors)
+        else:
+            step = np.array([step_score(p, s) for p, s in zip(pending, sensors, strict=True)])
         self._total = self._total + step
         self.scored_steps += 1
         self._pending = None

@@ -26,6 +26,7 @@ import numpy as np
 
 from surprise.config import ExperimentConfig
 from surprise.errors import GenomeError
+from surprise.jit import kernel
 from surprise.sensors import check_sensor_names
 
 #: Number of actions: left and right wheel speed.
@@ -117,9 +118,92 @@ class GenomeLayout:
         }
 
 
-def _sigmoid(x: np.ndarray) -> np.ndarray:
-    # The tanh form is exact and never overflows, unlike 1 / (1 + exp(-x)) for large |x|.
-    return 0.5 * (np.tanh(0.5 * x) + 1.0)
+@kernel
+def network_step(
+    a_in: np.ndarray,
+    a_out: np.ndarray,
+    p_in: np.ndarray,
+    p_self: np.ndarray,
+    p_out: np.ndarray,
+    free: np.ndarray,
+    fixed: np.ndarray,
+    sensors: np.ndarray,
+    previous: np.ndarray,
+    hidden: np.ndarray,
+    work: np.ndarray,
+    action: np.ndarray,
+    prediction: np.ndarray,
+) -> None:
+    """One control step of one robot's network pair: ``action`` = a(t), ``prediction`` = p(t+1).
+
+    The weights are the genome's blocks (see the module docstring; ``p_in`` has no rows when the
+    predictor is dropped). ``previous`` holds a(t-1) and becomes a(t); ``hidden`` is the
+    predictor's state h(t-1) and becomes h(t). ``work`` is scratch space of at least
+    R + M + 1 + H_a values. Sigmoid is written ``(tanh(x / 2) + 1) / 2``: exact, never overflows.
+    """
+    r = sensors.shape[0]
+    inputs = r + 3
+    ha = a_in.shape[0]
+    for i in range(r):
+        work[i] = sensors[i]
+    work[r] = previous[0]
+    work[r + 1] = previous[1]
+    work[r + 2] = 1.0
+    # actor: hidden tanh layer into work[inputs:inputs + ha], then two tanh outputs
+    for j in range(ha):
+        z = 0.0
+        for k in range(inputs):
+            z += a_in[j, k] * work[k]
+        work[inputs + j] = np.tanh(z)
+    for m in range(2):
+        z = a_out[m, ha]
+        for j in range(ha):
+            z += a_out[m, j] * work[inputs + j]
+        action[m] = np.tanh(z)
+    previous[0] = action[0]
+    previous[1] = action[1]
+    for i in range(r):
+        prediction[i] = fixed[i]
+    hp = p_in.shape[0]
+    if hp == 0:
+        return
+    # predictor: inputs s(t), a(t), 1; each hidden neuron also feeds back to itself
+    work[r] = action[0]
+    work[r + 1] = action[1]
+    for j in range(hp):
+        z = p_self[j] * hidden[j]
+        for k in range(inputs):
+            z += p_in[j, k] * work[k]
+        hidden[j] = 0.5 * (np.tanh(0.5 * z) + 1.0)
+    for o in range(free.shape[0]):
+        z = p_out[o, hp]
+        for j in range(hp):
+            z += p_out[o, j] * hidden[j]
+        prediction[free[o]] = 0.5 * (np.tanh(0.5 * z) + 1.0)
+
+
+@kernel
+def network_step_batch(
+    a_in: np.ndarray,
+    a_out: np.ndarray,
+    p_in: np.ndarray,
+    p_self: np.ndarray,
+    p_out: np.ndarray,
+    free: np.ndarray,
+    fixed: np.ndarray,
+    sensors: np.ndarray,
+    previous: np.ndarray,
+    hidden: np.ndarray,
+    work: np.ndarray,
+    action: np.ndarray,
+    prediction: np.ndarray,
+) -> None:
+    """:func:`network_step` for every row of ``sensors`` (robots sharing one genome)."""
+    for i in range(sensors.shape[0]):
+        network_step(
+            a_in, a_out, p_in, p_self, p_out, free, fixed, sensors[i], previous[i], hidden[i],
+            work, action[i], prediction[i],
+        )  # fmt: skip
 
 
 class NetworkPair:
@@ -128,112 +212,85 @@ class NetworkPair:
     Each robot has its own previous action and predictor hidden state. Call :meth:`step` once per
     control step with the sensor readings s(t); it returns the actions a(t) and the predictions
     p(t+1). Arrays are shaped ``(robots, R)`` and ``(robots, 2)``; with 1-D input (one robot) the
-    results are 1-D too. :meth:`reset` starts a new evaluation.
+    results are 1-D too. :meth:`reset` starts a new evaluation. Every step runs
+    :func:`network_step`, the kernel the simulator's engine runs too.
     """
 
     def __init__(self, spec: NetworkSpec, genome: np.ndarray, robots: int = 1) -> None:
         self.layout = GenomeLayout(spec)
         self.robots = robots
-        w = self.layout.unpack(genome)
+        self.weights = network_weights(self.layout, genome)
         r = self.layout.sensors
-        # The 1-D path multiplies whole rows with one input vector [s, a, 1] (fewest numpy calls
-        # per step: it runs at 10 Hz on a Pi and a million times in a simulated experiment); the
-        # batched path splits the input weights by source so that it needs no concatenation.
-        ah = w["actor.hidden"]
-        self._a_in = ah.copy()
-        self._a_s, self._a_a, self._a_b = ah[:, :r].T.copy(), ah[:, r:-1].T.copy(), ah[:, -1].copy()
-        ao = w["actor.output"]
-        self._a_out, self._a_ob = ao[:, :-1].copy(), ao[:, -1].copy()
-        self._x = np.ones(r + ACTIONS + 1)  # the 1-D path's input buffer; the bias stays 1
         self._r = r
-        self._predefined = self.layout.free.size < r
-        if self.layout.has_predictor:
-            ph = w["predictor.hidden"]
-            self._p_in = ph.copy()
-            self._p_s, self._p_a, self._p_b = (
-                ph[:, :r].T.copy(),
-                ph[:, r:-1].T.copy(),
-                ph[:, -1].copy(),
-            )
-            self._p_self = w["predictor.self"].copy()
-            self._p_init = w["predictor.initial"].copy()
-            po = w["predictor.output"]
-            self._p_out, self._p_ob = po[:, :-1].copy(), po[:, -1].copy()
-        else:
-            self._p_in = None
         self.previous_action = np.empty((robots, ACTIONS))
-        self._previous0 = self.previous_action[0]  # views for the 1-D path, updated in place
-        if self.layout.has_predictor:
-            self.hidden = np.empty((robots, spec.predictor_hidden))
-            self._hidden0 = self.hidden[0]
-            self._z = np.empty(spec.predictor_hidden)
+        self.hidden = np.empty((robots, self.weights[2].shape[0]))
+        self._work = np.empty(r + ACTIONS + 1 + spec.actor_hidden)
+        self._action = np.empty((robots, ACTIONS))
+        self._prediction = np.empty((robots, r))
         self.reset()
 
     def reset(self) -> None:
         """Start an evaluation: a(-1) = ``initial_action``, hidden state = the learned one."""
-        # In place: the 1-D path keeps views of row 0.
         self.previous_action[:] = self.layout.spec.initial_action
-        if self.layout.has_predictor:
-            self.hidden[:] = self._p_init
-
-    def act(self, sensors: np.ndarray) -> np.ndarray:
-        """a(t) from s(t) and a(t-1) for a batch; remembers a(t) for the next step."""
-        hidden = np.tanh(sensors @ self._a_s + self.previous_action @ self._a_a + self._a_b)
-        action = np.tanh(hidden @ self._a_out.T + self._a_ob)
-        self.previous_action[:] = action
-        return action
-
-    def predict(self, sensors: np.ndarray, action: np.ndarray) -> np.ndarray:
-        """p(t+1) from s(t) and a(t) for a batch; advances the predictor's hidden state."""
-        prediction = np.empty((sensors.shape[0], self.layout.sensors))
-        prediction[:] = self.layout.fixed
-        if not self.layout.has_predictor:
-            return prediction
-        self.hidden[:] = _sigmoid(
-            sensors @ self._p_s + action @ self._p_a + self._p_b + self._p_self * self.hidden
-        )
-        prediction[:, self.layout.free] = _sigmoid(self.hidden @ self._p_out.T + self._p_ob)
-        return prediction
-
-    def _step_one(self, sensors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        x, r, previous = self._x, self._r, self._previous0
-        x[:r] = sensors
-        x[r:-1] = previous
-        action = np.tanh(self._a_out @ np.tanh(self._a_in @ x) + self._a_ob)
-        previous[:] = action
-        if self._p_in is None:
-            return action, self.layout.fixed.copy()
-        x[r:-1] = action
-        hidden = self._hidden0
-        hidden *= self._p_self
-        hidden += np.matmul(self._p_in, x, out=self._z)
-        # sigmoid(h) = (tanh(h / 2) + 1) / 2, in place
-        hidden *= 0.5
-        np.tanh(hidden, out=hidden)
-        hidden += 1.0
-        hidden *= 0.5
-        out = self._p_out @ hidden
-        out += self._p_ob
-        out *= 0.5
-        np.tanh(out, out=out)
-        out += 1.0
-        out *= 0.5
-        if self._predefined:
-            prediction = self.layout.fixed.copy()
-            prediction[self.layout.free] = out
-            return action, prediction
-        return action, out
+        self.hidden[:] = self.weights[-1]
 
     def step(self, sensors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """One control step: ``(a(t), p(t+1))`` for the readings ``s(t)``."""
-        if sensors.ndim == 1 and self.robots == 1 and sensors.shape[0] == self._r:
-            return self._step_one(sensors)
-        batch = sensors.reshape(1, -1) if sensors.ndim == 1 else sensors
-        if batch.shape != (self.robots, self.layout.sensors):
+        """One control step: ``(a(t), p(t+1))`` for the readings ``s(t)`` (fresh arrays)."""
+        one = sensors.ndim == 1
+        batch = sensors.reshape(1, -1) if one else sensors
+        if batch.shape != (self.robots, self._r):
             raise ValueError(
                 f"sensors have shape {sensors.shape}, expected ({self.robots}, "
-                f"{self.layout.sensors}) or ({self.layout.sensors},) for one robot"
+                f"{self._r}) or ({self._r},) for one robot"
             )
-        action = self.act(batch)
-        prediction = self.predict(batch, action)
-        return (action[0], prediction[0]) if sensors.ndim == 1 else (action, prediction)
+        batch = np.ascontiguousarray(batch, dtype=np.float64)
+        action, prediction = self._action, self._prediction
+        if one:
+            network_step(
+                *self.weights[:7], batch[0], self.previous_action[0], self.hidden[0], self._work,
+                action[0], prediction[0],
+            )  # fmt: skip
+        else:
+            network_step_batch(
+                *self.weights[:7], batch, self.previous_action, self.hidden, self._work, action,
+                prediction,
+            )  # fmt: skip
+        if one:
+            return action[0].copy(), prediction[0].copy()
+        return action.copy(), prediction.copy()
+
+
+#: The weights of a genome as the kernels take them: ``(a_in, a_out, p_in, p_self, p_out, free,
+#: fixed, p_initial)``; ``p_*`` have no rows when the predictor is dropped.
+Weights = tuple[
+    np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray
+]
+
+
+def network_weights(layout: GenomeLayout, genome: np.ndarray) -> Weights:
+    """Contiguous copies of ``genome``'s blocks for :func:`network_step` (see :data:`Weights`).
+
+    Raises :class:`GenomeError` if the genome does not fit the layout.
+    """
+    w = layout.unpack(genome)
+    r = layout.sensors
+    if layout.has_predictor:
+        p_in = np.ascontiguousarray(w["predictor.hidden"])
+        p_self = w["predictor.self"].copy()
+        p_out = np.ascontiguousarray(w["predictor.output"])
+        p_init = w["predictor.initial"].copy()
+    else:
+        p_in = np.zeros((0, r + ACTIONS + 1))
+        p_self = np.zeros(0)
+        p_out = np.zeros((0, 1))
+        p_init = np.zeros(0)
+    return (
+        np.ascontiguousarray(w["actor.hidden"]),
+        np.ascontiguousarray(w["actor.output"]),
+        p_in,
+        p_self,
+        p_out,
+        layout.free.astype(np.int64),
+        layout.fixed.astype(np.float64),
+        p_init,
+    )

@@ -9,7 +9,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from robot_agent.safety import (
+from surprise.config import decode
+from surprise.errors import ConfigError
+from surprise.safety import (
     REASON_BACKWARD_LIMIT,
     REASON_CLAMP,
     REASON_ESCAPE,
@@ -28,8 +30,6 @@ from robot_agent.safety import (
     SafetyState,
     apply_safety,
 )
-from surprise.config import decode
-from surprise.errors import ConfigError
 from surprise.sensors import ALL_SENSORS, GROUND_SENSORS, IR_SENSORS
 
 BASIC = IR_SENSORS + GROUND_SENSORS  # the basic-behaviour robot
@@ -218,8 +218,8 @@ def test_front_escape_reverses_30_steps_then_turns_then_releases():
 
 
 # Observed once for seed 1 and kept (see the test above).
-PINNED_TURN_SEED_1 = 44
-PINNED_SPIN_SEED_1 = (1.0, -1.0)
+PINNED_TURN_SEED_1 = 30
+PINNED_SPIN_SEED_1 = (-1.0, 1.0)
 
 
 def test_rear_escape_drives_forward_30_steps_then_turns():
