@@ -25,11 +25,13 @@ Models:
 * Horizontal IR, two models: ``cone`` (Enki's Thymio II, the real robots' calibration): the
   nearest body or visible wall within a cone of half angle ``ir_aperture`` gives ``c / (d^2 + c)``
   below ``ir_range``; ``ray`` (Webots' Thymio II, the paper's simulation): the first body or
-  visible wall on the sensor's axis, looked up in a distance -> value table, walls scaled by
-  ``ir_wall_factor``, with Gaussian noise of ``ir_noise`` times the value.
-* Ground: ``ground_carpet`` over the carpet, ``ground_outside`` beyond its edge.
-* Light: a lamp's inverse-square fall-off from ``light_centre`` under it to ``light_corner`` at the
-  carpet's corners, or ``light_uniform`` everywhere.
+  visible wall on the sensor's axis, at its distance divided by its reflectance
+  (``ir_robot_reflectance``, ``ir_wall_reflectance``), looked up in a distance -> value table,
+  with Gaussian noise of ``ir_noise`` times the value.
+* Ground: ``ground_carpet`` over the carpet, ``ground_outside`` beyond its edge, with Gaussian
+  noise of ``ground_noise`` times the value.
+* Light: a lamp's fall-off ``centre * (h^2 / (h^2 + r^2))^light_exponent`` from ``light_centre``
+  under it to ``light_corner`` at the carpet's corners, or ``light_uniform`` everywhere.
 * Noise: Gaussian ``noise`` on every value, from a counter-based generator keyed by (seed, step,
   robot, sensor), so a value never depends on who reads it when; then clipped to [0, 1].
 """
@@ -135,7 +137,8 @@ class Sensing(NamedTuple):
     ir_table_d: np.ndarray  # the ray model's distances (increasing) and values
     ir_table_v: np.ndarray
     ir_noise: float
-    ir_wall_factor: float
+    ir_robot_reflectance: float
+    ir_wall_reflectance: float
     walls_visible: bool
     wall_half: float
     robot_radius: float
@@ -143,8 +146,10 @@ class Sensing(NamedTuple):
     arena_half: float
     ground_carpet: float
     ground_outside: float
+    ground_noise: float
     light: bool
     light_centre: float
+    light_exponent: float
     lamp_h2: float
     light_uniform: float
     light_offsets: np.ndarray  # (2, 2) in the robot's frame
@@ -787,7 +792,6 @@ def _ir_value(
     n = bodies.shape[0]
     r = sn.robot_radius
     best = np.inf
-    wall_hit = False
     if sn.ir_model == IR_CONE:
         ca, sa = sn.ir_ca, sn.ir_sa
         for j in range(n):
@@ -848,6 +852,7 @@ def _ir_value(
             d = along - math.sqrt(r * r - perp2)
         else:
             continue
+        d /= sn.ir_robot_reflectance
         if d < best:
             best = d
     if sn.walls_visible:
@@ -861,14 +866,12 @@ def _ir_value(
             d = min(d, max(wall - sy, 0.0) / sp)
         elif sp < -1e-12:
             d = min(d, max(wall + sy, 0.0) / -sp)
+        d /= sn.ir_wall_reflectance
         if d < best:
             best = d
-            wall_hit = True
     if best >= sn.ir_range:
         return 0.0
     value = _lookup(best, sn.ir_table_d, sn.ir_table_v)
-    if wall_hit:
-        value *= sn.ir_wall_factor
     if value > 0.0 and sn.ir_noise > 0.0:
         value += sn.ir_noise * value * gaussian(sn.seed, step, me, 32 + channel)
     return value
@@ -905,7 +908,10 @@ def sense(
                 gx = x + c * px - s * py
                 gy = y + s * px + c * py
                 on = abs(gx) <= half and abs(gy) <= half
-                full[i, _GROUND0 + k] = sn.ground_carpet if on else sn.ground_outside
+                value = sn.ground_carpet if on else sn.ground_outside
+                if value > 0.0 and sn.ground_noise > 0.0:
+                    value += sn.ground_noise * value * gaussian(sn.seed, step, i, 48 + k)
+                full[i, _GROUND0 + k] = value
         if sn.need_force:
             full[i, _FORCE] = force[i]
         if sn.need_light:
@@ -915,7 +921,8 @@ def sense(
                     lx = x + c * px - s * py
                     ly = y + s * px + c * py
                     h2 = sn.lamp_h2
-                    full[i, _LIGHT0 + k] = sn.light_centre * h2 / (h2 + lx * lx + ly * ly)
+                    ratio = h2 / (h2 + lx * lx + ly * ly)
+                    full[i, _LIGHT0 + k] = sn.light_centre * ratio**sn.light_exponent
                 else:
                     full[i, _LIGHT0 + k] = sn.light_uniform
         for j in range(sn.columns.shape[0]):

@@ -61,6 +61,10 @@ class WorldConfig(Strict):
     dt: Positive = 0.1
     #: "random": seeded, non-overlapping poses on the carpet; "centre": fixed ring at the centre
     start: Literal["random", "centre"] = "random"
+    #: "centre" start: distance of the wheel axes from the centre (``None``: neighbours just
+    #: apart), and the direction of the first robot in degrees; every robot faces outwards
+    start_ring: NonNegative | None = None
+    start_ring_phase: float = 45.0
     #: free space kept between robots (and between boxes and robots) when placing them
     start_clearance: NonNegative = 0.02
     #: radius of the circle standing for a robot's body (11 cm wide, 11.2 cm long)
@@ -90,12 +94,16 @@ class WorldConfig(Strict):
     ir_table: tuple[tuple[float, float], ...] = ((0.0, 1.0), (0.14, 0.0))
     #: the ray model's Gaussian noise, as a fraction of the value (0 when nothing is seen)
     ir_noise: NonNegative = 0.0
-    #: the ray model: what a wall reads as a fraction of what a robot at that distance reads
-    ir_wall_factor: Unit = 1.0
+    #: the ray model: how well robots and walls reflect the IR (Webots: a distance d reads as
+    #: d / reflectance; a white body about 0.96)
+    ir_robot_reflectance: Annotated[float, msgspec.Meta(gt=0.0, le=1.0)] = 1.0
+    ir_wall_reflectance: Annotated[float, msgspec.Meta(gt=0.0, le=1.0)] = 1.0
     #: ground sensors over the carpet (Thymio ``prox.ground.reflected`` / 1023 on dark carpet)
     ground_carpet: Unit = 0.4
     #: ground sensors beyond the carpet's edge (bright boundary, above the safety limit of 0.55)
     ground_outside: Unit = 0.95
+    #: Gaussian noise of the ground sensors as a fraction of the value (Webots: 1 %; 0 stays 0)
+    ground_noise: NonNegative = 0.0
     #: force value per pushed box (paper: about 0.25 for 10 boxes); the value saturates at 1
     force_per_box: NonNegative = 0.025
     # --- boxes -------------------------------------------------------------------------------
@@ -103,14 +111,25 @@ class WorldConfig(Strict):
     #: fraction of the carpet covered by boxes (paper: about 14 %, 220 boxes per square metre)
     box_coverage: Annotated[float, msgspec.Meta(ge=0.0, le=0.4)] = 0.14
     box_size: Positive = 0.025
+    #: "random": uniformly scattered to ``box_coverage``; "grid": the authors' Webots layout,
+    #: rows ``box_grid_pitch`` apart, each box ``box_grid_pitch`` to ``+ box_grid_jitter`` after
+    #: the last and up to ``box_grid_jitter`` off its row, all on a 1 cm raster
+    box_layout: Literal["random", "grid"] = "random"
+    box_grid_pitch: Positive = 0.054
+    box_grid_jitter: NonNegative = 0.018
+    #: side of a square around the centre kept free of boxes at the start (the authors: 0.5 m)
+    box_clear_centre: NonNegative = 0.0
     #: at most this many relaxation passes per step when boxes push each other
     box_iterations: Annotated[int, msgspec.Meta(ge=1)] = 12
     # --- light -------------------------------------------------------------------------------
     #: a light above the centre (gradient arena); otherwise the light is uniform
     light: bool = False
-    #: light value under the lamp and at the carpet's corners (inverse-square fall-off)
+    #: light value under the lamp and at the carpet's corners: ``centre * (h^2 / (h^2 +
+    #: r^2))^light_exponent`` at a distance r from the point under the lamp, h fixed by the corner
+    #: value (exponent 1: inverse square; 1.5: inverse square on a sensor facing up)
     light_centre: Unit = 1.0
     light_corner: Unit = 0.1
+    light_exponent: Annotated[float, msgspec.Meta(gt=0.0, le=3.0)] = 1.0
     #: light value everywhere when ``light`` is false
     light_uniform: Unit = 0.5
     #: where L0 (left) and L1 (right) sit on the robot, in the robot's frame

@@ -92,7 +92,8 @@ def compile_world(config: WorldConfig, seed: int) -> tuple[Geometry, Sensing]:
     lamp_h2 = 0.0
     if config.light:
         corner2 = 2 * (config.arena_side / 2) ** 2
-        lamp_h2 = config.light_corner * corner2 / (config.light_centre - config.light_corner)
+        q = (config.light_corner / config.light_centre) ** (1.0 / config.light_exponent)
+        lamp_h2 = corner2 * q / (1.0 - q)
     table = np.array(config.ir_table, dtype=float).reshape(-1, 2)
     sensing = Sensing(
         need_ir=any(n.startswith("ir.") for n in names),
@@ -107,7 +108,8 @@ def compile_world(config: WorldConfig, seed: int) -> tuple[Geometry, Sensing]:
         ir_table_d=np.ascontiguousarray(table[:, 0]),
         ir_table_v=np.ascontiguousarray(table[:, 1]),
         ir_noise=config.ir_noise,
-        ir_wall_factor=config.ir_wall_factor,
+        ir_robot_reflectance=config.ir_robot_reflectance,
+        ir_wall_reflectance=config.ir_wall_reflectance,
         walls_visible=config.walls_visible_to_ir,
         wall_half=config.wall_half,
         robot_radius=config.robot_radius,
@@ -115,8 +117,10 @@ def compile_world(config: WorldConfig, seed: int) -> tuple[Geometry, Sensing]:
         arena_half=config.arena_side / 2,
         ground_carpet=config.ground_carpet,
         ground_outside=config.ground_outside,
+        ground_noise=config.ground_noise,
         light=config.light,
         light_centre=config.light_centre,
+        light_exponent=config.light_exponent,
         lamp_h2=lamp_h2,
         light_uniform=config.light_uniform,
         light_offsets=np.array(config.light_sensor_offsets, dtype=float),
@@ -177,18 +181,26 @@ class World:
         rp = self._body_reach
         half = cfg.arena_side / 2
         if cfg.start == "centre":
-            # A fixed ring around the centre, each robot facing outwards, neighbours just apart.
-            gap = 2 * rp + cfg.start_clearance
-            ring = 0.0 if n == 1 else gap / (2 * math.sin(math.pi / n))
-            if ring + rp > half:
-                raise ConfigError(
-                    f"{n} robots do not fit around the centre of the arena",
-                    key="simulation.robots",
-                )
-            phi = _TWO_PI * np.arange(n) / n + math.pi / 4
-            centre = ring - cfg.body_offset
-            self._pose[:, 0] = centre * np.cos(phi)
-            self._pose[:, 1] = centre * np.sin(phi)
+            # A fixed ring around the centre, each robot facing outwards; without a given ring,
+            # neighbours just apart.
+            phi = _TWO_PI * np.arange(n) / n + math.radians(cfg.start_ring_phase)
+            if cfg.start_ring is not None:
+                axle = cfg.start_ring
+                if axle + cfg.body_offset + rp > half:
+                    raise ConfigError(
+                        "the start ring does not fit in the arena", key="simulation.start_ring"
+                    )
+            else:
+                gap = 2 * rp + cfg.start_clearance
+                ring = 0.0 if n == 1 else gap / (2 * math.sin(math.pi / n))
+                if ring + rp > half:
+                    raise ConfigError(
+                        f"{n} robots do not fit around the centre of the arena",
+                        key="simulation.robots",
+                    )
+                axle = ring - cfg.body_offset
+            self._pose[:, 0] = axle * np.cos(phi)
+            self._pose[:, 1] = axle * np.sin(phi)
             self._pose[:, 2] = wrap_angle(phi)
             return
         # Random: bodies wholly on the carpet, apart by the clearance, in seeded order. Robots
@@ -231,6 +243,10 @@ class World:
 
     def _place_boxes(self, rng: np.random.Generator) -> np.ndarray:
         cfg = self.config
+        if not cfg.boxes:
+            return np.zeros((0, 2))
+        if cfg.box_layout == "grid":
+            return self._grid_boxes(rng)
         count = cfg.box_count
         if count == 0:
             return np.zeros((0, 2))
@@ -242,6 +258,7 @@ class World:
         rcy = self._pose[:, 1] + cfg.body_offset * np.sin(th)
         away2 = (rp + rb + cfg.start_clearance) ** 2
         apart2 = (cfg.box_size + 0.001) ** 2
+        clear = cfg.box_clear_centre / 2
         out = np.empty((count, 2))
         k = 0
         tries = 0
@@ -253,7 +270,8 @@ class World:
             cand = rng.uniform(-lim, lim, size=(4 * _BATCH, 2))
             tries += len(cand)
             d2 = (cand[:, 0, None] - rcx) ** 2 + (cand[:, 1, None] - rcy) ** 2
-            cand = cand[(d2 >= away2).all(axis=1)]
+            keep = (d2 >= away2).all(axis=1) & ~(np.abs(cand) < clear).all(axis=1)
+            cand = cand[keep]
             # Accept in order, each against every box accepted so far (a one-off cost at set-up).
             for c in cand:
                 if k and (((out[:k] - c) ** 2).sum(axis=1) < apart2).any():
@@ -263,6 +281,27 @@ class World:
                 if k == count:
                     break
         return out
+
+    def _grid_boxes(self, rng: np.random.Generator) -> np.ndarray:
+        # The authors' Webots layout: rows box_grid_pitch apart; along a row each box
+        # pitch .. pitch + jitter after the last, up to jitter above the row; every coordinate
+        # rounded to 1 cm; none in the central clear square. About 270 boxes on 1.1 m.
+        cfg = self.config
+        pitch, jitter = cfg.box_grid_pitch, cfg.box_grid_jitter
+        edge = cfg.arena_side / 2 - cfg.box_size * 0.72  # 1.8 cm in from the carpet's edge
+        clear = cfg.box_clear_centre / 2
+        boxes = []
+        row = -edge
+        x = -edge
+        while row <= edge:
+            while x <= edge:
+                y = round(rng.uniform(row, row + jitter), 2)
+                if not (abs(x) < clear and abs(y) < clear) and abs(y) <= edge:
+                    boxes.append((x, y))
+                x = round(rng.uniform(x + pitch, x + pitch + jitter), 2)
+            row += pitch
+            x = round(rng.uniform(-edge, -edge + pitch), 2)
+        return np.array(boxes, dtype=float).reshape(-1, 2)
 
     # --- state ---------------------------------------------------------------------------------
 
@@ -343,6 +382,24 @@ class World:
         self._pending = np.zeros(len(self._boxes), dtype=bool)
         self._cache = None
 
+    # --- the engine's access ------------------------------------------------------------------
+
+    @property
+    def kernel_constants(self) -> tuple[Geometry, Sensing]:
+        """The constants the kernels take (see :func:`compile_world`)."""
+        return self._geometry, self._sensing
+
+    @property
+    def kernel_state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The live state arrays the kernels update in place: pose, commands, forces, boxes and
+        the boxes that may still overlap something (for :mod:`sim_stub.engine`)."""
+        return self._pose, self._cmd, self._force, self._boxes, self._pending
+
+    def advance_to(self, steps: int) -> None:
+        """Record that kernels stepped the state in place up to ``steps`` steps since the reset."""
+        self._steps = int(steps)
+        self._cache = None
+
     # --- recording -----------------------------------------------------------------------------
 
     def start_recording(self) -> None:
@@ -403,4 +460,4 @@ class World:
         if not self.config.light:
             return np.full(np.broadcast(x, y).shape, self.config.light_uniform)
         h2 = self._sensing.lamp_h2
-        return self.config.light_centre * h2 / (h2 + x * x + y * y)
+        return self.config.light_centre * (h2 / (h2 + x * x + y * y)) ** self.config.light_exponent
