@@ -73,6 +73,8 @@ IR_POSITIONS = np.array(
     ]
 )
 IR_HEADINGS = np.radians([40.0, 20.0, 0.0, -20.0, -40.0, 180.0, 180.0])
+_IR_COS = np.cos(IR_HEADINGS)
+_IR_SIN = np.sin(IR_HEADINGS)
 GROUND_POSITIONS = np.array([[0.072, 0.012], [0.072, -0.012]])
 
 #: ``Sensing.ir_model`` values.
@@ -740,6 +742,15 @@ def _push_boxes(
 
 
 @kernel
+def clamp_commands(commands: np.ndarray, cmd: np.ndarray) -> None:
+    """``cmd`` = ``commands`` clamped to [-1, 1], NaN as 0 (a robot's wheels take no more)."""
+    for i in range(cmd.shape[0]):
+        for k in range(2):
+            v = commands[i, k]
+            cmd[i, k] = 0.0 if v != v else min(max(v, -1.0), 1.0)
+
+
+@kernel
 def step_world(
     g: Geometry, pose: np.ndarray, cmd: np.ndarray, force: np.ndarray, boxes: np.ndarray,
     pending: np.ndarray, need_force: bool,
@@ -794,11 +805,14 @@ def _ir_value(
     best = np.inf
     if sn.ir_model == IR_CONE:
         ca, sa = sn.ir_ca, sn.ir_sa
+        reach2 = (sn.ir_range + r) ** 2
         for j in range(n):
             if j == me:
                 continue
             wx = bodies[j, 0] - sx
             wy = bodies[j, 1] - sy
+            if wx * wx + wy * wy >= reach2:
+                continue  # out of range whatever the direction
             dot = wx * cp + wy * sp
             cross = abs(wx * sp - wy * cp)
             # The ray of the cone nearest the other body's centre: the axis if the centre is
@@ -839,11 +853,14 @@ def _ir_value(
             return 0.0
         return sn.ir_c / (best * best + sn.ir_c)
     # The ray model: the first body or visible wall on the axis.
+    reach2 = (sn.ir_range + r) ** 2
     for j in range(n):
         if j == me:
             continue
         wx = bodies[j, 0] - sx
         wy = bodies[j, 1] - sy
+        if wx * wx + wy * wy >= reach2:
+            continue  # out of range whatever the direction
         along = wx * cp + wy * sp
         perp2 = wx * wx + wy * wy - along * along
         if wx * wx + wy * wy < r * r:
@@ -897,10 +914,10 @@ def sense(
                 px, py = IR_POSITIONS[k, 0], IR_POSITIONS[k, 1]
                 sx = x + c * px - s * py
                 sy = y + s * px + c * py
-                psi = th + IR_HEADINGS[k]
-                full[i, _IR0 + k] = _ir_value(
-                    sn, bodies, i, sx, sy, math.cos(psi), math.sin(psi), step, k
-                )
+                # cos and sin of th + heading, from those of th and of the heading
+                cp = c * _IR_COS[k] - s * _IR_SIN[k]
+                sp = s * _IR_COS[k] + c * _IR_SIN[k]
+                full[i, _IR0 + k] = _ir_value(sn, bodies, i, sx, sy, cp, sp, step, k)
         if sn.need_ground:
             half = sn.arena_half
             for k in range(2):

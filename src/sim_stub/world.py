@@ -366,8 +366,7 @@ class World:
 
     def set_commands(self, commands: np.ndarray) -> None:
         """Set every robot's command at once from an (N, 2) array (clamped; NaN is 0)."""
-        cmd = np.nan_to_num(np.asarray(commands, dtype=float), nan=0.0)
-        np.clip(cmd, -1.0, 1.0, out=self._cmd)
+        physics.clamp_commands(np.asarray(commands, dtype=np.float64), self._cmd)
 
     def set_pose(self, index: int, x: float, y: float, theta: float) -> None:
         """Put robot ``index`` at a pose (no overlap check: for tests and tools)."""
