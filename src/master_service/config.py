@@ -20,7 +20,6 @@ Example::
 
 from __future__ import annotations
 
-import re
 import ssl
 from pathlib import Path
 from typing import Annotated, Final
@@ -29,24 +28,20 @@ import msgspec
 
 from surprise.config import ExperimentConfig, Strict, decode, load_experiment, load_yaml
 from surprise.errors import ConfigError
-from surprise.wire import MAX_FRAME_SIZE
+from surprise.wire import DEFAULT_PORT, MAX_FRAME_SIZE, ROBOT_ID_PATTERN
 from telemetry.config import TelemetryConfig
+from transport.tls import ServerTlsConfig, server_context
 
 __all__ = [
     "DEFAULT_HANDSHAKE_TIMEOUT",
     "DEFAULT_HEARTBEAT_INTERVAL",
-    "DEFAULT_PORT",
     "DEFAULT_ROUND_MARGIN",
-    "ROBOT_ID_PATTERN",
     "MasterConfig",
-    "TlsConfig",
     "build_ssl_context",
     "load_master_config",
     "load_secret",
 ]
 
-#: Default TCP port of the master.
-DEFAULT_PORT: Final = 7474
 #: protocol.md: each handshake step has a 10 s deadline; generous for a Pi on a busy lab WLAN,
 #: short enough that a half-open connection does not linger.
 DEFAULT_HANDSHAKE_TIMEOUT: Final = 10.0
@@ -57,25 +52,8 @@ DEFAULT_HEARTBEAT_INTERVAL: Final = 2.0
 #: Result's transfer and a few late control steps, yet loses little time when a robot is stuck.
 DEFAULT_ROUND_MARGIN: Final = 5.0
 
-#: What a robot id may look like: it names a CSV column and a trace file, so no separators or
-#: spaces, and a bounded length.
-ROBOT_ID_PATTERN: Final = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"
-_ROBOT_ID_RE = re.compile(ROBOT_ID_PATTERN)
-
 _PositiveSeconds = Annotated[float, msgspec.Meta(gt=0.0, le=86400.0)]
 _RobotId = Annotated[str, msgspec.Meta(pattern=ROBOT_ID_PATTERN)]
-
-
-class TlsConfig(Strict):
-    """TLS for the robots' connections: the master's certificate chain and private key.
-
-    With ``ca_file`` the robots must present a client certificate signed by that CA (mutual TLS).
-    The HMAC challenge is still required: TLS protects the link, the secret admits the robot.
-    """
-
-    cert_file: str
-    key_file: str
-    ca_file: str | None = None
 
 
 class MasterConfig(Strict):
@@ -100,7 +78,7 @@ class MasterConfig(Strict):
     secret_file: str | None = None
     allowed_robots: list[_RobotId] = msgspec.field(default_factory=list)
     expected_robots: Annotated[int, msgspec.Meta(ge=1)] | None = None
-    tls: TlsConfig | None = None
+    tls: ServerTlsConfig | None = None
     round_margin: _PositiveSeconds = DEFAULT_ROUND_MARGIN
     heartbeat_interval: _PositiveSeconds = DEFAULT_HEARTBEAT_INTERVAL
     handshake_timeout: _PositiveSeconds = DEFAULT_HANDSHAKE_TIMEOUT
@@ -130,11 +108,6 @@ class MasterConfig(Strict):
         return self.experiment.robots
 
 
-def is_valid_robot_id(robot_id: str) -> bool:
-    """Whether ``robot_id`` matches :data:`ROBOT_ID_PATTERN`."""
-    return _ROBOT_ID_RE.match(robot_id) is not None
-
-
 def _resolve(base: Path, value: str | None) -> str | None:
     if value is None:
         return None
@@ -162,7 +135,7 @@ def load_master_config(path: str | Path) -> MasterConfig:
         experiment = load_experiment(experiment_path)
     tls = config.tls
     if tls is not None:
-        tls = TlsConfig(
+        tls = ServerTlsConfig(
             cert_file=_resolve(base, tls.cert_file) or "",
             key_file=_resolve(base, tls.key_file) or "",
             ca_file=_resolve(base, tls.ca_file),
@@ -212,21 +185,6 @@ def load_secret(path: str | Path) -> bytes:
     return secret
 
 
-def build_ssl_context(tls: TlsConfig) -> ssl.SSLContext:
+def build_ssl_context(tls: ServerTlsConfig) -> ssl.SSLContext:
     """A server-side TLS context from ``tls``; a bad certificate or key is a ConfigError."""
-    context = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
-    try:
-        context.load_cert_chain(tls.cert_file, tls.key_file)
-    except (OSError, ssl.SSLError) as exc:
-        raise ConfigError(
-            f"cannot load the certificate and key: {exc}", file=tls.cert_file, key="tls.cert_file"
-        ) from None
-    if tls.ca_file is not None:
-        try:
-            context.load_verify_locations(cafile=tls.ca_file)
-        except (OSError, ssl.SSLError) as exc:
-            raise ConfigError(
-                f"cannot load the CA certificates: {exc}", file=tls.ca_file, key="tls.ca_file"
-            ) from None
-        context.verify_mode = ssl.CERT_REQUIRED
-    return context
+    return server_context(tls, key="tls")

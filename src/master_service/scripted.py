@@ -16,7 +16,7 @@ from typing import Final, TypeVar
 
 import numpy as np
 
-from surprise.errors import ProtocolError
+from surprise.errors import ConnectionClosedError, ProtocolError
 from surprise.sensors import ALL_SENSORS
 from surprise.wire import (
     PROTOCOL_VERSION,
@@ -24,13 +24,11 @@ from surprise.wire import (
     Authenticate,
     Bye,
     Challenge,
-    ConnectionClosedError,
     Evaluate,
     EvaluationStats,
     Failed,
     Hello,
     Message,
-    MessageStream,
     Ping,
     Pong,
     Refused,
@@ -40,6 +38,7 @@ from surprise.wire import (
     compute_mac,
     genome_from_bytes,
 )
+from transport.stream import MessageStream
 
 __all__ = [
     "DISCONNECT",

@@ -19,9 +19,9 @@ import ssl
 from collections.abc import Callable, Iterable, Sequence
 from typing import Final
 
-from master_service.config import is_valid_robot_id
-from surprise.errors import ProtocolError
+from surprise.errors import ConnectionClosedError, ProtocolError
 from surprise.wire import (
+    DEAD_AFTER_HEARTBEATS,
     PROTOCOL_VERSION,
     REFUSED_BAD_SECRET,
     REFUSED_MISSING_SENSORS,
@@ -30,26 +30,24 @@ from surprise.wire import (
     Authenticate,
     Bye,
     Challenge,
-    ConnectionClosedError,
     Error,
     Failed,
     Hello,
     Message,
-    MessageStream,
     Ping,
     Pong,
     Refused,
     Result,
     Welcome,
     encode,
+    is_valid_robot_id,
     new_nonce,
     verify_mac,
 )
+from transport.stream import MessageStream
 
-__all__ = ["DEAD_AFTER_HEARTBEATS", "RobotServer", "Session"]
+__all__ = ["RobotServer", "Session"]
 
-#: protocol.md: a link is dead when nothing at all arrived for this many heartbeat intervals.
-DEAD_AFTER_HEARTBEATS: Final = 3
 #: Bytes a session may have queued unsent before we call the peer stuck and drop it. Far above
 #: anything the master sends in one go (an Evaluate is a few kB), far below hurting memory.
 MAX_PENDING_OUTPUT: Final = 4 * 1024 * 1024

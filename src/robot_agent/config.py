@@ -28,7 +28,6 @@ around for snapshots) by :func:`read_secret`.
 
 from __future__ import annotations
 
-import re
 import ssl
 from pathlib import Path
 from typing import Annotated
@@ -41,42 +40,22 @@ from robot_agent.watchdog import TIMEOUT as WATCHDOG_TIMEOUT
 from surprise.backoff import BackoffConfig
 from surprise.config import Strict, load_yaml
 from surprise.errors import ConfigError
+from surprise.wire import DEFAULT_PORT, is_valid_robot_id
 from telemetry.config import TelemetryConfig
+from transport.tls import ClientTlsConfig, client_context
 
 __all__ = [
-    "DEFAULT_PORT",
     "AgentConfig",
     "BackoffConfig",
     "LoopConfig",
     "MasterConfig",
-    "TlsConfig",
     "load_agent_config",
     "make_ssl_context",
     "read_secret",
 ]
 
-#: The master's default TCP port.
-DEFAULT_PORT = 7474
-
-# A robot id appears in logs, in the master's file names and in MACs: keep it plain.
-_ROBOT_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
 Port = Annotated[int, msgspec.Meta(ge=1, le=65535)]
 Seconds = Annotated[float, msgspec.Meta(gt=0.0)]
-
-
-class TlsConfig(Strict):
-    """TLS towards the master. Without ``ca_file`` the system's trusted CAs verify the master;
-    ``cert_file`` (with ``key_file`` if the key is separate) is the robot's client certificate;
-    ``server_hostname`` overrides the name checked in the master's certificate (default: host)."""
-
-    ca_file: str | None = None
-    cert_file: str | None = None
-    key_file: str | None = None
-    server_hostname: str | None = None
-
-    def __post_init__(self) -> None:
-        if self.key_file is not None and self.cert_file is None:
-            raise ValueError("`key_file`: a key needs its certificate in cert_file")
 
 
 class MasterConfig(Strict):
@@ -86,7 +65,7 @@ class MasterConfig(Strict):
     #: file holding the shared secret (surrounding whitespace, e.g. a final newline, is ignored)
     secret_file: str
     port: Port = DEFAULT_PORT
-    tls: TlsConfig | None = None
+    tls: ClientTlsConfig | None = None
 
     def __post_init__(self) -> None:
         if not self.host:
@@ -143,7 +122,7 @@ class AgentConfig(Strict):
     telemetry: TelemetryConfig | None = None
 
     def __post_init__(self) -> None:
-        if not _ROBOT_ID.fullmatch(self.robot_id):
+        if not is_valid_robot_id(self.robot_id):
             raise ValueError(
                 "`robot_id`: expected 1 to 64 letters, digits, '.', '_' or '-' (not starting "
                 f"with a symbol), got {self.robot_id!r}"
@@ -210,20 +189,4 @@ def make_ssl_context(
     tls = config.master.tls
     if tls is None:
         return None
-    file = str(config_file) if config_file else None
-    try:
-        context = ssl.create_default_context(cafile=tls.ca_file)
-    except (OSError, ssl.SSLError) as exc:
-        raise ConfigError(
-            f"cannot load the CA file {tls.ca_file}: {exc}", file=file, key="master.tls.ca_file"
-        ) from None
-    if tls.cert_file is not None:
-        try:
-            context.load_cert_chain(tls.cert_file, tls.key_file)
-        except (OSError, ssl.SSLError) as exc:
-            raise ConfigError(
-                f"cannot load the certificate {tls.cert_file} (key {tls.key_file}): {exc}",
-                file=file,
-                key="master.tls.cert_file",
-            ) from None
-    return context
+    return client_context(tls, file=str(config_file) if config_file else None, key="master.tls")

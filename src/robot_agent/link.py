@@ -29,6 +29,7 @@ from robot_agent.watchdog import Watchdog
 from surprise.backoff import Backoff
 from surprise.errors import FrameTooLargeError, ProtocolError, SurpriseError
 from surprise.wire import (
+    DEAD_AFTER_HEARTBEATS,
     PROTOCOL_VERSION,
     REFUSED_VERSION_MISMATCH,
     Abort,
@@ -40,7 +41,6 @@ from surprise.wire import (
     Failed,
     Hello,
     Message,
-    MessageStream,
     Ping,
     Pong,
     Refused,
@@ -49,11 +49,11 @@ from surprise.wire import (
     compute_mac,
     encode,
 )
+from transport.stream import MessageStream
 
 __all__ = [
     "CLOSE_TIMEOUT",
     "CONNECT_TIMEOUT",
-    "DEAD_AFTER_HEARTBEATS",
     "HANDSHAKE_TIMEOUT",
     "PROBE_AFTER_HEARTBEATS",
     "Backoff",
@@ -70,8 +70,6 @@ log = logging.getLogger(__name__)
 CONNECT_TIMEOUT: Final = 10.0
 #: Seconds for each step of the handshake (``HANDSHAKE_TIMEOUT`` of docs/protocol.md).
 HANDSHAKE_TIMEOUT: Final = 10.0
-#: The link is dead when nothing at all arrived for this many heartbeat intervals (protocol.md).
-DEAD_AFTER_HEARTBEATS: Final = 3.0
 #: After this many heartbeat intervals without a message the robot sends a Ping itself: a live
 #: master answers with a Pong, so a master that is late with its own pings (busy writing a
 #: checkpoint) is not dropped, while a dead one still is at DEAD_AFTER_HEARTBEATS. Above 1 so that

@@ -3,8 +3,9 @@
 One codec on both sides: every message is a msgspec Struct in one tagged union (the tag sits in the
 field ``"type"``), encoded as msgpack and sent as a frame: a 4-byte big-endian unsigned length
 followed by that many payload bytes. Encoding and decoding are pure; :class:`FrameDecoder` is
-incremental so any transport can feed it whatever bytes arrive. :class:`MessageStream` is the thin
-asyncio transport used by both the master and the agent.
+incremental so any transport can feed it whatever bytes arrive (the asyncio transport of both the
+master and the agent is :class:`transport.stream.MessageStream`). The protocol's facts that both
+sides must agree on (default port, keep-alive, robot ids) are defined here too.
 
 A session::
 
@@ -21,12 +22,10 @@ an older one; incompatible changes bump :data:`PROTOCOL_VERSION`, which the mast
 
 from __future__ import annotations
 
-import asyncio
-import collections
-import contextlib
 import hashlib
 import hmac
 import math
+import re
 import secrets
 import struct
 from typing import Annotated, Final
@@ -35,10 +34,12 @@ import msgspec
 import numpy as np
 
 from surprise.config import MAX_RECORDED_STEPS
-from surprise.errors import FrameTooLargeError, GenomeError, ProtocolError, SurpriseError
+from surprise.errors import FrameTooLargeError, GenomeError, ProtocolError
 from surprise.network import NetworkSpec
 
 __all__ = [
+    "DEAD_AFTER_HEARTBEATS",
+    "DEFAULT_PORT",
     "MAX_FRAME_SIZE",
     "NONCE_SIZE",
     "PROTOCOL_VERSION",
@@ -48,11 +49,11 @@ __all__ = [
     "REFUSED_PROTOCOL",
     "REFUSED_UNKNOWN_ROBOT",
     "REFUSED_VERSION_MISMATCH",
+    "ROBOT_ID_PATTERN",
     "Abort",
     "Authenticate",
     "Bye",
     "Challenge",
-    "ConnectionClosedError",
     "Error",
     "Evaluate",
     "EvaluationStats",
@@ -60,7 +61,6 @@ __all__ = [
     "FrameDecoder",
     "Hello",
     "Message",
-    "MessageStream",
     "Ping",
     "Pong",
     "Refused",
@@ -72,9 +72,20 @@ __all__ = [
     "encode",
     "genome_from_bytes",
     "genome_to_bytes",
+    "is_valid_robot_id",
     "new_nonce",
     "verify_mac",
 ]
+
+#: The master's TCP port unless configured otherwise (the default of both sides' configuration).
+DEFAULT_PORT: Final = 7474
+#: A link is dead when nothing at all arrived for this many heartbeat intervals (either side): one
+#: lost ping is no reason to drop a robot, three in a row on a lab network are.
+DEAD_AFTER_HEARTBEATS: Final = 3
+#: What a robot id may look like: it names a CSV column and a trace file on the master and goes
+#: into the authentication, so no separators or spaces, and a bounded length.
+ROBOT_ID_PATTERN: Final = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"
+_ROBOT_ID_RE: Final = re.compile(ROBOT_ID_PATTERN)
 
 #: Version of this protocol; sent in Hello. Bump it for any change an older peer cannot decode.
 PROTOCOL_VERSION: Final = 1
@@ -115,17 +126,11 @@ _Positive = Annotated[int, msgspec.Meta(ge=1)]
 _Nonce = Annotated[bytes, msgspec.Meta(min_length=NONCE_SIZE, max_length=NONCE_SIZE)]
 
 _HEADER = struct.Struct(">I")
-# Read size of MessageStream: large enough that a 0.5 MB trace takes a handful of reads, small
-# enough not to matter for memory.
-_CHUNK_SIZE = 64 * 1024
 
 
-class ConnectionClosedError(SurpriseError, ConnectionError):
-    """The peer closed the connection; ``mid_frame`` is true if it stopped inside a frame."""
-
-    def __init__(self, message: str = "peer closed the connection", *, mid_frame: bool = False):
-        self.mid_frame = mid_frame
-        super().__init__(message)
+def is_valid_robot_id(robot_id: str) -> bool:
+    """Whether ``robot_id`` matches :data:`ROBOT_ID_PATTERN`."""
+    return _ROBOT_ID_RE.match(robot_id) is not None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -485,89 +490,3 @@ class FrameDecoder:
             del buffer[: self._start]
             self._start = 0
         return messages
-
-
-# ---------------------------------------------------------------------------------------------
-# Transport
-
-
-class MessageStream:
-    """Messages over an asyncio stream pair; the same class on the master and on the agent.
-
-    One task may :meth:`receive` while others :meth:`send`; concurrent receives are not supported.
-    Usable as an async context manager that closes the stream.
-    """
-
-    def __init__(
-        self,
-        reader: asyncio.StreamReader,
-        writer: asyncio.StreamWriter,
-        *,
-        max_frame_size: int = MAX_FRAME_SIZE,
-    ) -> None:
-        self.reader = reader
-        self.writer = writer
-        self.max_frame_size = max_frame_size
-        self._decoder = FrameDecoder(max_frame_size)
-        # One read may complete several frames; the extra messages wait here.
-        self._queue: collections.deque[Message] = collections.deque()
-        #: Bytes read so far: a message still arriving is a sign of life too.
-        self.bytes_received = 0
-
-    def set_max_frame_size(self, max_frame_size: int) -> None:
-        """Change the frame size limit of both directions from the next frame on (a server keeps
-        it small until its peer has authenticated)."""
-        self.max_frame_size = max_frame_size
-        self._decoder.max_frame_size = max_frame_size
-
-    async def receive(self) -> Message:
-        """Return the next message.
-
-        Raises :class:`ConnectionClosedError` when the peer closes (or resets) the connection
-        and :class:`ProtocolError` for malformed or oversized input.
-        """
-        while not self._queue:
-            if self._decoder.poisoned:
-                # Fail now rather than wait for bytes from a peer that may never send any.
-                self._decoder.feed(b"")
-            try:
-                data = await self.reader.read(_CHUNK_SIZE)
-            except ConnectionError as exc:
-                raise ConnectionClosedError(f"connection lost: {exc}") from exc
-            if not data:
-                pending = self._decoder.pending
-                if pending:
-                    raise ConnectionClosedError(
-                        f"peer closed the connection inside a frame ({pending} bytes pending)",
-                        mid_frame=True,
-                    )
-                raise ConnectionClosedError()
-            self.bytes_received += len(data)
-            self._queue.extend(self._decoder.feed(data))
-        return self._queue.popleft()
-
-    async def send(self, msg: Message) -> None:
-        """Send one message and wait until the transport's buffer has drained.
-
-        Raises :class:`FrameTooLargeError` before sending anything if ``msg`` is too large and
-        :class:`ConnectionClosedError` if the connection is gone.
-        """
-        frame = encode(msg, max_frame_size=self.max_frame_size)
-        try:
-            self.writer.write(frame)
-            await self.writer.drain()
-        except ConnectionError as exc:
-            raise ConnectionClosedError(f"connection lost: {exc}") from exc
-
-    async def close(self) -> None:
-        """Close the connection; errors of an already broken connection are ignored."""
-        self.writer.close()
-        # The peer may already have reset the connection; closed is closed.
-        with contextlib.suppress(OSError):
-            await self.writer.wait_closed()
-
-    async def __aenter__(self) -> MessageStream:
-        return self
-
-    async def __aexit__(self, *exc_info: object) -> None:
-        await self.close()

@@ -24,12 +24,12 @@ from surprise.wire import (
     Challenge,
     Hello,
     Message,
-    MessageStream,
     Refused,
     Welcome,
     new_nonce,
     verify_mac,
 )
+from transport.stream import MessageStream
 
 #: What the fake body carries by default: a plain Thymio.
 THYMIO = IR_SENSORS + GROUND_SENSORS

@@ -13,14 +13,13 @@ from agent_fakes import SECRET, FakeBody, FakeClock, ScriptedMaster, genome, spe
 
 from robot_agent import cli
 from robot_agent.config import (
-    DEFAULT_PORT,
     AgentConfig,
     load_agent_config,
     make_ssl_context,
     read_secret,
 )
-from surprise.errors import ConfigError, HardwareError
-from surprise.wire import Bye, ConnectionClosedError, Evaluate, genome_to_bytes
+from surprise.errors import ConfigError, ConnectionClosedError, HardwareError
+from surprise.wire import DEFAULT_PORT, Bye, Evaluate, genome_to_bytes
 
 MINIMAL = """
 robot_id: thymio-01

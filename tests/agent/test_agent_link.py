@@ -26,23 +26,23 @@ import surprise
 from robot_agent.agent import Agent
 from robot_agent.config import BackoffConfig
 from surprise.backoff import Backoff
+from surprise.errors import ConnectionClosedError
 from surprise.wire import (
     PROTOCOL_VERSION,
     REFUSED_BAD_SECRET,
     REFUSED_VERSION_MISMATCH,
     Abort,
     Bye,
-    ConnectionClosedError,
     Evaluate,
     Failed,
     Hello,
-    MessageStream,
     Ping,
     Pong,
     Refused,
     Result,
     genome_to_bytes,
 )
+from transport.stream import MessageStream
 
 LONG = 10**6  # steps of an evaluation that only ends when stopped
 
@@ -357,7 +357,8 @@ async def test_the_link_can_run_over_tls(tmp_path):
     import ssl
     import subprocess
 
-    from robot_agent.config import MasterConfig, TlsConfig
+    from robot_agent.config import MasterConfig
+    from transport.tls import ClientTlsConfig
 
     if shutil.which("openssl") is None:
         pytest.skip("openssl is not installed")
@@ -374,7 +375,7 @@ async def test_the_link_can_run_over_tls(tmp_path):
     master = ScriptedMaster()
     await master.start(ssl=server_context)
     try:
-        tls = TlsConfig(ca_file=str(cert), server_hostname="master.test")
+        tls = ClientTlsConfig(ca_file=str(cert), server_hostname="master.test")
         agent, _ = make_agent(
             master.port,
             master=MasterConfig(host="127.0.0.1", port=master.port, secret_file="x", tls=tls),

@@ -11,14 +11,14 @@ from master_helpers import SECRET, master_config
 from master_service import Master
 from master_service.cli import main
 from master_service.config import (
-    DEFAULT_PORT,
     MasterConfig,
-    TlsConfig,
     build_ssl_context,
     load_master_config,
     load_secret,
 )
 from surprise.errors import ConfigError
+from surprise.wire import DEFAULT_PORT
+from transport.tls import ServerTlsConfig
 
 
 def write(directory: Path, text: str, name: str = "master.yaml") -> Path:
@@ -105,7 +105,7 @@ def test_secret_files(tmp_path):
 def test_a_bad_certificate_is_a_configuration_error(tmp_path):
     cert = write(tmp_path, "not a certificate", "cert.pem")
     with pytest.raises(ConfigError, match="certificate") as info:
-        build_ssl_context(TlsConfig(cert_file=str(cert), key_file=str(cert)))
+        build_ssl_context(ServerTlsConfig(cert_file=str(cert), key_file=str(cert)))
     assert info.value.key == "tls.cert_file"
 
 

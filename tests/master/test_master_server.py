@@ -15,7 +15,6 @@ import pytest
 from master_helpers import SECRET, master_config
 
 from master_service import Master
-from master_service.config import TlsConfig
 from master_service.scripted import RobotRefusedError, ScriptedRobot
 from surprise.sensors import ALL_SENSORS, IR_SENSORS
 from surprise.wire import (
@@ -30,7 +29,6 @@ from surprise.wire import (
     Bye,
     FrameDecoder,
     Hello,
-    MessageStream,
     Ping,
     Pong,
     Refused,
@@ -38,6 +36,8 @@ from surprise.wire import (
     compute_mac,
     encode,
 )
+from transport.stream import MessageStream
+from transport.tls import ServerTlsConfig
 
 
 async def still_serving(master: Master, robot_id: str = "good") -> None:
@@ -239,7 +239,7 @@ def _make_certificate(directory) -> tuple[str, str]:
 @pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl command")
 async def test_tls(tmp_path):
     cert, key = _make_certificate(tmp_path)
-    config = master_config(tls=TlsConfig(cert_file=cert, key_file=key))
+    config = master_config(tls=ServerTlsConfig(cert_file=cert, key_file=key))
     async with Master(config, tmp_path / "run", secret=SECRET) as master:
         client = ssl.create_default_context(cafile=cert)
         robot = ScriptedRobot("r0", SECRET, master.port, ssl_context=client)

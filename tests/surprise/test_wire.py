@@ -1,10 +1,9 @@
-"""Tests of the wire protocol: messages, genomes, framing, authentication and the TCP stream."""
+"""Tests of the wire protocol: messages, genomes, framing and authentication (the TCP stream is
+tested in tests/transport)."""
 
 from __future__ import annotations
 
-import asyncio
 import struct
-from collections.abc import Awaitable, Callable
 
 import msgspec
 import numpy as np
@@ -13,7 +12,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from surprise.config import MAX_RECORDED_STEPS
-from surprise.errors import FrameTooLargeError, GenomeError, ProtocolError, SurpriseError
+from surprise.errors import FrameTooLargeError, GenomeError, ProtocolError
 from surprise.network import GenomeLayout, NetworkSpec
 from surprise.sensors import ALL_SENSORS
 from surprise.wire import (
@@ -25,7 +24,6 @@ from surprise.wire import (
     Authenticate,
     Bye,
     Challenge,
-    ConnectionClosedError,
     Error,
     Evaluate,
     EvaluationStats,
@@ -33,7 +31,6 @@ from surprise.wire import (
     FrameDecoder,
     Hello,
     Message,
-    MessageStream,
     Ping,
     Pong,
     Refused,
@@ -464,41 +461,6 @@ def test_nonces_are_fresh() -> None:
     assert len({new_nonce() for _ in range(100)}) == 100
 
 
-# ---------------------------------------------------------------------------------------------
-# MessageStream over loopback TCP
-
-Handler = Callable[[asyncio.StreamReader, asyncio.StreamWriter], Awaitable[None]]
-
-
-class Loopback:
-    """A server on 127.0.0.1 running ``handler`` for one client, and that client's stream."""
-
-    def __init__(self, handler: Handler, *, max_frame_size: int = MAX_FRAME_SIZE) -> None:
-        self.handler = handler
-        self.max_frame_size = max_frame_size
-        self.handled = asyncio.Event()
-
-    async def __aenter__(self) -> MessageStream:
-        async def run(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-            try:
-                await self.handler(reader, writer)
-            finally:
-                self.handled.set()
-
-        self.server = await asyncio.start_server(run, "127.0.0.1", 0)
-        port = self.server.sockets[0].getsockname()[1]
-        reader, writer = await asyncio.open_connection("127.0.0.1", port)
-        self.client = MessageStream(reader, writer, max_frame_size=self.max_frame_size)
-        return self.client
-
-    async def __aexit__(self, *exc_info: object) -> None:
-        await self.client.close()
-        # Wait for the handler so no task outlives the test's event loop.
-        await asyncio.wait_for(self.handled.wait(), timeout=5)
-        self.server.close()
-        await self.server.wait_closed()
-
-
 def sample_trace(steps: int, width: int) -> Trace:
     row = [0.123456789 * i for i in range(width)]
     return Trace(
@@ -509,112 +471,6 @@ def sample_trace(steps: int, width: int) -> Trace:
         safety=[""] * steps,
         poses=[[1.0, 2.0, 3.0]] * steps,
     )
-
-
-async def test_stream_round_trips_messages_over_tcp() -> None:
-    async def echo(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        async with MessageStream(reader, writer) as stream:
-            while True:
-                try:
-                    msg = await stream.receive()
-                except ConnectionClosedError:
-                    return
-                await stream.send(msg)
-
-    big = Result(
-        evaluation_id=9,
-        fitness=-0.25,
-        stats=EvaluationStats(steps_run=1000, overruns=2, interventions={"cliff": 3}),
-        trace=sample_trace(1000, 12),
-    )
-    assert len(encode(big)) > 4 * 64 * 1024  # spans many reads
-    sent: list[Message] = [
-        Hello(robot_id="t1", software_version="0.1", protocol_version=1, sensors=("ir.f0",)),
-        Ping(seq=1),
-        big,
-        Bye(reason="done"),
-    ]
-    async with asyncio.timeout(5), Loopback(echo) as client:
-        for msg in sent:
-            await client.send(msg)
-        received = [await client.receive() for _ in sent]
-    assert received == sent
-
-
-async def test_stream_queues_several_messages_from_one_read() -> None:
-    async def burst(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        writer.write(b"".join(encode(Ping(seq=i)) for i in range(50)))
-        await writer.drain()
-        writer.close()
-        await writer.wait_closed()
-
-    async with asyncio.timeout(5), Loopback(burst) as client:
-        assert [await client.receive() for _ in range(50)] == [Ping(seq=i) for i in range(50)]
-        with pytest.raises(ConnectionClosedError) as info:
-            await client.receive()
-    assert not info.value.mid_frame
-
-
-async def test_peer_closing_mid_frame_raises_connection_closed() -> None:
-    async def half(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        data = encode(Pong(seq=1)) + encode(Bye(reason="cut"))
-        writer.write(data[:-3])
-        await writer.drain()
-        writer.close()
-        await writer.wait_closed()
-
-    async with asyncio.timeout(5), Loopback(half) as client:
-        assert await client.receive() == Pong(seq=1)
-        with pytest.raises(ConnectionClosedError, match="inside a frame") as info:
-            await client.receive()
-    assert info.value.mid_frame
-    assert isinstance(info.value, ConnectionError)
-    assert isinstance(info.value, SurpriseError)
-
-
-async def test_peer_closing_right_after_a_header_is_mid_frame() -> None:
-    async def header_only(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        writer.write(struct.pack(">I", 10))
-        await writer.drain()
-        writer.close()
-        await writer.wait_closed()
-
-    async with asyncio.timeout(5), Loopback(header_only) as client:
-        with pytest.raises(ConnectionClosedError) as info:
-            await client.receive()
-    assert info.value.mid_frame
-
-
-async def test_stream_rejects_oversized_frame_from_peer() -> None:
-    async def hostile(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        # Announce 1 GiB but send only the header: the receiver must not wait for the body.
-        writer.write(struct.pack(">I", 1 << 30))
-        await writer.drain()
-        await reader.read()  # hold the connection open until the client closes it
-        writer.close()
-        await writer.wait_closed()
-
-    async with asyncio.timeout(5), Loopback(hostile) as client:
-        with pytest.raises(FrameTooLargeError):
-            await client.receive()
-        # The stream stays poisoned: the caller must close it.
-        with pytest.raises(ProtocolError):
-            await client.receive()
-
-
-async def test_stream_send_refuses_oversized_message_before_writing() -> None:
-    received: list[bytes] = []
-
-    async def sink(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        received.append(await reader.read())
-        writer.close()
-        await writer.wait_closed()
-
-    async with asyncio.timeout(5), Loopback(sink, max_frame_size=100) as client:
-        with pytest.raises(FrameTooLargeError):
-            await client.send(Authenticate(mac=bytes(200)))
-        await client.send(Ping(seq=1))
-    assert received == [encode(Ping(seq=1))]
 
 
 @pytest.mark.parametrize(
