@@ -21,8 +21,7 @@ import msgspec
 import numpy as np
 
 from master_service.rundir import write_atomic
-from master_service.simulate import SAFETY_PROFILES, world_config
-from robot_agent.config import LoopConfig
+from master_service.simulate import SAFETY_PROFILES, simulated_loop, world_config
 from robot_agent.runner import EvaluationRunner
 from robot_agent.safety import SafetyConfig
 from sim_stub import metrics as sim_metrics
@@ -92,7 +91,9 @@ async def run_baseline(experiment: ExperimentConfig, pairs: int, out: str | Path
     async with contextlib.AsyncExitStack() as stack:
         bodies = [await stack.enter_async_context(swarm.body(i)) for i in range(experiment.robots)]
         runners = [
-            EvaluationRunner(body, body.clock, loop=LoopConfig(), safety=safety, safety_seed=i)
+            EvaluationRunner(
+                body, body.clock, loop=simulated_loop(experiment), safety=safety, safety_seed=i
+            )
             for i, body in enumerate(bodies)
         ]
         for k in range(pairs):
@@ -105,6 +106,7 @@ async def run_baseline(experiment: ExperimentConfig, pairs: int, out: str | Path
                 genome=genome_to_bytes(genome),
                 spec=spec,
                 steps=steps,
+                step_period=experiment.step_period,
                 record=True,
             )
             results = await _evaluate_pair(runners, msg)

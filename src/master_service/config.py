@@ -48,8 +48,9 @@ DEFAULT_HANDSHAKE_TIMEOUT: Final = 10.0
 #: The link is declared dead after 3 intervals without any message (protocol.md). 2 s notices a
 #: dropped robot within 6-8 s, less than one 10 s evaluation, at a negligible ping traffic.
 DEFAULT_HEARTBEAT_INTERVAL: Final = 2.0
-#: Added to ``steps * 0.1 s`` for a round's deadline: covers building the networks on the Pi, the
-#: Result's transfer and a few late control steps, yet loses little time when a robot is stuck.
+#: Added to ``steps * step_period`` for a round's deadline: covers building the networks on the
+#: Pi, the Result's transfer and a few late control steps, yet loses little time when a robot is
+#: stuck.
 DEFAULT_ROUND_MARGIN: Final = 5.0
 
 _PositiveSeconds = Annotated[float, msgspec.Meta(gt=0.0, le=86400.0)]
@@ -65,10 +66,11 @@ class MasterConfig(Strict):
     a round starts only when that many are connected. The swarm is fixed when it first completes
     (those robots' ids are the CSV's columns); from then on only its members are admitted, so
     with spares in ``allowed_robots`` the first robots to connect take part. ``round_margin`` is
-    added to ``steps * 0.1 s`` for a round's deadline; ``heartbeat_interval`` is how often the
-    master pings (a link is dead after three silent intervals); ``handshake_timeout`` bounds each
-    handshake step; ``max_frame_size`` bounds one incoming message (bytes). ``telemetry``
-    (optional) publishes the run's status over MQTT (``docs/telemetry.md``).
+    added to ``steps * step_period`` (the experiment's) for a round's deadline;
+    ``heartbeat_interval`` is how often the master pings (a link is dead after three silent
+    intervals); ``handshake_timeout`` bounds each handshake step; ``max_frame_size`` bounds one
+    incoming message (bytes). ``telemetry`` (optional) publishes the run's status over MQTT
+    (``docs/telemetry.md``).
     """
 
     experiment: ExperimentConfig | None = None

@@ -43,7 +43,7 @@ from typing import Any, Final
 import numpy as np
 
 from master_service.config import MasterConfig, build_ssl_context
-from master_service.rounds import STEP_PERIOD, Attempt, RoundRunner
+from master_service.rounds import Attempt, RoundRunner
 from master_service.rundir import (
     CONFIG_SNAPSHOT,
     EVALUATION_COLUMNS,
@@ -155,6 +155,7 @@ class Master:
             genome=bytes(8 * self.genome_size),
             spec=self.spec,
             steps=widest,
+            step_period=self.experiment.step_period,
             record=False,  # one byte either way; a recorded one may not have this many steps
         )
         if len(encode(probe, max_frame_size=2**62)) - 4 > config.max_frame_size:
@@ -394,6 +395,7 @@ class Master:
                 genome=candidate.genome,
                 spec=self.spec,
                 steps=self.experiment.evaluation_steps,
+                step_period=self.experiment.step_period,
                 record=False,
                 robots=robots,
             )
@@ -463,6 +465,7 @@ class Master:
                 genome=opt.best,
                 spec=self.spec,
                 steps=steps,
+                step_period=self.experiment.step_period,
                 record=True,
                 robots=robots,
             )
@@ -640,7 +643,10 @@ class Master:
         remaining = self.experiment.evolution.evaluations - state.optimizer.evaluations
         # Measured once possible, so a simulated swarm in lockstep (far faster than 10 Hz) is
         # estimated right too, its post-evaluation included.
-        per_step = statistics.fmean(self._intervals) / steps if self._intervals else STEP_PERIOD
+        if self._intervals:
+            per_step = statistics.fmean(self._intervals) / steps
+        else:
+            per_step = self.experiment.step_period
         return (remaining * steps + self.experiment.post_evaluation_steps) * per_step
 
     def _counted(self, fitness: float) -> None:

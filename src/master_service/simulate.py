@@ -29,7 +29,7 @@ from master_service.master import Master, Progress, RunSummary
 from master_service.report import SIMULATION_FILE
 from master_service.rundir import write_atomic
 from robot_agent.agent import Agent
-from robot_agent.config import AgentConfig
+from robot_agent.config import AgentConfig, LoopConfig
 from robot_agent.config import MasterConfig as AgentMasterConfig
 from robot_agent.safety import SafetyConfig
 from sim_stub.body import SimSwarm
@@ -47,6 +47,7 @@ __all__ = [
     "SimulatedSwarm",
     "quiet_agents",
     "robot_ids",
+    "simulated_loop",
     "simulation_experiment",
     "summary_text",
     "world_config",
@@ -150,12 +151,17 @@ class SimulatedSwarm:
         )
 
     def agent_config(self, robot_id: str, port: int) -> AgentConfig:
-        """One in-process agent's configuration (the secret is handed over directly)."""
+        """One in-process agent's configuration (the secret is handed over directly).
+
+        A simulated body's sensors have no update rate: the agents run whatever period the
+        experiment gives (``loop.min_period`` is the experiment's own).
+        """
         profile = SAFETY_PROFILES.get(self.experiment.scenario, "stop")
         return AgentConfig(
             robot_id=robot_id,
             master=AgentMasterConfig(host="127.0.0.1", port=port, secret_file="(in-process)"),
             safety=SafetyConfig(profile=profile),
+            loop=simulated_loop(self.experiment),
             reconnect=_RECONNECT,
         )
 
@@ -218,6 +224,16 @@ class SimulatedSwarm:
                 "end": self.world.box_positions.tolist(),
             }
         write_atomic(run_dir / SIMULATION_FILE, json.dumps(data).encode("utf-8"))
+
+
+def simulated_loop(experiment: ExperimentConfig) -> LoopConfig:
+    """The control loop's limits for a simulated body: the experiment's period is the shortest
+    (a simulated sensor has no update rate) and its longest evaluation fits."""
+    longest = max(experiment.evaluation_steps, experiment.post_evaluation_steps)
+    return LoopConfig(
+        min_period=min(experiment.step_period, LoopConfig().min_period),
+        max_steps=max(longest, LoopConfig().max_steps),
+    )
 
 
 def summary_text(metrics: dict[str, Any], out: Path, seconds: float) -> str:

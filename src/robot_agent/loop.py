@@ -6,7 +6,8 @@ One step (DESIGN, "One control step on the robot")::
     -> actor a(t) from s(t), a(t-1) -> predictor p(t+1) from s(t), a(t)
     -> safety: the command to apply -> drive -> feed the watchdog -> sleep to the next deadline
 
-Timing: with ``t0 = clock.now()`` at the start, step k must end by ``t0 + (k + 1) * period``. The
+Timing: with ``t0 = clock.now()`` at the start, step k must end by ``t0 + (k + 1) * period``, where
+the period is the evaluation's (the experiment's ``step_period``, sent in each Evaluate). The
 deadline is computed from ``t0`` every time, never by adding periods, so it cannot drift. A step
 that ends after its deadline counts as an overrun and the next step starts at once, in the period
 it is already in: later steps stay on the original grid and a long stall does not cause a burst of
@@ -157,7 +158,6 @@ class ControlLoop:
         clock: Clock,
         layer: SafetyLayer,
         *,
-        period: float = 0.1,
         read_timeout: float = 0.15,
         max_read_failures: int = 3,
         drive_timeout: float = 0.5,
@@ -168,12 +168,12 @@ class ControlLoop:
         self.body = body
         self.clock = clock
         self.layer = layer
-        self.period = period
         self.read_timeout = read_timeout
         self.max_read_failures = max_read_failures
         self.drive_timeout = drive_timeout
         self.watchdog = watchdog
-        self.deadlines = Deadlines(clock, period)
+        #: the deadlines of the evaluation running now (or the last one)
+        self.deadlines: Deadlines | None = None
         # Passed to the safety layer for a step without a reading; it only checks the shape.
         self._no_values = np.zeros(len(body.sensors))
         self._has_pose = hasattr(body, "pose")
@@ -185,10 +185,12 @@ class ControlLoop:
         steps: int,
         state: SafetyState,
         *,
+        period: float = 0.1,
         record: bool = False,
         sink: StepSink | None = None,
     ) -> LoopOutcome:
-        """Run ``steps`` control steps of ``network`` (already reset) from where the robot stands.
+        """Run ``steps`` control steps of ``period`` seconds of ``network`` (already reset) from
+        where the robot stands.
 
         ``index`` maps a body frame to the network's sensor order (see :func:`sensor_index`);
         ``state`` is the safety state to start from; ``sink`` (optional) sees every step with a
@@ -214,7 +216,7 @@ class ControlLoop:
         trace_safety: list[str] = []
         trace_poses: list[list[float]] = []
 
-        deadlines = self.deadlines
+        deadlines = self.deadlines = Deadlines(clock, period)
         deadlines.start()
         step = 0
         while step < steps:

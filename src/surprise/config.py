@@ -95,6 +95,11 @@ def to_builtins(config: msgspec.Struct) -> dict[str, Any]:
 #: 10 Hz) are about 5.8 MB, inside the 8 MiB frame limit with room to spare.
 MAX_RECORDED_STEPS = 20_000
 
+#: The longest control step an experiment may ask for, in seconds. Real robots run at 0.1 s and
+#: refuse what their watchdog cannot follow; this bound only catches units mistaken (ms for s)
+#: and keeps every deadline derived from the period finite.
+MAX_STEP_PERIOD = 10.0
+
 
 class NetworkConfig(Strict):
     """Sizes of the actor-predictor pair (REFERENCE section 1).
@@ -140,6 +145,8 @@ class ExperimentConfig(Strict):
     predefined: dict[str, float] = msgspec.field(default_factory=dict)
     evaluation_steps: PositiveInt = 100
     post_evaluation_steps: Annotated[int, msgspec.Meta(ge=0, le=MAX_RECORDED_STEPS)] = 1000
+    #: seconds per control step on every robot (the paper: 10 Hz); sent with every evaluation
+    step_period: Annotated[float, msgspec.Meta(gt=0.0, le=MAX_STEP_PERIOD)] = 0.1
     scenario: str = "basic"
     robots: PositiveInt = 10
     seed: Annotated[int, msgspec.Meta(ge=0)] = 0

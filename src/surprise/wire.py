@@ -33,7 +33,7 @@ from typing import Annotated, Final
 import msgspec
 import numpy as np
 
-from surprise.config import MAX_RECORDED_STEPS
+from surprise.config import MAX_RECORDED_STEPS, MAX_STEP_PERIOD
 from surprise.errors import FrameTooLargeError, GenomeError, ProtocolError
 from surprise.network import NetworkSpec
 
@@ -123,6 +123,7 @@ REFUSED_CODES: Final = frozenset(
 # Bounds checked while decoding (msgspec does not check them when a Struct is built in code).
 _NonNegative = Annotated[int, msgspec.Meta(ge=0)]
 _Positive = Annotated[int, msgspec.Meta(ge=1)]
+_StepPeriod = Annotated[float, msgspec.Meta(gt=0.0, le=MAX_STEP_PERIOD)]
 _Nonce = Annotated[bytes, msgspec.Meta(min_length=NONCE_SIZE, max_length=NONCE_SIZE)]
 
 _HEADER = struct.Struct(">I")
@@ -236,7 +237,9 @@ class Refused(_Message, tag="refused"):
 
 
 class Evaluate(_Message, tag="eval"):
-    """Master -> robot: run ``genome`` (see :func:`genome_to_bytes`) for ``steps`` control steps.
+    """Master -> robot: run ``genome`` (see :func:`genome_to_bytes`) for ``steps`` control steps
+    of ``step_period`` seconds each (the experiment's period; a robot that cannot keep it answers
+    Failed).
 
     With ``record`` (post-evaluation) the robot returns the full :class:`Trace` in its Result.
     """
@@ -245,6 +248,7 @@ class Evaluate(_Message, tag="eval"):
     genome: bytes
     spec: NetworkSpec
     steps: _Positive
+    step_period: _StepPeriod
     record: bool = False
 
     def __post_init__(self) -> None:

@@ -44,7 +44,7 @@ from surprise.wire import (
 )
 from transport.stream import MessageStream
 
-LONG = 10**6  # steps of an evaluation that only ends when stopped
+LONG = 30_000  # steps of an evaluation that only ends when stopped
 
 
 @pytest.fixture
@@ -74,11 +74,18 @@ def make_agent(port: int, *, body: FakeBody | None = None, secret: bytes = SECRE
     return agent, body
 
 
-def evaluate(eid: int, steps: int, *, speed: float = 2.0, network=None, record=False) -> Evaluate:
+def evaluate(
+    eid: int, steps: int, *, speed: float = 2.0, network=None, record=False, period=0.1
+) -> Evaluate:
     network = network if network is not None else spec()
     g = genome(network, speed_bias=speed)
     return Evaluate(
-        evaluation_id=eid, genome=genome_to_bytes(g), spec=network, steps=steps, record=record
+        evaluation_id=eid,
+        genome=genome_to_bytes(g),
+        spec=network,
+        steps=steps,
+        step_period=period,
+        record=record,
     )
 
 

@@ -20,9 +20,14 @@ from surprise.wire import Evaluate, Failed, Result, genome_to_bytes
 ALL_PREDEFINED = 0.25
 
 
-def evaluate(network, g, steps, *, eid=1, record=False) -> Evaluate:
+def evaluate(network, g, steps, *, eid=1, record=False, period=0.1) -> Evaluate:
     return Evaluate(
-        evaluation_id=eid, genome=genome_to_bytes(g), spec=network, steps=steps, record=record
+        evaluation_id=eid,
+        genome=genome_to_bytes(g),
+        spec=network,
+        steps=steps,
+        step_period=period,
+        record=record,
     )
 
 
@@ -104,6 +109,43 @@ async def test_deadlines_are_absolute_and_do_not_drift():
     assert clock.deadlines == [t0 + (k + 1) * 0.1 for k in range(1000)]
     # The last deadline is where 1000 periods end, not where 1000 added periods would.
     assert clock.deadlines[-1] == pytest.approx(t0 + 100.0, abs=1e-9)
+
+
+async def test_the_evaluation_runs_at_the_period_the_master_sends():
+    clock = FakeClock(start=0.0)
+    body = FakeBody(0.5, clock=clock)
+    network = constant_prediction_spec()
+    runner = make_runner(body, clock)
+    outcome = await runner.run(evaluate(network, genome(network), 5, period=0.2))
+    assert isinstance(outcome, Result) and outcome.stats.overruns == 0
+    assert clock.deadlines == pytest.approx([0.2, 0.4, 0.6, 0.8, 1.0])
+    # The next evaluation brings its own period: nothing of the last one is kept.
+    await runner.run(evaluate(network, genome(network), 2, period=0.125))
+    assert clock.deadlines[5:] == pytest.approx([1.125, 1.25])
+
+
+@pytest.mark.parametrize(
+    "loop, period, steps, words",
+    [
+        # A Thymio's sensors update at 10 Hz: a shorter step would read the same values again.
+        ({}, 0.05, 10, "period: this robot runs steps of 0.1 s to 0.22 s"),
+        # The watchdog (0.25 s without a feed) would trip between two steps.
+        ({}, 0.3, 10, "not 0.3 s"),
+        ({"min_period": 0.2}, 0.1, 10, "period: this robot runs steps of 0.2 s"),
+        ({"max_steps": 50}, 0.1, 51, "steps: this robot runs at most 50 steps"),
+    ],
+)
+async def test_an_evaluation_the_robot_cannot_keep_is_refused_with_a_reason(
+    loop, period, steps, words
+):
+    clock = FakeClock()
+    body = FakeBody(0.5, clock=clock)
+    network = constant_prediction_spec()
+    outcome = await make_runner(body, clock, **loop).run(
+        evaluate(network, genome(network), steps, period=period)
+    )
+    assert isinstance(outcome, Failed) and words in outcome.reason
+    assert body.drives == [] and body.reads == 0
 
 
 async def test_an_overrun_is_counted_and_the_next_step_starts_at_once_on_the_grid():
@@ -248,7 +290,7 @@ async def test_cancelling_an_evaluation_stops_the_motors():
     body = FakeBody(0.0, clock=clock)
     network = spec()
     runner = make_runner(body, clock)
-    task = asyncio.create_task(runner.run(evaluate(network, genome(network, speed_bias=2), 10**6)))
+    task = asyncio.create_task(runner.run(evaluate(network, genome(network, speed_bias=2), 30_000)))
     await body.moved.wait()
     assert body.motors != (0.0, 0.0)
     task.cancel()

@@ -55,6 +55,7 @@ async def run_swarm(seed: int) -> list[Result]:
                         genome=genome_to_bytes(g),
                         spec=network,
                         steps=STEPS,
+                        step_period=0.1,
                         record=True,
                     )
                 )

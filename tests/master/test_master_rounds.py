@@ -256,3 +256,16 @@ async def test_fitnesses_whose_mean_overflows_do_not_stop_the_run(tmp_path):
         await close(robots)
     assert summary.failed_attempts == 1
     assert_matches_reference(tmp_path / "run", exp, robot_ids(3))
+
+
+async def test_the_round_deadline_follows_the_experiments_step_period(tmp_path):
+    # Robots at 0.5 s per step answer 2 steps after 0.7 s: far past a deadline of 2 * 0.1 s +
+    # margin, well inside 2 * 0.5 s + margin. Every Evaluate carries the period.
+    exp = experiment(evaluations=2, evaluation_steps=2, post_evaluation_steps=0, step_period=0.5)
+    async with Master(master_config(exp), tmp_path / "run", secret=SECRET) as master:
+        assert master.rounds.deadline(2, exp.step_period) == pytest.approx(1.0 + 0.3)
+        robots = make_robots(master.port, 3, delay=0.7)
+        summary = await run_with(master, robots)
+        await close(robots)
+    assert summary.failed_attempts == 0
+    assert {m.step_period for r in robots for m in r.evaluations} == {0.5}

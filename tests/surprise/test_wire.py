@@ -11,7 +11,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from surprise.config import MAX_RECORDED_STEPS
+from surprise.config import MAX_RECORDED_STEPS, MAX_STEP_PERIOD
 from surprise.errors import FrameTooLargeError, GenomeError, ProtocolError
 from surprise.network import GenomeLayout, NetworkSpec
 from surprise.sensors import ALL_SENSORS
@@ -54,6 +54,7 @@ FEW = settings(max_examples=50, deadline=None, suppress_health_check=[HealthChec
 
 finite = st.floats(allow_nan=False, allow_infinity=False)
 unit = st.floats(min_value=0.0, max_value=1.0)
+periods = st.floats(min_value=0.0, max_value=MAX_STEP_PERIOD, exclude_min=True)
 small_text = st.text(max_size=20)
 u63 = st.integers(min_value=0, max_value=2**63 - 1)
 i64 = st.integers(min_value=-(2**63), max_value=2**63 - 1)
@@ -124,6 +125,7 @@ messages: st.SearchStrategy[Message] = st.one_of(
         genome=genomes.map(genome_to_bytes),
         spec=network_specs(),
         steps=st.integers(1, 2**63 - 1),
+        step_period=periods,
         record=st.just(False),
     ),
     st.builds(
@@ -132,6 +134,7 @@ messages: st.SearchStrategy[Message] = st.one_of(
         genome=genomes.map(genome_to_bytes),
         spec=network_specs(),
         steps=st.integers(1, MAX_RECORDED_STEPS),
+        step_period=periods,
         record=st.just(True),
     ),
     st.builds(
@@ -209,9 +212,8 @@ def test_invalid_payloads_are_protocol_errors(payload: object) -> None:
 
 def test_evaluate_with_malformed_genome_is_rejected_when_decoded() -> None:
     spec = NetworkSpec(sensors=("ir.f0",), actor_hidden=1, predictor_hidden=1)
-    good = msgspec.msgpack.decode(
-        msgspec.msgpack.encode(Evaluate(evaluation_id=0, genome=b"", spec=spec, steps=1))
-    )
+    message = Evaluate(evaluation_id=0, genome=b"", spec=spec, steps=1, step_period=0.1)
+    good = msgspec.msgpack.decode(msgspec.msgpack.encode(message))
     for genome in (b"\x00" * 7, struct.pack("<d", float("inf"))):
         with pytest.raises(ProtocolError, match="malformed message"):
             decode_payload(msgspec.msgpack.encode({**good, "genome": genome}))
@@ -503,9 +505,23 @@ def test_a_recorded_evaluation_too_long_for_one_frame_is_refused():
     """Its trace could never be sent back: refuse it where it enters, on either side."""
     spec = NetworkSpec(sensors=("ir.f0",), actor_hidden=1, predictor_hidden=1)
     genome = genome_to_bytes(np.zeros(GenomeLayout(spec).size))
-    Evaluate(evaluation_id=1, genome=genome, spec=spec, steps=MAX_RECORDED_STEPS, record=True)
-    Evaluate(evaluation_id=1, genome=genome, spec=spec, steps=10 * MAX_RECORDED_STEPS)
+    Evaluate(
+        evaluation_id=1,
+        genome=genome,
+        spec=spec,
+        steps=MAX_RECORDED_STEPS,
+        step_period=0.1,
+        record=True,
+    )
+    Evaluate(
+        evaluation_id=1, genome=genome, spec=spec, steps=10 * MAX_RECORDED_STEPS, step_period=0.1
+    )
     with pytest.raises(ProtocolError, match="at most"):
         Evaluate(
-            evaluation_id=1, genome=genome, spec=spec, steps=MAX_RECORDED_STEPS + 1, record=True
+            evaluation_id=1,
+            genome=genome,
+            spec=spec,
+            steps=MAX_RECORDED_STEPS + 1,
+            step_period=0.1,
+            record=True,
         )
