@@ -56,9 +56,10 @@ def _pair_entry(
     for result in results:
         trace = result.trace
         assert trace is not None and trace.poses is not None
-        steps = min(evaluation_steps, len(trace.sensors))
-        fitnesses.append(surprise_fitness(trace.predictions[:steps], trace.sensors[:steps]))
-        poses.append(np.asarray(trace.poses))
+        steps = min(evaluation_steps, trace.steps)
+        predictions, sensors = trace.array("predictions"), trace.array("sensors")
+        fitnesses.append(surprise_fitness(predictions[:steps], sensors[:steps]))
+        poses.append(trace.array("poses"))
     length = min(len(p) for p in poses)
     stacked = np.stack([p[:length] for p in poses], axis=1)
     behaviour = sim_metrics.behaviour_metrics(stacked, boxes.get("start"), boxes.get("end"))

@@ -404,14 +404,8 @@ class Master:
                 await self._attempt_failed(attempt, f"evaluation {opt.evaluations + 1}")
                 continue
             fitnesses = attempt.fitnesses()
-            with np.errstate(over="ignore"):
-                fitness = swarm_fitness(fitnesses)
-            if not np.isfinite(fitness):
-                # Finite fitnesses whose mean overflows: garbage from a robot must not stop the run.
-                attempt.failure = f"the robots' fitnesses {fitnesses} have no finite mean"
-                opt.tell_failed()
-                await self._attempt_failed(attempt, f"evaluation {opt.evaluations + 1}")
-                continue
+            # Each in [0, 1]: the codec refuses anything else, so the mean is one too.
+            fitness = swarm_fitness(fitnesses)
             outcome = opt.tell(fitness)
             duration = attempt.completed - attempt.started
             row = format_row(

@@ -279,21 +279,20 @@ class ScriptedRobot:
 
     def _trace(self, steps: int, sensors: int) -> Trace:
         base = 0.1 * (self.index + 1)
-        readings = [
-            [base + 0.01 * (i % 10) + 0.001 * s for s in range(sensors)] for i in range(steps)
-        ]
+        i = np.arange(steps)
+        readings = base + 0.01 * (i[:, None] % 10) + 0.001 * np.arange(sensors)
         poses = None
         if self.poses:
             # Robots staggered 10 cm apart in x and 5 cm in y, each driving 1 cm and turning
             # 0.1 rad per step.
             x, y = 0.1 * self.index, 0.05 * self.index
-            poses = [[x + 0.01 * i, y, 0.1 * i] for i in range(steps)]
-        return Trace(
+            poses = np.column_stack([x + 0.01 * i, np.full(steps, y), 0.1 * i])
+        return Trace.from_arrays(
             sensors=readings,
-            predictions=[[base] * sensors for _ in range(steps)],
-            actions=[[0.5, 0.5] for _ in range(steps)],
-            commands=[[0.5, 0.5] for _ in range(steps)],
-            safety=["" if i % 5 else "stop" for i in range(steps)],
+            predictions=np.full((steps, sensors), base),
+            actions=np.full((steps, 2), 0.5),
+            commands=np.full((steps, 2), 0.5),
+            safety=["" if k % 5 else "stop" for k in range(steps)],
             poses=poses,
         )
 

@@ -209,12 +209,17 @@ class ControlLoop:
         read_failures = consecutive_failures = 0
         drop_pending = False
         failure: str | None = None
-        trace_sensors: list[list[float]] = []
-        trace_predictions: list[list[float]] = []
-        trace_actions: list[list[float]] = []
-        trace_commands: list[list[float]] = []
+        # A recording fills preallocated rows (a recorded evaluation is at most
+        # MAX_RECORDED_STEPS long, so at most a few MB); ``recorded`` counts the rows filled.
+        width = network.layout.sensors
+        rows = steps if record else 0
+        trace_sensors = np.empty((rows, width))
+        trace_predictions = np.empty((rows, width))
+        trace_actions = np.empty((rows, 2))
+        trace_commands = np.empty((rows, 2))
+        trace_poses = np.empty((rows if has_pose else 0, 3))
         trace_safety: list[str] = []
-        trace_poses: list[list[float]] = []
+        recorded = 0
 
         deadlines = self.deadlines = Deadlines(clock, period)
         deadlines.start()
@@ -279,13 +284,14 @@ class ControlLoop:
                 if sink is not None:
                     sink(step, s, prediction, command, reason)
                 if record:
-                    trace_sensors.append(s.tolist())
-                    trace_predictions.append(prediction.tolist())
-                    trace_actions.append(action.tolist())
-                    trace_commands.append([float(command[0]), float(command[1])])
+                    trace_sensors[recorded] = s
+                    trace_predictions[recorded] = prediction
+                    trace_actions[recorded] = action
+                    trace_commands[recorded] = command
                     trace_safety.append(reason or "")
                     if has_pose:
-                        trace_poses.append([float(x) for x in body.pose])  # type: ignore[attr-defined]
+                        trace_poses[recorded] = body.pose  # type: ignore[attr-defined]
+                    recorded += 1
 
             # --- drive, unless the watchdog has taken over
             if watchdog is not None and watchdog.tripped:
@@ -313,13 +319,13 @@ class ControlLoop:
         )
         trace = None
         if record:
-            trace = Trace(
-                sensors=trace_sensors,
-                predictions=trace_predictions,
-                actions=trace_actions,
-                commands=trace_commands,
+            trace = Trace.from_arrays(
+                sensors=trace_sensors[:recorded],
+                predictions=trace_predictions[:recorded],
+                actions=trace_actions[:recorded],
+                commands=trace_commands[:recorded],
                 safety=trace_safety,
-                poses=trace_poses if has_pose else None,
+                poses=trace_poses[:recorded] if has_pose else None,
             )
         return LoopOutcome(
             fitness=float(score.fitness),

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import math
 from collections.abc import Awaitable
 
 import numpy as np
@@ -233,8 +232,10 @@ class EvaluationRunner:
         if outcome is not None:
             self.safety_state = outcome.safety_state
             failure = outcome.failure
-            if failure is None and not math.isfinite(outcome.fitness):
-                failure = f"{FAILED_INTERNAL}: non-finite fitness {outcome.fitness}"
+            if failure is None and not 0.0 <= outcome.fitness <= 1.0:
+                # The master refuses it (a protocol error that would cost the session): say why
+                # instead. A body reporting values outside [0, 1] leads here, as would a bug.
+                failure = f"{FAILED_INTERNAL}: fitness {outcome.fitness} outside [0, 1]"
         duration = self.clock.now() - started
         if failure is not None:
             log.warning("evaluation %d failed: %s", msg.evaluation_id, failure)

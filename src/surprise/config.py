@@ -91,8 +91,9 @@ def to_builtins(config: msgspec.Struct) -> dict[str, Any]:
 
 
 #: The longest recorded evaluation (post-evaluation): its trace must fit one wire frame. A step of
-#: a 12-sensor trace is about 290 bytes of msgpack (31 floats), so 20,000 steps (33 minutes at
-#: 10 Hz) are about 5.8 MB, inside the 8 MiB frame limit with room to spare.
+#: a 12-sensor trace is 31 packed float64 values (248 bytes) and a short safety word, so 20,000
+#: steps (33 minutes at 10 Hz) are about 5 MB, inside the 8 MiB frame limit with room to spare
+#: (even at the protocol's most sensors, ``surprise.wire.MAX_SENSORS``).
 MAX_RECORDED_STEPS = 20_000
 
 #: The longest control step an experiment may ask for, in seconds. Real robots run at 0.1 s and

@@ -41,6 +41,9 @@ __all__ = [
     "DEAD_AFTER_HEARTBEATS",
     "DEFAULT_PORT",
     "MAX_FRAME_SIZE",
+    "MAX_NAME_LENGTH",
+    "MAX_REASONS",
+    "MAX_SENSORS",
     "NONCE_SIZE",
     "PROTOCOL_VERSION",
     "REFUSED_BAD_SECRET",
@@ -50,6 +53,7 @@ __all__ = [
     "REFUSED_UNKNOWN_ROBOT",
     "REFUSED_VERSION_MISMATCH",
     "ROBOT_ID_PATTERN",
+    "TRACE_COLUMNS",
     "Abort",
     "Authenticate",
     "Bye",
@@ -87,6 +91,15 @@ DEAD_AFTER_HEARTBEATS: Final = 3
 ROBOT_ID_PATTERN: Final = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"
 _ROBOT_ID_RE: Final = re.compile(ROBOT_ID_PATTERN)
 
+#: The most sensors a robot may announce or a trace row may hold: the project knows 12
+#: (``surprise.sensors.ALL_SENSORS``); 16 leaves room for a few more while a trace of
+#: ``MAX_RECORDED_STEPS`` steps still fits one frame.
+MAX_SENSORS: Final = 16
+#: The longest sensor name or safety reason, in characters (the project's longest has 14).
+MAX_NAME_LENGTH: Final = 32
+#: The most distinct safety reasons an evaluation's statistics may count.
+MAX_REASONS: Final = 32
+
 #: Version of this protocol; sent in Hello. Bump it for any change an older peer cannot decode.
 PROTOCOL_VERSION: Final = 1
 
@@ -123,6 +136,7 @@ REFUSED_CODES: Final = frozenset(
 # Bounds checked while decoding (msgspec does not check them when a Struct is built in code).
 _NonNegative = Annotated[int, msgspec.Meta(ge=0)]
 _Positive = Annotated[int, msgspec.Meta(ge=1)]
+_Name = Annotated[str, msgspec.Meta(max_length=MAX_NAME_LENGTH)]
 _StepPeriod = Annotated[float, msgspec.Meta(gt=0.0, le=MAX_STEP_PERIOD)]
 _Nonce = Annotated[bytes, msgspec.Meta(min_length=NONCE_SIZE, max_length=NONCE_SIZE)]
 
@@ -270,59 +284,128 @@ class EvaluationStats(msgspec.Struct, frozen=True, kw_only=True):
 
     steps_run: _NonNegative
     overruns: _NonNegative
-    interventions: dict[str, int]
+    interventions: Annotated[dict[_Name, _NonNegative], msgspec.Meta(max_length=MAX_REASONS)]
     read_failures: _NonNegative = 0
 
 
-class Trace(msgspec.Struct, frozen=True, kw_only=True):
-    """A post-evaluation record, one entry per control step in every list.
+#: Columns of each of a :class:`Trace`'s arrays; None: the trace's ``width`` (its sensors).
+TRACE_COLUMNS: Final[dict[str, int | None]] = {
+    "sensors": None,
+    "predictions": None,
+    "actions": 2,
+    "commands": 2,
+    "poses": 3,
+}
+_TRACE_DTYPE: Final = np.dtype("<f8")
+# The most bytes one array of a trace can need; the decoder refuses a longer one before copying.
+_MAX_TRACE_ARRAY: Final = MAX_RECORDED_STEPS * MAX_SENSORS * _TRACE_DTYPE.itemsize
+_TraceArray = Annotated[bytes, msgspec.Meta(max_length=_MAX_TRACE_ARRAY)]
 
-    ``sensors`` the R sensor values, ``predictions`` the R values predicted at that step for the
-    next, ``actions`` the 2 intended wheel speeds, ``commands`` the 2 applied after safety,
-    ``safety`` the intervention reason ("" when none) and, in simulation, ``poses`` (x, y, theta).
+
+class Trace(msgspec.Struct, frozen=True, kw_only=True):
+    """A post-evaluation record of ``steps`` control steps as packed arrays, one row per step.
+
+    Each array is float64 little-endian bytes, row after row: ``sensors`` the ``width`` sensor
+    values, ``predictions`` the ``width`` values predicted at that step for the next, ``actions``
+    the 2 intended wheel speeds, ``commands`` the 2 applied after safety and, in simulation,
+    ``poses`` (x, y, theta). ``safety`` holds each step's intervention reason ("" when none).
+    Build one with :meth:`from_arrays`; read one with :meth:`array`.
+
+    Packed arrays are checked for shape and size as they are decoded: ``steps`` and ``width``
+    are bounded, an array longer than any trace can need is refused before it is copied, and
+    every array must hold exactly ``steps`` rows. (Rows as lists of floats would let a peer make
+    the receiver build millions of objects before the shape could be checked.)
     """
 
-    sensors: list[list[float]]
-    predictions: list[list[float]]
-    actions: list[list[float]]
-    commands: list[list[float]]
-    safety: list[str]
-    poses: list[list[float]] | None = None
+    steps: Annotated[int, msgspec.Meta(ge=0, le=MAX_RECORDED_STEPS)]
+    width: Annotated[int, msgspec.Meta(ge=1, le=MAX_SENSORS)]
+    sensors: _TraceArray
+    predictions: _TraceArray
+    actions: _TraceArray
+    commands: _TraceArray
+    safety: Annotated[list[_Name], msgspec.Meta(max_length=MAX_RECORDED_STEPS)]
+    poses: _TraceArray | None = None
 
     def __post_init__(self) -> None:
-        steps = len(self.sensors)
-        lengths = [len(self.predictions), len(self.actions), len(self.commands), len(self.safety)]
-        if self.poses is not None:
-            lengths.append(len(self.poses))
-        if any(n != steps for n in lengths):
-            raise ValueError("every list of a trace must hold one entry per step")
-        # The receiver stores a trace as arrays: every row of a list has the same width.
-        if not steps:
-            return
-        width = len(self.sensors[0])
-        for name, rows, expected in (
-            ("sensors", self.sensors, width),
-            ("predictions", self.predictions, width),
-            ("actions", self.actions, 2),
-            ("commands", self.commands, 2),
-            ("poses", self.poses or (), 3),
-        ):
-            if any(len(row) != expected for row in rows):
-                raise ValueError(f"every row of a trace's {name} must hold {expected} values")
+        size = _TRACE_DTYPE.itemsize
+        for name, columns in TRACE_COLUMNS.items():
+            data = getattr(self, name)
+            if data is None:
+                continue
+            columns = self.width if columns is None else columns
+            expected = self.steps * columns * size
+            if len(data) != expected:
+                raise ValueError(
+                    f"a trace's {name} must hold {self.steps} x {columns} float64 values "
+                    f"({expected} bytes), not {len(data)} bytes"
+                )
+        if len(self.safety) != self.steps:
+            raise ValueError(
+                f"a trace's safety must hold one entry per step ({self.steps}), "
+                f"not {len(self.safety)}"
+            )
+
+    @classmethod
+    def from_arrays(
+        cls,
+        *,
+        sensors: np.ndarray,
+        predictions: np.ndarray,
+        actions: np.ndarray,
+        commands: np.ndarray,
+        safety: list[str],
+        poses: np.ndarray | None = None,
+    ) -> Trace:
+        """Pack arrays shaped (steps, columns); raises ``ValueError`` if their shapes disagree."""
+        arrays = {
+            "sensors": sensors,
+            "predictions": predictions,
+            "actions": actions,
+            "commands": commands,
+            "poses": poses,
+        }
+        first = np.asarray(sensors)
+        if first.ndim != 2:
+            raise ValueError(
+                f"a trace's sensors must be shaped (steps, sensors), not {first.shape}"
+            )
+        steps, width = first.shape
+        packed: dict[str, bytes | None] = {}
+        for name, array in arrays.items():
+            if array is None:
+                packed[name] = None
+                continue
+            columns = TRACE_COLUMNS[name]
+            shape = (steps, width if columns is None else columns)
+            values = np.ascontiguousarray(array, dtype=_TRACE_DTYPE)
+            if values.shape != shape:
+                raise ValueError(f"a trace's {name} must be shaped {shape}, not {values.shape}")
+            packed[name] = values.tobytes()
+        return cls(steps=steps, width=width, safety=list(safety), **packed)  # type: ignore[arg-type]
+
+    def array(self, name: str) -> np.ndarray:
+        """The array ``name`` (one of :data:`TRACE_COLUMNS`) shaped (steps, columns), as a
+        read-only float64 view of the bytes; raises ``KeyError`` for an unknown name and
+        ``ValueError`` for ``poses`` when the trace has none."""
+        columns = TRACE_COLUMNS[name]
+        data = getattr(self, name)
+        if data is None:
+            raise ValueError(f"this trace has no {name}")
+        columns = self.width if columns is None else columns
+        return np.frombuffer(data, dtype=_TRACE_DTYPE).reshape(self.steps, columns)
 
 
 class Result(_Message, tag="result"):
-    """Robot -> master: the fitness of evaluation ``evaluation_id``, with its trace if recorded."""
+    """Robot -> master: the fitness of evaluation ``evaluation_id``, with its trace if recorded.
+
+    A surprise fitness lies in [0, 1] (paper Eq. 1); decoding refuses anything else, NaN
+    included: one robot's garbage must not steer (or freeze) the evolution.
+    """
 
     evaluation_id: _NonNegative
-    fitness: float
+    fitness: Annotated[float, msgspec.Meta(ge=0.0, le=1.0)]
     stats: EvaluationStats
     trace: Trace | None = None
-
-    def __post_init__(self) -> None:
-        # A NaN fitness would silently poison the (1+1) comparisons on the master.
-        if not math.isfinite(self.fitness):
-            raise ValueError("fitness must be finite")
 
 
 class Failed(_Message, tag="failed"):

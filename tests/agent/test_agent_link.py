@@ -187,7 +187,7 @@ async def test_evaluate_runs_and_returns_the_result(master):
         result = await receive(stream)
         assert isinstance(result, Result) and result.evaluation_id == 7
         assert result.fitness == pytest.approx(0.5) and result.stats.steps_run == 12
-        assert result.trace is not None and len(result.trace.sensors) == 12
+        assert result.trace is not None and result.trace.steps == 12
         assert body.motors == (0.0, 0.0)
 
 

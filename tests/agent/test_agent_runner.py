@@ -79,8 +79,8 @@ async def test_three_steps_by_hand_with_a_learned_and_a_predefined_prediction():
     assert outcome.fitness == pytest.approx((0.925 + 0.8) / 2, abs=1e-12)
     trace = outcome.trace
     assert trace is not None
-    np.testing.assert_allclose(trace.sensors, [readings[0], readings[1], readings[2]])
-    np.testing.assert_allclose(trace.predictions, [[0.5, 0.75]] * 3)
+    np.testing.assert_allclose(trace.array("sensors"), [readings[0], readings[1], readings[2]])
+    np.testing.assert_allclose(trace.array("predictions"), [[0.5, 0.75]] * 3)
 
 
 async def test_a_fresh_network_and_safety_state_for_every_evaluation():
@@ -186,14 +186,15 @@ async def test_record_mode_fills_the_trace_with_poses_when_the_body_has_them():
     outcome = await make_runner(body, clock).run(evaluate(network, g, 4, record=True))
     assert isinstance(outcome, Result) and outcome.trace is not None
     trace = outcome.trace
-    assert len(trace.sensors) == len(trace.predictions) == len(trace.actions) == 4
-    assert trace.sensors[0] == [0.0] * len(THYMIO)
-    np.testing.assert_allclose(trace.predictions, 0.5)  # sigmoid(0)
-    np.testing.assert_allclose(trace.actions, math.tanh(1.0))
-    assert trace.commands == trace.actions  # nothing in the way: safety let it pass
+    assert trace.steps == 4 and trace.width == len(THYMIO)
+    assert trace.array("sensors")[0].tolist() == [0.0] * len(THYMIO)
+    np.testing.assert_allclose(trace.array("predictions"), 0.5)  # sigmoid(0)
+    np.testing.assert_allclose(trace.array("actions"), math.tanh(1.0))
+    # Nothing in the way: safety let it pass.
+    assert np.array_equal(trace.array("commands"), trace.array("actions"))
     assert trace.safety == [""] * 4
     # The pose is taken right after each reading, before that step's drive.
-    assert trace.poses == [[float(k), 0.0, 0.0] for k in range(4)]
+    assert trace.array("poses").tolist() == [[float(k), 0.0, 0.0] for k in range(4)]
 
 
 async def test_trace_without_pose_and_no_trace_without_record():
@@ -225,7 +226,7 @@ async def test_safety_interventions_are_counted_by_reason_and_applied():
     assert body.drives == [(ahead, ahead), (0, 0), (0, 0), (0, 0), (ahead, ahead)]
     assert outcome.trace is not None
     assert outcome.trace.safety == ["", "front", "front", "ground", ""]
-    np.testing.assert_allclose(outcome.trace.actions, ahead)  # intended, not applied
+    np.testing.assert_allclose(outcome.trace.array("actions"), ahead)  # intended, not applied
 
 
 async def test_a_stale_frame_is_stopped_by_safety():
@@ -354,7 +355,8 @@ async def test_a_single_lost_reading_stops_one_step_and_drops_its_prediction():
     # Scored: steps 3 and 4 against 0.4 -> 0.9. Step 2 has no prediction left to score (scoring
     # the one made for step 1 against 0.0 would give 0.5 and a mean of 0.77).
     assert outcome.fitness == pytest.approx(0.9)
-    assert len(outcome.trace.sensors) == 4  # the lost step is not in the trace
+    assert outcome.trace.steps == 4  # the lost step is not in the trace
+    assert outcome.trace.array("sensors").shape == (4, len(THYMIO))
 
 
 async def test_a_tripped_watchdog_ends_the_evaluation_and_the_next_one_rearms_it():

@@ -241,21 +241,33 @@ async def test_the_swarm_is_fixed_by_the_allow_list_order_independent(tmp_path):
     assert_matches_reference(tmp_path / "run", exp, robot_ids(3))
 
 
-async def test_fitnesses_whose_mean_overflows_do_not_stop_the_run(tmp_path):
-    # Each robot's fitness is finite (the codec checks that), but their mean may not be: such a
-    # round must not count, and must not crash the master either.
+@pytest.mark.parametrize("hostile", [1e300, -0.5, 1.0 + 1e-9])
+async def test_a_fitness_outside_zero_to_one_closes_that_session_and_the_round_repeats(
+    tmp_path, hostile
+):
+    # One result of 1e300 once made the best fitness 2.5e299 and froze the evolution for the rest
+    # of the run. A fitness outside [0, 1] is a protocol error: that robot's session closes, the
+    # round does not count, and it is repeated with the same genome once the robot is back.
     exp = experiment(evaluations=3)
-    huge = iter([1.7e308] * 3)
+    pending = [hostile]
 
     def fitness(genome, index):
-        return next(huge, None) or deterministic_fitness(genome, index)
+        if index == 1 and pending:
+            return pending.pop()
+        return deterministic_fitness(genome, index)
 
     async with Master(master_config(exp), tmp_path / "run", secret=SECRET) as master:
         robots = make_robots(master.port, 3, fitness=fitness)
-        summary = await run_with(master, robots)
+        run = asyncio.create_task(master.run())
+        await connect(robots)
+        await asyncio.wait_for(robots[1].closed.wait(), 5)
+        await robots[1].connect()
+        summary = await asyncio.wait_for(run, 15)
         await close(robots)
     assert summary.failed_attempts == 1
     assert_matches_reference(tmp_path / "run", exp, robot_ids(3))
+    log = (tmp_path / "run" / "master.log").read_text()
+    assert "malformed input from robot r1" in log and "fitness" in log
 
 
 async def test_the_round_deadline_follows_the_experiments_step_period(tmp_path):

@@ -17,6 +17,8 @@ from surprise.network import GenomeLayout, NetworkSpec
 from surprise.sensors import ALL_SENSORS
 from surprise.wire import (
     MAX_FRAME_SIZE,
+    MAX_NAME_LENGTH,
+    MAX_SENSORS,
     NONCE_SIZE,
     PROTOCOL_VERSION,
     REFUSED_CODES,
@@ -75,17 +77,17 @@ def network_specs(draw: st.DrawFn) -> NetworkSpec:
     )
 
 
-def rows(width: int, steps: int) -> st.SearchStrategy[list[list[float]]]:
+def rows(width: int, steps: int) -> st.SearchStrategy[np.ndarray]:
     return st.lists(
         st.lists(finite, min_size=width, max_size=width), min_size=steps, max_size=steps
-    )
+    ).map(lambda r: np.array(r, dtype=np.float64).reshape(steps, width))
 
 
 @st.composite
 def traces(draw: st.DrawFn) -> Trace:
     steps = draw(st.integers(0, 8))
-    width = draw(st.integers(1, 12))
-    return Trace(
+    width = draw(st.integers(1, MAX_SENSORS))
+    return Trace.from_arrays(
         sensors=draw(rows(width, steps)),
         predictions=draw(rows(width, steps)),
         actions=draw(rows(2, steps)),
@@ -99,7 +101,7 @@ stats = st.builds(
     EvaluationStats,
     steps_run=u63,
     overruns=u63,
-    interventions=st.dictionaries(small_text, i64, max_size=4),
+    interventions=st.dictionaries(small_text, u63, max_size=4),
     read_failures=u63,
 )
 
@@ -140,7 +142,7 @@ messages: st.SearchStrategy[Message] = st.one_of(
     st.builds(
         Result,
         evaluation_id=u63,
-        fitness=finite,
+        fitness=unit,
         stats=stats,
         trace=st.none() | traces(),
     ),
@@ -219,9 +221,40 @@ def test_evaluate_with_malformed_genome_is_rejected_when_decoded() -> None:
             decode_payload(msgspec.msgpack.encode({**good, "genome": genome}))
 
 
-def test_trace_lists_must_have_one_entry_per_step() -> None:
+def test_trace_arrays_must_have_one_row_per_step() -> None:
+    with pytest.raises(ValueError, match="predictions must be shaped"):
+        Trace.from_arrays(
+            sensors=np.zeros((1, 1)),
+            predictions=np.zeros((0, 1)),
+            actions=np.zeros((1, 2)),
+            commands=np.zeros((1, 2)),
+            safety=[""],
+        )
     with pytest.raises(ValueError, match="one entry per step"):
-        Trace(sensors=[[0.5]], predictions=[], actions=[[0, 0]], commands=[[0, 0]], safety=[""])
+        Trace.from_arrays(
+            sensors=np.zeros((1, 1)),
+            predictions=np.zeros((1, 1)),
+            actions=np.zeros((1, 2)),
+            commands=np.zeros((1, 2)),
+            safety=[],
+        )
+
+
+def test_a_trace_reads_back_as_arrays_bit_for_bit() -> None:
+    sensors = np.array([[0.1, -0.0], [5e-324, 1.0]])
+    trace = sample_trace(2, 2)
+    trace = Trace.from_arrays(
+        sensors=sensors,
+        predictions=trace.array("predictions"),
+        actions=trace.array("actions"),
+        commands=trace.array("commands"),
+        safety=["", "front"],
+    )
+    back = decode_frame(encode(Result(evaluation_id=1, fitness=0.5, stats=STATS, trace=trace)))
+    assert back.trace.array("sensors").tobytes() == sensors.tobytes()
+    assert back.trace.array("sensors").shape == (2, 2) and back.trace.poses is None
+    with pytest.raises(ValueError, match="no poses"):
+        back.trace.array("poses")
 
 
 def test_nested_data_too_deep_is_a_protocol_error() -> None:
@@ -465,40 +498,112 @@ def test_nonces_are_fresh() -> None:
 
 def sample_trace(steps: int, width: int) -> Trace:
     row = [0.123456789 * i for i in range(width)]
-    return Trace(
-        sensors=[row] * steps,
-        predictions=[row] * steps,
-        actions=[[0.5, -0.5]] * steps,
-        commands=[[0.5, -0.5]] * steps,
+    return Trace.from_arrays(
+        sensors=np.array([row] * steps).reshape(steps, width),
+        predictions=np.array([row] * steps).reshape(steps, width),
+        actions=np.array([[0.5, -0.5]] * steps).reshape(steps, 2),
+        commands=np.array([[0.5, -0.5]] * steps).reshape(steps, 2),
         safety=[""] * steps,
-        poses=[[1.0, 2.0, 3.0]] * steps,
+        poses=np.array([[1.0, 2.0, 3.0]] * steps).reshape(steps, 3),
     )
+
+
+STATS = EvaluationStats(steps_run=2, overruns=0, interventions={})
+
+
+def result_with_trace(**changes: object) -> dict:
+    """A Result with a 2-step, 2-sensor trace as plain data, with ``changes`` to the trace."""
+    good = msgspec.to_builtins(
+        Result(evaluation_id=1, fitness=0.5, stats=STATS, trace=sample_trace(2, 2)),
+        builtin_types=(bytes,),
+    )
+    good["trace"].update(changes)
+    return good
 
 
 @pytest.mark.parametrize(
-    "field, value",
+    "field, value, words",
     [
-        ("sensors", [[0.1, 0.2], [0.3]]),  # ragged
-        ("predictions", [[0.1], [0.2]]),  # not one prediction per sensor
-        ("actions", [[0.5], [0.5]]),  # not two wheel speeds
-        ("commands", [[0.5, 0.5, 0.5], [0.5, 0.5, 0.5]]),
-        ("poses", [[1.0, 2.0], [1.0, 2.0]]),  # not (x, y, theta)
+        ("sensors", bytes(3 * 8), "sensors must hold 2 x 2 float64 values"),  # a row short
+        ("predictions", bytes(2 * 8), "predictions must hold 2 x 2"),
+        ("actions", bytes(2 * 3 * 8), "actions must hold 2 x 2"),  # not two wheel speeds
+        ("poses", bytes(2 * 2 * 8), "poses must hold 2 x 3"),  # not (x, y, theta)
+        ("safety", ["", "", ""], "one entry per step"),
+        ("sensors", [[0.1, 0.2], [0.3, 0.4]], "Expected `bytes`"),  # rows are not accepted
+        ("steps", MAX_RECORDED_STEPS + 1, f"<= {MAX_RECORDED_STEPS}"),
+        ("width", MAX_SENSORS + 1, f"<= {MAX_SENSORS}"),
+        ("width", 0, ">= 1"),
+        ("safety", ["x" * (MAX_NAME_LENGTH + 1), ""], f"<= {MAX_NAME_LENGTH}"),
     ],
 )
-def test_a_trace_that_is_not_rectangular_is_a_protocol_error(field, value) -> None:
-    # The master stores a trace as arrays: a ragged one must be refused where it enters, not
+def test_a_trace_of_the_wrong_shape_or_size_is_a_protocol_error(field, value, words) -> None:
+    # The master stores a trace as arrays: a malformed one must be refused where it enters, not
     # crash the run when the post-evaluation is written.
-    good = msgspec.to_builtins(
-        Result(
-            evaluation_id=1,
-            fitness=0.5,
-            stats=EvaluationStats(steps_run=2, overruns=0, interventions={}),
-            trace=sample_trace(2, 2),
-        )
+    with pytest.raises(ProtocolError, match="malformed message") as info:
+        decode_payload(msgspec.msgpack.encode(result_with_trace(**{field: value})))
+    assert words in str(info.value)
+
+
+@pytest.mark.parametrize(
+    "field, header",
+    [
+        ("sensors", b"\xdd"),  # 8 million empty rows where packed bytes belong
+        ("safety", b"\xdd"),  # 8 million empty reasons for at most 20,000 steps
+        ("sensors", b"\xc6"),  # one 8 MiB array where no trace needs more than 2.5 MB
+    ],
+)
+def test_a_hostile_frame_is_refused_before_it_is_built(field, header) -> None:
+    # One 8 MiB frame used to cost the master 600 MB and seconds of decoding: the shape and
+    # size are checked as the frame is decoded, so nothing of its size is ever built.
+    import tracemalloc
+
+    head = msgspec.msgpack.encode(
+        {"type": "result", "evaluation_id": 1, "fitness": 0.5, "stats": msgspec.to_builtins(STATS)}
     )
-    good["trace"][field] = value
-    with pytest.raises(ProtocolError, match="malformed message"):
-        decode_payload(msgspec.msgpack.encode(good))
+    prefix = bytes([0x85]) + head[1:] + msgspec.msgpack.encode("trace")
+    prefix += bytes([0x81]) + msgspec.msgpack.encode(field)
+    count = MAX_FRAME_SIZE - len(prefix) - 5
+    filler = b"\x90" if field == "sensors" else b"\xa0"
+    body = bytes(count) if header == b"\xc6" else filler * count
+    payload = prefix + header + struct.pack(">I", count) + body
+    assert len(payload) == MAX_FRAME_SIZE
+    frame = struct.pack(">I", len(payload)) + payload
+    tracemalloc.start()
+    try:
+        with pytest.raises(ProtocolError, match="malformed message"):
+            FrameDecoder().feed(frame)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    # The frame is buffered (a copy or two of its 8 MiB); decoding adds next to nothing, where
+    # a list of rows cost 530 MB of Python objects.
+    assert peak < 3 * MAX_FRAME_SIZE
+
+
+def test_the_largest_trace_fits_one_frame() -> None:
+    steps, width = MAX_RECORDED_STEPS, MAX_SENSORS
+    trace = Trace.from_arrays(
+        sensors=np.zeros((steps, width)),
+        predictions=np.zeros((steps, width)),
+        actions=np.zeros((steps, 2)),
+        commands=np.zeros((steps, 2)),
+        safety=["x" * MAX_NAME_LENGTH] * steps,
+        poses=np.zeros((steps, 3)),
+    )
+    result = Result(evaluation_id=2**63 - 1, fitness=1.0, stats=STATS, trace=trace)
+    assert decode_frame(encode(result)) == result
+
+
+@pytest.mark.parametrize("fitness", [1e300, -0.5, 1.0000001, -1e-300, float("inf")])
+def test_a_fitness_outside_zero_to_one_is_a_protocol_error(fitness: float) -> None:
+    # Surprise fitness lies in [0, 1]: one result of 1e300 once froze the evolution.
+    payload = msgspec.to_builtins(Result(evaluation_id=1, fitness=0.5, stats=STATS))
+    payload["fitness"] = fitness
+    with pytest.raises(ProtocolError, match="fitness"):
+        decode_payload(msgspec.msgpack.encode(payload))
+    for edge in (0.0, 1.0):
+        payload["fitness"] = edge
+        assert decode_payload(msgspec.msgpack.encode(payload)).fitness == edge
 
 
 def test_a_recorded_evaluation_too_long_for_one_frame_is_refused():

@@ -6,6 +6,7 @@ import asyncio
 import struct
 from collections.abc import Awaitable, Callable
 
+import numpy as np
 import pytest
 
 from surprise.errors import ConnectionClosedError, FrameTooLargeError, ProtocolError, SurpriseError
@@ -57,14 +58,14 @@ class Loopback:
 
 
 def sample_trace(steps: int, width: int) -> Trace:
-    row = [0.123456789 * i for i in range(width)]
-    return Trace(
-        sensors=[row] * steps,
-        predictions=[row] * steps,
-        actions=[[0.5, -0.5]] * steps,
-        commands=[[0.5, -0.5]] * steps,
+    row = np.arange(width) * 0.123456789
+    return Trace.from_arrays(
+        sensors=np.tile(row, (steps, 1)),
+        predictions=np.tile(row, (steps, 1)),
+        actions=np.tile([0.5, -0.5], (steps, 1)),
+        commands=np.tile([0.5, -0.5], (steps, 1)),
         safety=[""] * steps,
-        poses=[[1.0, 2.0, 3.0]] * steps,
+        poses=np.tile([1.0, 2.0, 3.0], (steps, 1)),
     )
 
 
@@ -80,9 +81,9 @@ async def test_stream_round_trips_messages_over_tcp() -> None:
 
     big = Result(
         evaluation_id=9,
-        fitness=-0.25,
-        stats=EvaluationStats(steps_run=1000, overruns=2, interventions={"cliff": 3}),
-        trace=sample_trace(1000, 12),
+        fitness=0.25,
+        stats=EvaluationStats(steps_run=2000, overruns=2, interventions={"cliff": 3}),
+        trace=sample_trace(2000, 12),
     )
     assert len(encode(big)) > 4 * 64 * 1024  # spans many reads
     sent: list[Message] = [
