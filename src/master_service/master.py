@@ -59,7 +59,8 @@ from surprise.errors import ConfigError
 from surprise.evolution import OnePlusOne
 from surprise.fitness import swarm_fitness
 from surprise.network import GenomeLayout, spec_from_config
-from surprise.wire import REFUSED_UNKNOWN_ROBOT, Evaluate, Failed, Result, encode
+from surprise.session import TAG_SIZE
+from surprise.wire import REFUSED_UNKNOWN_ROBOT, Evaluate, Failed, Result, encode_payload
 from telemetry.config import require_client_library
 from telemetry.payloads import RunStatus, master_status_suffix, now, run_status_suffix
 from telemetry.publisher import TelemetryPublisher
@@ -158,7 +159,7 @@ class Master:
             step_period=self.experiment.step_period,
             record=False,  # one byte either way; a recorded one may not have this many steps
         )
-        if len(encode(probe, max_frame_size=2**62)) - 4 > config.max_frame_size:
+        if len(encode_payload(probe)) + TAG_SIZE > config.max_frame_size:
             raise ConfigError(
                 f"{config.max_frame_size} bytes cannot hold the genome of "
                 f"{self.genome_size} values sent with every evaluation",

@@ -23,7 +23,15 @@ import numpy as np
 
 from master_service.server import RobotServer, Session
 from surprise.network import NetworkSpec
-from surprise.wire import Abort, Evaluate, Failed, Result, encode, genome_to_bytes
+from surprise.wire import (
+    Abort,
+    Evaluate,
+    Failed,
+    Result,
+    encode_payload,
+    genome_to_bytes,
+    printable,
+)
 
 __all__ = ["Attempt", "RoundRunner"]
 
@@ -124,7 +132,7 @@ class RoundRunner:
             )
             return
         if isinstance(msg, Failed):
-            attempt.fail(f"robot {robot_id} could not evaluate: {msg.reason}")
+            attempt.fail(f"robot {robot_id} could not evaluate: {printable(msg.reason)}")
             return
         if attempt.record and msg.trace is None:
             self.log.warning("robot %s sent its post-evaluation without a trace", robot_id)
@@ -163,11 +171,11 @@ class RoundRunner:
             step_period=step_period,
             record=record,
         )
-        # One encoding for the whole swarm: every robot gets the same bytes.
-        frame = encode(message, max_frame_size=self.server.max_frame_size)
+        # One encoding for the whole swarm: every robot gets the same bytes, tagged per session.
+        payload = encode_payload(message)
         self.current = attempt
         try:
-            missed = self.server.send(robots, frame)
+            missed = self.server.send(robots, payload)
             attempt.started = time.perf_counter()
             if self._previous_completed is not None:
                 self.overheads.append(attempt.started - self._previous_completed)
@@ -188,8 +196,6 @@ class RoundRunner:
             self._previous_completed = attempt.completed
         else:
             abort = Abort(evaluation_id=evaluation_id, reason=attempt.failure or "cancelled")
-            self.server.send(
-                [r for r in robots if r in self.server.sessions],
-                encode(abort, max_frame_size=self.server.max_frame_size),
-            )
+            live = [r for r in robots if r in self.server.sessions]
+            self.server.send(live, encode_payload(abort))
         return attempt

@@ -1,13 +1,15 @@
 """The robots' TCP server: handshake, authenticated sessions, replacement and keep-alive.
 
 The conversation follows ``docs/protocol.md``. A connection becomes a :class:`Session` once the
-robot has said Hello with our protocol version, answered the challenge with the shared secret, and
-been admitted (allow-list, swarm membership, sensors). Anything else gets a ``Refused`` with a code
-and a reason the robot logs, and the connection is closed.
+robot has said Hello with our protocol version and its nonce, checked our proof of the shared
+secret, proved the secret itself, and been admitted (allow-list, swarm membership, sensors).
+Anything else gets a ``Refused`` with a code and a reason the robot logs, and the connection is
+closed. From the Welcome on, every frame in both directions is tagged with the session's keys; a
+frame whose tag does not verify (forged, replayed, reflected) closes the session.
 
 The server knows nothing about evolution: it reports joins, departures and the robots' Result and
-Failed messages to callbacks, and offers :meth:`RobotServer.send` for already encoded frames, so a
-genome sent to a hundred robots is encoded once.
+Failed messages to callbacks, and offers :meth:`RobotServer.send` for already encoded messages, so
+a genome sent to a hundred robots is encoded once and only tagged per session.
 """
 
 from __future__ import annotations
@@ -19,9 +21,12 @@ import ssl
 from collections.abc import Callable, Iterable, Sequence
 from typing import Final
 
-from surprise.errors import ConnectionClosedError, ProtocolError
+from surprise.errors import AuthenticationError, ConnectionClosedError, ProtocolError
+from surprise.session import FrameAuth, master_proof, new_nonce, proof_matches, robot_proof
 from surprise.wire import (
     DEAD_AFTER_HEARTBEATS,
+    HANDSHAKE_MAX_FRAME_SIZE,
+    MAX_REASON_LENGTH,
     PROTOCOL_VERSION,
     REFUSED_BAD_SECRET,
     REFUSED_MISSING_SENSORS,
@@ -39,10 +44,8 @@ from surprise.wire import (
     Refused,
     Result,
     Welcome,
-    encode,
-    is_valid_robot_id,
-    new_nonce,
-    verify_mac,
+    encode_payload,
+    printable,
 )
 from transport.stream import MessageStream
 
@@ -54,10 +57,6 @@ MAX_PENDING_OUTPUT: Final = 4 * 1024 * 1024
 #: How long a closing connection may take to flush its last message (a Refused, a Bye) before
 #: it is aborted; the peer is not worth more of our time.
 CLOSE_TIMEOUT: Final = 2.0
-#: Bytes one frame may have before the peer authenticated: far above any Hello or Authenticate,
-#: far below the limit for Results, so that unauthenticated peers cannot make the master buffer
-#: megabytes each until their handshake times out.
-HANDSHAKE_MAX_FRAME_SIZE: Final = 64 * 1024
 #: The listen backlog: a thousand robots (the benchmark) may connect at the same instant; the
 #: default of 100 would make some retry their SYN a second later.
 LISTEN_BACKLOG: Final = 1024
@@ -168,7 +167,7 @@ class RobotServer:
                 await self._keepalive
         if self._server is not None:
             self._server.close()
-        bye = encode(Bye(reason=reason))
+        bye = encode_payload(Bye(reason=reason))
         for session in list(self.sessions.values()):
             self._write(session, bye)
             self.drop(session, reason, graceful=True)
@@ -184,25 +183,26 @@ class RobotServer:
 
     # -- sending -----------------------------------------------------------------------------
 
-    def send(self, robot_ids: Iterable[str], frame: bytes) -> list[str]:
-        """Write an encoded frame to each robot's live session; return the ids it did not reach.
+    def send(self, robot_ids: Iterable[str], payload: bytes) -> list[str]:
+        """Write one encoded message (:func:`~surprise.wire.encode_payload`) to each robot's live
+        session, tagged for that session; return the ids it did not reach.
 
         Never waits: a peer that lets output pile up past :data:`MAX_PENDING_OUTPUT` is dropped.
         """
         missed = []
         for robot_id in robot_ids:
             session = self.sessions.get(robot_id)
-            if session is None or not self._write(session, frame):
+            if session is None or not self._write(session, payload):
                 missed.append(robot_id)
         return missed
 
-    def _write(self, session: Session, frame: bytes) -> bool:
+    def _write(self, session: Session, payload: bytes) -> bool:
         if session.closed:
             return False
         transport = session.stream.writer.transport
         if transport.is_closing():
             return False
-        transport.write(frame)
+        session.stream.write(payload)
         if transport.get_write_buffer_size() > MAX_PENDING_OUTPUT:
             self.drop(session, "the robot does not read what the master sends")
             return False
@@ -264,7 +264,9 @@ class RobotServer:
         robot_id = "?"
 
         async def refuse(code: str, reason: str) -> None:
+            reason = reason[:MAX_REASON_LENGTH]
             self.log.warning("refused robot %s (%s): %s: %s", robot_id, peer, code, reason)
+            # Tagged once the robot has proved the secret (stream.auth is on), plain before.
             refused = Refused(code=code, reason=reason)
             with contextlib.suppress(Exception):
                 async with asyncio.timeout(CLOSE_TIMEOUT):
@@ -275,7 +277,8 @@ class RobotServer:
             if not isinstance(hello, Hello):
                 await refuse(REFUSED_PROTOCOL, f"expected hello, got {type(hello).__name__}")
                 return None
-            robot_id = hello.robot_id[:80]
+            # Decoding checked it against ROBOT_ID_PATTERN: plain and short.
+            robot_id = hello.robot_id
             if hello.protocol_version != PROTOCOL_VERSION:
                 await refuse(
                     REFUSED_VERSION_MISMATCH,
@@ -283,22 +286,23 @@ class RobotServer:
                     f"the robot {hello.protocol_version}",
                 )
                 return None
-            if not is_valid_robot_id(hello.robot_id):
-                await refuse(
-                    REFUSED_PROTOCOL,
-                    "a robot id is 1-64 letters, digits, '.', '_' or '-', starting with a letter "
-                    "or digit",
-                )
+            if hello.nonce is None:
+                await refuse(REFUSED_PROTOCOL, "the hello carries no nonce")
                 return None
-            nonce = new_nonce()
-            await stream.send(Challenge(nonce=nonce))
+            robot_nonce, master_nonce = hello.nonce, new_nonce()
+            proof = master_proof(self._secret, robot_nonce, master_nonce, robot_id)
+            await stream.send(Challenge(nonce=master_nonce, proof=proof))
             auth = await self._receive(stream)
             if not isinstance(auth, Authenticate):
                 await refuse(REFUSED_PROTOCOL, f"expected auth, got {type(auth).__name__}")
                 return None
-            if not verify_mac(self._secret, nonce, hello.robot_id, auth.mac):
-                await refuse(REFUSED_BAD_SECRET, "the answer to the challenge does not match")
+            expected = robot_proof(self._secret, robot_nonce, master_nonce, robot_id)
+            if not proof_matches(expected, auth.proof):
+                await refuse(REFUSED_BAD_SECRET, "the robot's proof of the secret does not match")
                 return None
+            stream.authenticate(
+                FrameAuth.for_master(self._secret, robot_nonce, master_nonce, robot_id)
+            )
             refusal = self._admit(hello.robot_id)
             if refusal is not None:
                 await refuse(*refusal)
@@ -333,9 +337,12 @@ class RobotServer:
             self.drop(stale, f"replaced by a new connection from {peer}")
         self.sessions[hello.robot_id] = session
         welcome = Welcome(run_id=self.run_id, heartbeat_interval=self.heartbeat_interval)
-        self._write(session, encode(welcome, max_frame_size=self.max_frame_size))
+        self._write(session, encode_payload(welcome))
         self.log.info(
-            "robot %s joined from %s (software %s)", hello.robot_id, peer, hello.software_version
+            "robot %s joined from %s (software %s)",
+            hello.robot_id,
+            peer,
+            printable(hello.software_version),
         )
         self._on_join(session)
         return session
@@ -349,6 +356,11 @@ class RobotServer:
                 msg = await stream.receive()
             except ConnectionClosedError as exc:
                 return f"connection closed by the robot ({exc})"
+            except AuthenticationError as exc:
+                # Not the robot's own doing, unless it is broken: someone on the path forged,
+                # replayed or reflected a frame. Whatever else that connection carries is suspect.
+                self.log.error("robot %s: %s; the session is closed", session.robot_id, exc)
+                return self._close_with_error(session, "authentication", str(exc))
             except ProtocolError as exc:
                 self.log.error("malformed input from robot %s: %s", session.robot_id, exc)
                 return self._close_with_error(session, "malformed", f"malformed input: {exc}")
@@ -360,23 +372,22 @@ class RobotServer:
             if isinstance(msg, Result | Failed):
                 self._on_message(session, msg)
             elif isinstance(msg, Ping):
-                self._write(session, encode(Pong(seq=msg.seq)))
+                self._write(session, encode_payload(Pong(seq=msg.seq)))
             elif isinstance(msg, Pong):
                 pass
             elif isinstance(msg, Bye):
-                return f"the robot said bye: {msg.reason}"
+                return f"the robot said bye: {printable(msg.reason)}"
             elif isinstance(msg, Error):
-                self.log.error(
-                    "robot %s reported an error: %s: %s", session.robot_id, msg.code, msg.message
-                )
-                return f"the robot reported an error: {msg.code}"
+                code, text = printable(msg.code), printable(msg.message)
+                self.log.error("robot %s reported an error: %s: %s", session.robot_id, code, text)
+                return f"the robot reported an error: {code}"
             else:
                 text = f"unexpected {type(msg).__name__} after the handshake"
                 return self._close_with_error(session, "protocol", text)
 
     def _close_with_error(self, session: Session, code: str, text: str) -> str:
         # Graceful: an abort (RST) could destroy the Error before the robot has read it.
-        self._write(session, encode(Error(code=code, message=text)))
+        self._write(session, encode_payload(Error(code=code, message=text)))
         self.drop(session, text, graceful=True)
         return text
 
@@ -388,7 +399,7 @@ class RobotServer:
         while True:
             await asyncio.sleep(self.heartbeat_interval)
             seq += 1
-            ping = encode(Ping(seq=seq))
+            ping = encode_payload(Ping(seq=seq))
             now = loop.time()
             for session in list(self.sessions.values()):
                 received = session.stream.bytes_received

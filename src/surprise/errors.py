@@ -42,6 +42,11 @@ class ConnectionClosedError(SurpriseError, ConnectionError):
         super().__init__(message)
 
 
+class AuthenticationError(ProtocolError):
+    """The peer did not prove it knows the shared secret, or a frame's tag does not verify (it
+    was forged, replayed, reordered or reflected); the connection must be closed."""
+
+
 class FrameTooLargeError(ProtocolError):
     """A frame announces a length above the limit; ``size`` and ``limit`` are in bytes."""
 

@@ -2,31 +2,32 @@
 
 One codec on both sides: every message is a msgspec Struct in one tagged union (the tag sits in the
 field ``"type"``), encoded as msgpack and sent as a frame: a 4-byte big-endian unsigned length
-followed by that many payload bytes. Encoding and decoding are pure; :class:`FrameDecoder` is
-incremental so any transport can feed it whatever bytes arrive (the asyncio transport of both the
-master and the agent is :class:`transport.stream.MessageStream`). The protocol's facts that both
-sides must agree on (default port, keep-alive, robot ids) are defined here too.
+followed by that many payload bytes. After the handshake every payload ends with a 16-byte tag
+(:mod:`surprise.session`) that the receiver checks before it decodes anything. Encoding and
+decoding are pure; :class:`FrameDecoder` is incremental so any transport can feed it whatever
+bytes arrive (the asyncio transport of both the master and the agent is
+:class:`transport.stream.MessageStream`). The protocol's facts that both sides must agree on
+(default port, limits, keep-alive, robot ids) are defined here too.
 
-A session::
+A session (``docs/protocol.md``)::
 
-    robot  -> Hello(robot_id, software_version, protocol_version, sensors)
-    master -> Challenge(nonce)                   or Refused(code, reason), then close
-    robot  -> Authenticate(mac)
+    robot  -> Hello(robot_id, software_version, protocol_version, sensors, nonce)
+    master -> Challenge(nonce, proof)             or Refused(code, reason), then close
+    robot  -> Authenticate(proof)                 (only if the master's proof is right)
     master -> Welcome(run_id, heartbeat_interval) or Refused(code, reason), then close
+              -- from Welcome on, every frame in both directions carries a tag --
     master -> Evaluate(...)  robot -> Result(...) | Failed(...);   master -> Abort(...) at any time
     either -> Ping / Pong / Error / Bye
 
-Decoding ignores fields it does not know, so a newer peer may add optional fields without breaking
-an older one; incompatible changes bump :data:`PROTOCOL_VERSION`, which the master checks in Hello.
+Everything that can arrive before authentication is bounded in its type, so decoding refuses it
+(and a small frame limit, :data:`HANDSHAKE_MAX_FRAME_SIZE`, bounds it first). Decoding ignores
+fields it does not know, so a newer peer may add optional fields without breaking an older one;
+incompatible changes bump :data:`PROTOCOL_VERSION`, which the master checks in Hello.
 """
 
 from __future__ import annotations
 
-import hashlib
-import hmac
-import math
 import re
-import secrets
 import struct
 from typing import Annotated, Final
 
@@ -36,15 +37,20 @@ import numpy as np
 from surprise.config import MAX_RECORDED_STEPS, MAX_STEP_PERIOD
 from surprise.errors import FrameTooLargeError, GenomeError, ProtocolError
 from surprise.network import NetworkSpec
+from surprise.session import NONCE_SIZE, PROOF_SIZE
 
 __all__ = [
     "DEAD_AFTER_HEARTBEATS",
     "DEFAULT_PORT",
+    "HANDSHAKE_MAX_FRAME_SIZE",
+    "LOGGED_TEXT_LIMIT",
     "MAX_FRAME_SIZE",
+    "MAX_HEARTBEAT_INTERVAL",
     "MAX_NAME_LENGTH",
     "MAX_REASONS",
+    "MAX_REASON_LENGTH",
     "MAX_SENSORS",
-    "NONCE_SIZE",
+    "MIN_HEARTBEAT_INTERVAL",
     "PROTOCOL_VERSION",
     "REFUSED_BAD_SECRET",
     "REFUSED_CODES",
@@ -71,14 +77,14 @@ __all__ = [
     "Result",
     "Trace",
     "Welcome",
-    "compute_mac",
     "decode_payload",
     "encode",
+    "encode_payload",
+    "frame",
     "genome_from_bytes",
     "genome_to_bytes",
     "is_valid_robot_id",
-    "new_nonce",
-    "verify_mac",
+    "printable",
 ]
 
 #: The master's TCP port unless configured otherwise (the default of both sides' configuration).
@@ -86,6 +92,11 @@ DEFAULT_PORT: Final = 7474
 #: A link is dead when nothing at all arrived for this many heartbeat intervals (either side): one
 #: lost ping is no reason to drop a robot, three in a row on a lab network are.
 DEAD_AFTER_HEARTBEATS: Final = 3
+#: The heartbeat intervals a master may configure and a robot accepts, in seconds. Below 50 ms
+#: the pings alone would keep a Pi busy and one late packet would count as a dead link; above a
+#: minute a dead link would go unnoticed for minutes while the robot waits.
+MIN_HEARTBEAT_INTERVAL: Final = 0.05
+MAX_HEARTBEAT_INTERVAL: Final = 60.0
 #: What a robot id may look like: it names a CSV column and a trace file on the master and goes
 #: into the authentication, so no separators or spaces, and a bounded length.
 ROBOT_ID_PATTERN: Final = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"
@@ -95,22 +106,33 @@ _ROBOT_ID_RE: Final = re.compile(ROBOT_ID_PATTERN)
 #: (``surprise.sensors.ALL_SENSORS``); 16 leaves room for a few more while a trace of
 #: ``MAX_RECORDED_STEPS`` steps still fits one frame.
 MAX_SENSORS: Final = 16
-#: The longest sensor name or safety reason, in characters (the project's longest has 14).
+#: The longest sensor name, safety reason or Refused code, in characters (the project's longest
+#: has 14).
 MAX_NAME_LENGTH: Final = 32
 #: The most distinct safety reasons an evaluation's statistics may count.
 MAX_REASONS: Final = 32
+#: The longest software version a robot may announce, in characters.
+MAX_VERSION_LENGTH: Final = 64
+#: The longest run id, in characters: a run directory's name (file systems allow 255 bytes).
+MAX_RUN_ID_LENGTH: Final = 255
+#: The longest reason a Refused may give, in characters; the master cuts its reasons to it.
+MAX_REASON_LENGTH: Final = 512
+#: How many characters of a text a peer sent (a reason, a message) go into a log line.
+LOGGED_TEXT_LIMIT: Final = 200
 
 #: Version of this protocol; sent in Hello. Bump it for any change an older peer cannot decode.
-PROTOCOL_VERSION: Final = 1
+#: 2: mutual authentication and tagged frames; the step period in Evaluate; packed traces.
+PROTOCOL_VERSION: Final = 2
 
 #: Default upper bound of one frame's payload, in bytes. A post-evaluation trace of 1000 steps x 12
-#: sensors is about 0.5 MB; 8 MiB leaves ample room for longer traces while bounding the memory a
+#: sensors is about 0.25 MB; 8 MiB leaves ample room for longer traces while bounding the memory a
 #: single (possibly hostile) connection can make us buffer.
 MAX_FRAME_SIZE: Final = 8 * 1024 * 1024
-
-#: Length of a challenge nonce in bytes. Fixed so that ``nonce + robot_id`` in the MAC is
-#: unambiguous.
-NONCE_SIZE: Final = 32
+#: Upper bound of one frame until the handshake is complete, on both sides. The largest handshake
+#: message (a Hello of 16 sensor names of 32 characters, a 64-character version, a refusal of 512
+#: characters) takes well under 3 KiB; a peer that has not authenticated can make us buffer no
+#: more than this per connection.
+HANDSHAKE_MAX_FRAME_SIZE: Final = 4 * 1024
 
 #: Refused codes: the shared secret did not match.
 REFUSED_BAD_SECRET: Final = "bad-secret"
@@ -120,7 +142,7 @@ REFUSED_VERSION_MISMATCH: Final = "version-mismatch"
 REFUSED_UNKNOWN_ROBOT: Final = "unknown-robot"
 #: Refused codes: the robot lacks a sensor the experiment needs.
 REFUSED_MISSING_SENSORS: Final = "missing-sensors"
-#: Refused codes: the robot broke the handshake (wrong message, wrong order).
+#: Refused codes: the robot broke the handshake (wrong message, wrong order, too slow).
 REFUSED_PROTOCOL: Final = "protocol"
 #: Every Refused code.
 REFUSED_CODES: Final = frozenset(
@@ -139,6 +161,11 @@ _Positive = Annotated[int, msgspec.Meta(ge=1)]
 _Name = Annotated[str, msgspec.Meta(max_length=MAX_NAME_LENGTH)]
 _StepPeriod = Annotated[float, msgspec.Meta(gt=0.0, le=MAX_STEP_PERIOD)]
 _Nonce = Annotated[bytes, msgspec.Meta(min_length=NONCE_SIZE, max_length=NONCE_SIZE)]
+_Proof = Annotated[bytes, msgspec.Meta(min_length=PROOF_SIZE, max_length=PROOF_SIZE)]
+_RobotId = Annotated[str, msgspec.Meta(pattern=ROBOT_ID_PATTERN)]
+_HeartbeatInterval = Annotated[
+    float, msgspec.Meta(ge=MIN_HEARTBEAT_INTERVAL, le=MAX_HEARTBEAT_INTERVAL)
+]
 
 _HEADER = struct.Struct(">I")
 
@@ -146,6 +173,13 @@ _HEADER = struct.Struct(">I")
 def is_valid_robot_id(robot_id: str) -> bool:
     """Whether ``robot_id`` matches :data:`ROBOT_ID_PATTERN`."""
     return _ROBOT_ID_RE.match(robot_id) is not None
+
+
+def printable(text: str, limit: int = LOGGED_TEXT_LIMIT) -> str:
+    """``text`` from a peer, fit for one log line: control characters (line breaks, terminal
+    escapes) shown as ``?`` and at most ``limit`` characters, a cut marked with ``...``."""
+    head = "".join(c if c.isprintable() else "?" for c in text[:limit])
+    return head + "..." if len(text) > limit else head
 
 
 # ---------------------------------------------------------------------------------------------
@@ -182,28 +216,6 @@ def genome_from_bytes(data: bytes) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------------------
-# Authentication
-
-
-def new_nonce() -> bytes:
-    """Return a fresh random challenge of :data:`NONCE_SIZE` bytes."""
-    return secrets.token_bytes(NONCE_SIZE)
-
-
-def compute_mac(secret: bytes, nonce: bytes, robot_id: str) -> bytes:
-    """Return HMAC-SHA256 under ``secret`` of ``nonce`` followed by ``robot_id`` in UTF-8.
-
-    Binding the robot id stops a MAC answered for one robot from being replayed for another.
-    """
-    return hmac.new(secret, nonce + robot_id.encode("utf-8"), hashlib.sha256).digest()
-
-
-def verify_mac(secret: bytes, nonce: bytes, robot_id: str, mac: bytes) -> bool:
-    """Return whether ``mac`` is :func:`compute_mac` of the arguments, in constant time."""
-    return hmac.compare_digest(compute_mac(secret, nonce, robot_id), mac)
-
-
-# ---------------------------------------------------------------------------------------------
 # Messages
 
 
@@ -212,42 +224,47 @@ class _Message(msgspec.Struct, frozen=True, kw_only=True, tag_field="type"):
 
 
 class Hello(_Message, tag="hello"):
-    """Robot -> master, the first message: who the robot is and what it can sense."""
+    """Robot -> master, the first message: who the robot is, what it can sense, and a fresh
+    ``nonce`` (:func:`surprise.session.new_nonce`) the master's proof must cover.
 
-    robot_id: str
-    software_version: str
+    ``nonce`` may only be missing in a Hello of another protocol version (so that such a robot is
+    told about the version, not about a missing field).
+    """
+
+    robot_id: _RobotId
+    software_version: Annotated[str, msgspec.Meta(max_length=MAX_VERSION_LENGTH)]
     protocol_version: int
-    sensors: tuple[str, ...]
+    sensors: Annotated[tuple[_Name, ...], msgspec.Meta(max_length=MAX_SENSORS)]
+    nonce: _Nonce | None = None
 
 
 class Challenge(_Message, tag="challenge"):
-    """Master -> robot: a fresh nonce the robot must answer with :class:`Authenticate`."""
+    """Master -> robot: the master's fresh ``nonce`` and its ``proof`` of the shared secret
+    (:func:`surprise.session.master_proof`), which the robot checks before it answers."""
 
     nonce: _Nonce
+    proof: _Proof
 
 
 class Authenticate(_Message, tag="auth"):
-    """Robot -> master: ``mac`` = :func:`compute_mac` (secret, nonce, robot_id)."""
+    """Robot -> master: the robot's ``proof`` (:func:`surprise.session.robot_proof`)."""
 
-    mac: bytes
+    proof: _Proof
 
 
 class Welcome(_Message, tag="welcome"):
-    """Master -> robot: accepted into run ``run_id``; send or expect a Ping this often (s)."""
+    """Master -> robot, the first tagged frame: accepted into run ``run_id``; send or expect a
+    Ping every ``heartbeat_interval`` seconds (within the protocol's bounds)."""
 
-    run_id: str
-    heartbeat_interval: float
-
-    def __post_init__(self) -> None:
-        if not 0.0 < self.heartbeat_interval < math.inf:
-            raise ValueError("heartbeat_interval must be positive and finite")
+    run_id: Annotated[str, msgspec.Meta(max_length=MAX_RUN_ID_LENGTH)]
+    heartbeat_interval: _HeartbeatInterval
 
 
 class Refused(_Message, tag="refused"):
     """Master -> robot before closing: why the robot was not accepted (one of REFUSED_CODES)."""
 
-    code: str
-    reason: str
+    code: _Name
+    reason: Annotated[str, msgspec.Meta(max_length=MAX_REASON_LENGTH)]
 
 
 class Evaluate(_Message, tag="eval"):
@@ -473,22 +490,39 @@ _decoder = msgspec.msgpack.Decoder(Message)
 # Framing
 
 
-def encode(msg: Message, *, max_frame_size: int = MAX_FRAME_SIZE) -> bytes:
-    """Return ``msg`` as one complete frame (length header and payload).
+def encode_payload(msg: Message) -> bytes:
+    """Return ``msg`` as a frame's payload (msgpack, without the length header).
 
-    Raises :class:`FrameTooLargeError` if the payload exceeds ``max_frame_size`` (the peer would
-    refuse it anyway) and ``TypeError`` if ``msg`` is not a protocol message.
+    Raises ``TypeError`` if ``msg`` is not a protocol message.
     """
     if not isinstance(msg, _MESSAGE_TYPES):
         raise TypeError(f"not a protocol message: {type(msg).__name__}")
-    payload = _encoder.encode(msg)
+    return _encoder.encode(msg)
+
+
+def frame(payload: bytes, *, max_frame_size: int = MAX_FRAME_SIZE) -> bytes:
+    """Return ``payload`` (a tagged one after the handshake) with its length header.
+
+    Raises :class:`FrameTooLargeError` if the payload exceeds ``max_frame_size`` (the peer would
+    refuse it anyway).
+    """
     if len(payload) > max_frame_size:
         raise FrameTooLargeError(len(payload), max_frame_size)
     return _HEADER.pack(len(payload)) + payload
 
 
+def encode(msg: Message, *, max_frame_size: int = MAX_FRAME_SIZE) -> bytes:
+    """Return ``msg`` as one complete untagged frame (length header and payload), as sent
+    during the handshake.
+
+    Raises :class:`FrameTooLargeError` if the payload exceeds ``max_frame_size`` and
+    ``TypeError`` if ``msg`` is not a protocol message.
+    """
+    return frame(encode_payload(msg), max_frame_size=max_frame_size)
+
+
 def decode_payload(payload: bytes | bytearray | memoryview) -> Message:
-    """Return the message in one frame's payload (without the length header).
+    """Return the message in one frame's payload (without the length header or tag).
 
     This is the one place where decoding failures become :class:`ProtocolError` with the reason.
     """
@@ -503,10 +537,11 @@ def decode_payload(payload: bytes | bytearray | memoryview) -> Message:
 
 
 class FrameDecoder:
-    """Incremental decoder of a byte stream of frames.
+    """Incremental splitter and decoder of a byte stream of frames.
 
-    :meth:`feed` returns the messages completed so far, however the stream is split. Any error
-    poisons the decoder: the stream is out of sync and the connection must be closed.
+    :meth:`feed_payloads` returns the payloads of the frames completed so far, however the stream
+    is split (a transport that checks tags decodes them itself); :meth:`feed` decodes them too.
+    Any error poisons the decoder: the stream is out of sync and the connection must be closed.
     """
 
     def __init__(self, max_frame_size: int = MAX_FRAME_SIZE) -> None:
@@ -521,7 +556,7 @@ class FrameDecoder:
 
     @property
     def poisoned(self) -> bool:
-        """Whether an earlier error made the decoder unusable (every feed() raises)."""
+        """Whether an earlier error made the decoder unusable (every feed raises)."""
         return self._poisoned is not None
 
     @property
@@ -532,6 +567,13 @@ class FrameDecoder:
         header = 0 if self._length is None else _HEADER.size
         return header + len(self._buffer) - self._start
 
+    def poison(self, error: ProtocolError) -> None:
+        """Make the decoder unusable after ``error`` (found by the caller in a payload)."""
+        self._poisoned = error
+        self._buffer = bytearray()
+        self._start = 0
+        self._length = None
+
     def feed(self, data: bytes | bytearray | memoryview) -> list[Message]:
         """Add received bytes; return every message they complete, in order.
 
@@ -539,21 +581,31 @@ class FrameDecoder:
         :class:`ProtocolError` for an empty frame or an undecodable payload, and
         :class:`ProtocolError` on every call after an error.
         """
+        payloads = self.feed_payloads(data)
+        try:
+            return [decode_payload(payload) for payload in payloads]
+        except ProtocolError as exc:
+            self.poison(exc)
+            raise
+
+    def feed_payloads(self, data: bytes | bytearray | memoryview) -> list[bytes | bytearray]:
+        """Add received bytes; return the payloads of every frame they complete, in order.
+
+        Raises :class:`FrameTooLargeError` as soon as a header announces an oversized frame,
+        :class:`ProtocolError` for an empty frame, and on every call after an error.
+        """
         if self._poisoned is not None:
             raise ProtocolError(f"decoder unusable after an earlier error: {self._poisoned}")
         try:
             return self._feed(data)
         except ProtocolError as exc:
-            self._poisoned = exc
-            self._buffer = bytearray()
-            self._start = 0
-            self._length = None
+            self.poison(exc)
             raise
 
-    def _feed(self, data: bytes | bytearray | memoryview) -> list[Message]:
+    def _feed(self, data: bytes | bytearray | memoryview) -> list[bytes | bytearray]:
         buffer = self._buffer
         buffer += data
-        messages: list[Message] = []
+        payloads: list[bytes | bytearray] = []
         while True:
             available = len(buffer) - self._start
             if self._length is None:
@@ -570,10 +622,19 @@ class FrameDecoder:
             if available < self._length:
                 break
             end = self._start + self._length
-            messages.append(decode_payload(buffer[self._start : end]))
-            self._start = end
+            if end == len(buffer):
+                # The buffer ends with this frame (always so for a large one): hand the buffer
+                # over rather than copy megabytes (dropping its head is cheap for a bytearray).
+                del buffer[: self._start]
+                payloads.append(buffer)
+                buffer = self._buffer = bytearray()
+                self._start = 0
+            else:
+                with memoryview(buffer) as view:
+                    payloads.append(bytes(view[self._start : end]))
+                self._start = end
             self._length = None
         if self._start:
             del buffer[: self._start]
             self._start = 0
-        return messages
+        return payloads

@@ -1,6 +1,9 @@
 """Messages over an asyncio stream pair: the transport of both the master and the agent.
 
-The bytes on the wire are :mod:`surprise.wire`'s frames; this module only moves them.
+The bytes on the wire are :mod:`surprise.wire`'s frames. Once the handshake has established a
+session, :meth:`MessageStream.authenticate` turns on its :class:`~surprise.session.FrameAuth`:
+from then on every frame sent carries a tag, and every frame received must carry the right one
+before it is even decoded.
 """
 
 from __future__ import annotations
@@ -10,10 +13,12 @@ import collections
 import contextlib
 from typing import Final
 
-from surprise.errors import ConnectionClosedError
-from surprise.wire import MAX_FRAME_SIZE, FrameDecoder, Message, encode
+from surprise.errors import ConnectionClosedError, FrameTooLargeError, ProtocolError
+from surprise.session import TAG_SIZE, FrameAuth
+from surprise.wire import MAX_FRAME_SIZE, FrameDecoder, Message, decode_payload, encode_payload
+from surprise.wire import frame as make_frame
 
-__all__ = ["MessageStream"]
+__all__ = ["CHUNK_SIZE", "MessageStream"]
 
 #: Bytes asked of the socket per read: large enough that a 0.5 MB trace takes a handful of reads,
 #: small enough not to matter for memory.
@@ -38,28 +43,37 @@ class MessageStream:
         self.writer = writer
         self.max_frame_size = max_frame_size
         self._decoder = FrameDecoder(max_frame_size)
-        # One read may complete several frames; the extra messages wait here.
-        self._queue: collections.deque[Message] = collections.deque()
+        # One read may complete several frames; their payloads wait here. They are checked and
+        # decoded one by one as they are received, so a session turned on between two messages
+        # applies to every later frame, even one that arrived in the same read.
+        self._queue: collections.deque[bytes | bytearray] = collections.deque()
+        #: the session's frame authentication, once :meth:`authenticate` turned it on
+        self.auth: FrameAuth | None = None
         #: Bytes read so far: a message still arriving is a sign of life too.
         self.bytes_received = 0
 
     def set_max_frame_size(self, max_frame_size: int) -> None:
-        """Change the frame size limit of both directions from the next frame on (a server keeps
-        it small until its peer has authenticated)."""
+        """Change the frame size limit of both directions from the next frame on (both sides keep
+        it small until the handshake is complete)."""
         self.max_frame_size = max_frame_size
         self._decoder.max_frame_size = max_frame_size
+
+    def authenticate(self, auth: FrameAuth) -> None:
+        """Tag every frame sent from now on and accept only correctly tagged frames."""
+        self.auth = auth
 
     async def receive(self) -> Message:
         """Return the next message.
 
         Raises :class:`~surprise.errors.ConnectionClosedError` when the peer closes (or resets)
-        the connection and :class:`~surprise.errors.ProtocolError` for malformed or oversized
-        input.
+        the connection, :class:`~surprise.errors.AuthenticationError` for a frame whose tag does
+        not verify, and :class:`~surprise.errors.ProtocolError` for malformed or oversized input.
+        Any of these errors leaves the stream unusable.
         """
         while not self._queue:
             if self._decoder.poisoned:
                 # Fail now rather than wait for bytes from a peer that may never send any.
-                self._decoder.feed(b"")
+                self._decoder.feed_payloads(b"")
             try:
                 data = await self.reader.read(CHUNK_SIZE)
             except ConnectionError as exc:
@@ -73,8 +87,30 @@ class MessageStream:
                     )
                 raise ConnectionClosedError()
             self.bytes_received += len(data)
-            self._queue.extend(self._decoder.feed(data))
-        return self._queue.popleft()
+            self._queue.extend(self._decoder.feed_payloads(data))
+        payload = self._queue.popleft()
+        try:
+            body = payload if self.auth is None else self.auth.open(payload)
+            return decode_payload(body)
+        except ProtocolError as exc:
+            self._queue.clear()
+            self._decoder.poison(exc)
+            raise
+
+    def write(self, payload: bytes) -> None:
+        """Write one encoded message (:func:`~surprise.wire.encode_payload`) now, tagged if the
+        session is on, without waiting for the transport's buffer to drain.
+
+        Raises :class:`~surprise.errors.FrameTooLargeError` before writing anything if the frame
+        would exceed the limit.
+        """
+        if self.auth is not None:
+            # Checked before sealing: a frame never sent must not use up a sequence number.
+            size = len(payload) + TAG_SIZE
+            if size > self.max_frame_size:
+                raise FrameTooLargeError(size, self.max_frame_size)
+            payload = self.auth.seal(payload)
+        self.writer.write(make_frame(payload, max_frame_size=self.max_frame_size))
 
     async def send(self, msg: Message) -> None:
         """Send one message and wait until the transport's buffer has drained.
@@ -82,9 +118,9 @@ class MessageStream:
         Raises :class:`~surprise.errors.FrameTooLargeError` before sending anything if ``msg`` is
         too large and :class:`~surprise.errors.ConnectionClosedError` if the connection is gone.
         """
-        frame = encode(msg, max_frame_size=self.max_frame_size)
+        payload = encode_payload(msg)
         try:
-            self.writer.write(frame)
+            self.write(payload)
             await self.writer.drain()
         except ConnectionError as exc:
             raise ConnectionClosedError(f"connection lost: {exc}") from exc

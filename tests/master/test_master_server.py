@@ -17,6 +17,7 @@ from master_helpers import SECRET, master_config
 from master_service import Master
 from master_service.scripted import RobotRefusedError, ScriptedRobot
 from surprise.sensors import ALL_SENSORS, IR_SENSORS
+from surprise.session import FrameAuth, master_proof, new_nonce, proof_matches, robot_proof
 from surprise.wire import (
     MAX_FRAME_SIZE,
     PROTOCOL_VERSION,
@@ -33,7 +34,6 @@ from surprise.wire import (
     Pong,
     Refused,
     Welcome,
-    compute_mac,
     encode,
 )
 from transport.stream import MessageStream
@@ -72,11 +72,13 @@ async def test_a_robot_is_welcomed(tmp_path):
 @pytest.mark.parametrize(
     "kwargs, config, code, words",
     [
-        ({"secret": b"wrong"}, {}, REFUSED_BAD_SECRET, "does not match"),
+        # A robot that answers although the master's proof did not verify on it (a real one
+        # would not): the master's own check refuses it.
+        ({"secret": b"wrong", "verify_master": False}, {}, REFUSED_BAD_SECRET, "does not match"),
         ({"protocol_version": PROTOCOL_VERSION + 1}, {}, REFUSED_VERSION_MISMATCH, "version"),
         ({}, {"allowed_robots": ["a", "b", "c"]}, REFUSED_UNKNOWN_ROBOT, "not among the allowed"),
         ({"sensors": IR_SENSORS}, {}, REFUSED_MISSING_SENSORS, "ground.0, ground.1"),
-        ({"robot_id": "no spaces"}, {}, REFUSED_PROTOCOL, "robot id"),
+        ({"robot_id": "no spaces"}, {}, REFUSED_PROTOCOL, "robot_id"),
     ],
 )
 async def test_refusals_carry_a_code_and_reason(tmp_path, kwargs, config, code, words):
@@ -193,7 +195,7 @@ async def test_a_long_message_still_arriving_keeps_the_link_alive(tmp_path):
     async with Master(master_config(heartbeat_interval=0.1), tmp_path / "run", secret=SECRET) as m:
         robot = ScriptedRobot("r0", SECRET, m.port, answer_pings=False)
         await robot.connect()
-        frame = encode(Bye(reason="x" * 4000))
+        frame = robot.sealed_frame(Bye(reason="x" * 4000))
         for i in range(0, len(frame) - 50, 50):  # 80 pieces over 1.6 s; dead after 0.3 s
             robot.send_raw(frame[i : i + 50])
             await asyncio.sleep(0.02)
@@ -207,11 +209,20 @@ async def test_the_master_answers_a_robots_ping(tmp_path):
     async with Master(master_config(), tmp_path / "run", secret=SECRET) as master:
         reader, writer = await asyncio.open_connection("127.0.0.1", master.port)
         stream = MessageStream(reader, writer)
-        await stream.send(
-            Hello(robot_id="r0", software_version="x", protocol_version=1, sensors=ALL_SENSORS)
+        robot_nonce = new_nonce()
+        hello = Hello(
+            robot_id="r0",
+            software_version="x",
+            protocol_version=PROTOCOL_VERSION,
+            sensors=ALL_SENSORS,
+            nonce=robot_nonce,
         )
+        await stream.send(hello)
         challenge = await stream.receive()
-        await stream.send(Authenticate(mac=compute_mac(SECRET, challenge.nonce, "r0")))
+        nonces = (robot_nonce, challenge.nonce, "r0")
+        assert proof_matches(master_proof(SECRET, *nonces), challenge.proof)
+        await stream.send(Authenticate(proof=robot_proof(SECRET, *nonces)))
+        stream.authenticate(FrameAuth.for_robot(SECRET, *nonces))
         assert isinstance(await stream.receive(), Welcome)
         await stream.send(Ping(seq=41))
         async with asyncio.timeout(2):

@@ -15,13 +15,18 @@ from surprise.config import MAX_RECORDED_STEPS, MAX_STEP_PERIOD
 from surprise.errors import FrameTooLargeError, GenomeError, ProtocolError
 from surprise.network import GenomeLayout, NetworkSpec
 from surprise.sensors import ALL_SENSORS
+from surprise.session import NONCE_SIZE, PROOF_SIZE, TAG_SIZE
 from surprise.wire import (
+    HANDSHAKE_MAX_FRAME_SIZE,
     MAX_FRAME_SIZE,
+    MAX_HEARTBEAT_INTERVAL,
     MAX_NAME_LENGTH,
+    MAX_REASON_LENGTH,
     MAX_SENSORS,
-    NONCE_SIZE,
+    MIN_HEARTBEAT_INTERVAL,
     PROTOCOL_VERSION,
     REFUSED_CODES,
+    ROBOT_ID_PATTERN,
     Abort,
     Authenticate,
     Bye,
@@ -39,13 +44,11 @@ from surprise.wire import (
     Result,
     Trace,
     Welcome,
-    compute_mac,
     decode_payload,
     encode,
     genome_from_bytes,
     genome_to_bytes,
-    new_nonce,
-    verify_mac,
+    printable,
 )
 
 FAST = settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -108,17 +111,24 @@ stats = st.builds(
 messages: st.SearchStrategy[Message] = st.one_of(
     st.builds(
         Hello,
-        robot_id=small_text,
+        robot_id=st.from_regex(ROBOT_ID_PATTERN, fullmatch=True),
         software_version=small_text,
         protocol_version=i64,
-        sensors=st.lists(small_text, max_size=12).map(tuple),
+        sensors=st.lists(small_text, max_size=MAX_SENSORS).map(tuple),
+        nonce=st.none() | st.binary(min_size=NONCE_SIZE, max_size=NONCE_SIZE),
     ),
-    st.builds(Challenge, nonce=st.binary(min_size=NONCE_SIZE, max_size=NONCE_SIZE)),
-    st.builds(Authenticate, mac=st.binary(max_size=64)),
+    st.builds(
+        Challenge,
+        nonce=st.binary(min_size=NONCE_SIZE, max_size=NONCE_SIZE),
+        proof=st.binary(min_size=PROOF_SIZE, max_size=PROOF_SIZE),
+    ),
+    st.builds(Authenticate, proof=st.binary(min_size=PROOF_SIZE, max_size=PROOF_SIZE)),
     st.builds(
         Welcome,
         run_id=small_text,
-        heartbeat_interval=st.floats(min_value=0.0, exclude_min=True, allow_infinity=False),
+        heartbeat_interval=st.floats(
+            min_value=MIN_HEARTBEAT_INTERVAL, max_value=MAX_HEARTBEAT_INTERVAL
+        ),
     ),
     st.builds(Refused, code=st.sampled_from(sorted(REFUSED_CODES)), reason=small_text),
     st.builds(
@@ -270,8 +280,9 @@ def test_encode_refuses_non_messages() -> None:
         encode(EvaluationStats(steps_run=1, overruns=0, interventions={}))  # type: ignore[arg-type]
 
 
-def test_protocol_version_is_one() -> None:
-    assert PROTOCOL_VERSION == 1
+def test_protocol_version_is_two() -> None:
+    # 2: mutual authentication and tagged frames, the step period, packed traces.
+    assert PROTOCOL_VERSION == 2
 
 
 # ---------------------------------------------------------------------------------------------
@@ -364,7 +375,7 @@ def test_pending_counts_buffered_bytes() -> None:
 
 def test_large_frame_byte_at_a_time_is_linear() -> None:
     # About 0.3 MB fed one byte at a time: quadratic buffering would take minutes.
-    msg = Authenticate(mac=bytes(300_000))
+    msg = Bye(reason="x" * 300_000)
     data = encode(msg)
     decoder = FrameDecoder()
     out: list[Message] = []
@@ -435,7 +446,7 @@ def test_frame_at_the_limit_is_accepted() -> None:
 
 def test_encode_refuses_oversized_messages() -> None:
     with pytest.raises(FrameTooLargeError) as info:
-        encode(Authenticate(mac=bytes(1000)), max_frame_size=999)
+        encode(Bye(reason="x" * 1000), max_frame_size=999)
     assert info.value.limit == 999
     assert info.value.size > 999
 
@@ -467,33 +478,97 @@ def test_messages_before_a_bad_frame_in_the_same_chunk_are_lost_with_the_connect
 
 
 # ---------------------------------------------------------------------------------------------
-# Authentication
+# What may arrive before authentication is bounded in its type
 
 
-def test_mac_verifies_with_the_right_secret_nonce_and_robot() -> None:
-    nonce = new_nonce()
-    assert len(nonce) == NONCE_SIZE
-    mac = compute_mac(b"secret", nonce, "thymio-3")
-    assert len(mac) == 32
-    assert verify_mac(b"secret", nonce, "thymio-3", mac)
-    assert not verify_mac(b"other", nonce, "thymio-3", mac)
-    assert not verify_mac(b"secret", new_nonce(), "thymio-3", mac)
-    assert not verify_mac(b"secret", nonce, "thymio-4", mac)
-    assert not verify_mac(b"secret", nonce, "thymio-3", mac[:-1])
-    assert not verify_mac(b"secret", nonce, "thymio-3", b"")
+def hello_payload(**changes: object) -> bytes:
+    fields = {
+        "type": "hello",
+        "robot_id": "thymio-1",
+        "software_version": "0.1.0",
+        "protocol_version": PROTOCOL_VERSION,
+        "sensors": list(ALL_SENSORS),
+        "nonce": bytes(NONCE_SIZE),
+    }
+    fields.update(changes)
+    return msgspec.msgpack.encode(fields)
 
 
-def test_mac_is_hmac_sha256_of_nonce_and_robot_id() -> None:
-    import hashlib
-    import hmac
+@pytest.mark.parametrize(
+    "changes, words",
+    [
+        # 65,000 empty names once held half a megabyte per connection for the whole handshake.
+        ({"sensors": [""] * 65_000}, f"length <= {MAX_SENSORS}"),
+        ({"sensors": ["x" * (MAX_NAME_LENGTH + 1)]}, f"length <= {MAX_NAME_LENGTH}"),
+        ({"robot_id": "r" * 65}, "robot_id"),
+        ({"robot_id": "no spaces"}, "robot_id"),
+        ({"software_version": "v" * 65}, "software_version"),
+        ({"nonce": bytes(NONCE_SIZE - 1)}, "nonce"),
+        ({"nonce": bytes(NONCE_SIZE + 1)}, "nonce"),
+    ],
+)
+def test_a_hello_out_of_bounds_is_refused_by_decoding(changes, words) -> None:
+    with pytest.raises(ProtocolError, match="malformed message") as info:
+        decode_payload(hello_payload(**changes))
+    assert words in str(info.value)
 
-    nonce = bytes(range(NONCE_SIZE))
-    expected = hmac.new(b"k", nonce + "rob\u00f6t".encode(), hashlib.sha256).digest()
-    assert compute_mac(b"k", nonce, "rob\u00f6t") == expected
+
+@pytest.mark.parametrize(
+    "payload, words",
+    [
+        ({"type": "auth", "proof": bytes(PROOF_SIZE + 1)}, "proof"),
+        ({"type": "auth", "proof": bytes(300_000)}, "proof"),
+        ({"type": "challenge", "nonce": bytes(NONCE_SIZE), "proof": b""}, "proof"),
+        ({"type": "refused", "code": "x" * 33, "reason": ""}, "code"),
+        ({"type": "refused", "code": "protocol", "reason": "x" * 513}, "reason"),
+        ({"type": "welcome", "run_id": "r" * 256, "heartbeat_interval": 1.0}, "run_id"),
+        ({"type": "welcome", "run_id": "r", "heartbeat_interval": 1e-6}, "heartbeat_interval"),
+        ({"type": "welcome", "run_id": "r", "heartbeat_interval": 1e6}, "heartbeat_interval"),
+    ],
+)
+def test_other_handshake_messages_out_of_bounds_are_refused(payload, words) -> None:
+    with pytest.raises(ProtocolError, match="malformed message") as info:
+        decode_payload(msgspec.msgpack.encode(payload))
+    assert words in str(info.value)
 
 
-def test_nonces_are_fresh() -> None:
-    assert len({new_nonce() for _ in range(100)}) == 100
+def test_the_largest_handshake_messages_fit_the_small_handshake_frames() -> None:
+    largest = [
+        Hello(
+            robot_id="r" * 64,
+            software_version="\u00e9" * 64,
+            protocol_version=-(2**63),
+            sensors=tuple("\u00e9" * MAX_NAME_LENGTH for _ in range(MAX_SENSORS)),
+            nonce=bytes(NONCE_SIZE),
+        ),
+        Challenge(nonce=bytes(NONCE_SIZE), proof=bytes(PROOF_SIZE)),
+        Authenticate(proof=bytes(PROOF_SIZE)),
+        Refused(code="\u00e9" * MAX_NAME_LENGTH, reason="\u00e9" * MAX_REASON_LENGTH),
+        Welcome(run_id="\u00e9" * 255, heartbeat_interval=MAX_HEARTBEAT_INTERVAL),
+    ]
+    for msg in largest:
+        # Tagged (Welcome, a late Refused) or not: either way within the limit, and decodable.
+        data = encode(msg, max_frame_size=HANDSHAKE_MAX_FRAME_SIZE - TAG_SIZE)
+        assert decode_frame(data) == msg
+
+
+def test_a_hello_of_another_version_may_lack_the_nonce() -> None:
+    # An older robot is told about the version rather than about a missing field.
+    msg = decode_payload(hello_payload(protocol_version=1, nonce=None))
+    assert isinstance(msg, Hello) and msg.protocol_version == 1 and msg.nonce is None
+
+
+@pytest.mark.parametrize(
+    "text, limit, expected",
+    [
+        ("bad secret", 200, "bad secret"),
+        ("line\nbreak\x1b[2Jclear\u2028", 200, "line?break?[2Jclear?"),
+        ("x" * 300, 200, "x" * 200 + "..."),
+        ("\x00" * 10_000_000, 5, "?????..."),
+    ],
+)
+def test_printable_cuts_and_cleans_a_peers_text(text, limit, expected) -> None:
+    assert printable(text, limit) == expected
 
 
 def sample_trace(steps: int, width: int) -> Trace:

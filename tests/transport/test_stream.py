@@ -12,7 +12,6 @@ import pytest
 from surprise.errors import ConnectionClosedError, FrameTooLargeError, ProtocolError, SurpriseError
 from surprise.wire import (
     MAX_FRAME_SIZE,
-    Authenticate,
     Bye,
     EvaluationStats,
     Hello,
@@ -170,6 +169,6 @@ async def test_stream_send_refuses_oversized_message_before_writing() -> None:
 
     async with asyncio.timeout(5), Loopback(sink, max_frame_size=100) as client:
         with pytest.raises(FrameTooLargeError):
-            await client.send(Authenticate(mac=bytes(200)))
+            await client.send(Bye(reason="x" * 200))
         await client.send(Ping(seq=1))
     assert received == [encode(Ping(seq=1))]
