@@ -28,13 +28,20 @@ import msgspec
 
 from surprise.config import ExperimentConfig, Strict, decode, load_experiment, load_yaml
 from surprise.errors import ConfigError
-from surprise.wire import DEFAULT_PORT, MAX_FRAME_SIZE, ROBOT_ID_PATTERN
+from surprise.wire import (
+    DEFAULT_PORT,
+    MAX_FRAME_SIZE,
+    MAX_HEARTBEAT_INTERVAL,
+    MIN_HEARTBEAT_INTERVAL,
+    ROBOT_ID_PATTERN,
+)
 from telemetry.config import TelemetryConfig
 from transport.tls import ServerTlsConfig, server_context
 
 __all__ = [
     "DEFAULT_HANDSHAKE_TIMEOUT",
     "DEFAULT_HEARTBEAT_INTERVAL",
+    "DEFAULT_MAX_PENDING_CONNECTIONS",
     "DEFAULT_ROUND_MARGIN",
     "MasterConfig",
     "build_ssl_context",
@@ -42,9 +49,14 @@ __all__ = [
     "load_secret",
 ]
 
-#: protocol.md: each handshake step has a 10 s deadline; generous for a Pi on a busy lab WLAN,
-#: short enough that a half-open connection does not linger.
+#: protocol.md: the whole handshake (TLS included) has a 10 s deadline; generous for a Pi on a busy
+#: lab WLAN, short enough that a half-open or dribbling connection does not hold its slot long.
 DEFAULT_HANDSHAKE_TIMEOUT: Final = 10.0
+#: Handshakes that may run at once. A lab's swarm is a few dozen robots that reconnect with
+#: backoff, so 64 lets all of them reconnect together; beyond it a connection is closed at once,
+#: so that peers without the secret can never use up the master's file descriptors (the run's
+#: checkpoints need some) or its memory.
+DEFAULT_MAX_PENDING_CONNECTIONS: Final = 64
 #: The link is declared dead after 3 intervals without any message (protocol.md). 2 s notices a
 #: dropped robot within 6-8 s, less than one 10 s evaluation, at a negligible ping traffic.
 DEFAULT_HEARTBEAT_INTERVAL: Final = 2.0
@@ -54,6 +66,9 @@ DEFAULT_HEARTBEAT_INTERVAL: Final = 2.0
 DEFAULT_ROUND_MARGIN: Final = 5.0
 
 _PositiveSeconds = Annotated[float, msgspec.Meta(gt=0.0, le=86400.0)]
+_HeartbeatInterval = Annotated[
+    float, msgspec.Meta(ge=MIN_HEARTBEAT_INTERVAL, le=MAX_HEARTBEAT_INTERVAL)
+]
 _RobotId = Annotated[str, msgspec.Meta(pattern=ROBOT_ID_PATTERN)]
 
 
@@ -68,9 +83,10 @@ class MasterConfig(Strict):
     with spares in ``allowed_robots`` the first robots to connect take part. ``round_margin`` is
     added to ``steps * step_period`` (the experiment's) for a round's deadline;
     ``heartbeat_interval`` is how often the master pings (a link is dead after three silent
-    intervals); ``handshake_timeout`` bounds each handshake step; ``max_frame_size`` bounds one
-    incoming message (bytes). ``telemetry`` (optional) publishes the run's status over MQTT
-    (``docs/telemetry.md``).
+    intervals; robots accept 0.05 s to 60 s); ``handshake_timeout`` bounds a whole handshake;
+    ``max_pending_connections`` bounds how many handshakes run at once (a connection beyond is
+    closed at once); ``max_frame_size`` bounds one incoming message (bytes). ``telemetry``
+    (optional) publishes the run's status over MQTT (``docs/telemetry.md``).
     """
 
     experiment: ExperimentConfig | None = None
@@ -82,8 +98,9 @@ class MasterConfig(Strict):
     expected_robots: Annotated[int, msgspec.Meta(ge=1)] | None = None
     tls: ServerTlsConfig | None = None
     round_margin: _PositiveSeconds = DEFAULT_ROUND_MARGIN
-    heartbeat_interval: _PositiveSeconds = DEFAULT_HEARTBEAT_INTERVAL
+    heartbeat_interval: _HeartbeatInterval = DEFAULT_HEARTBEAT_INTERVAL
     handshake_timeout: _PositiveSeconds = DEFAULT_HANDSHAKE_TIMEOUT
+    max_pending_connections: Annotated[int, msgspec.Meta(ge=1)] = DEFAULT_MAX_PENDING_CONNECTIONS
     max_frame_size: Annotated[int, msgspec.Meta(ge=1024)] = MAX_FRAME_SIZE
     telemetry: TelemetryConfig | None = None
 

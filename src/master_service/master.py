@@ -194,6 +194,7 @@ class Master:
             run_id=self.run_id,
             heartbeat_interval=config.heartbeat_interval,
             handshake_timeout=config.handshake_timeout,
+            max_pending_connections=config.max_pending_connections,
             max_frame_size=config.max_frame_size,
             ssl_context=self._ssl,
             admit=self._admit,

@@ -43,6 +43,7 @@ __all__ = [
     "DEAD_AFTER_HEARTBEATS",
     "DEFAULT_PORT",
     "HANDSHAKE_MAX_FRAME_SIZE",
+    "HEADER_SIZE",
     "LOGGED_TEXT_LIMIT",
     "MAX_FRAME_SIZE",
     "MAX_HEARTBEAT_INTERVAL",
@@ -168,6 +169,8 @@ _HeartbeatInterval = Annotated[
 ]
 
 _HEADER = struct.Struct(">I")
+#: Bytes of a frame's length header.
+HEADER_SIZE: Final = _HEADER.size
 
 
 def is_valid_robot_id(robot_id: str) -> bool:
@@ -604,6 +607,11 @@ class FrameDecoder:
 
     def _feed(self, data: bytes | bytearray | memoryview) -> list[bytes | bytearray]:
         buffer = self._buffer
+        if not buffer and self._length is None and len(data) >= _HEADER.size:
+            # Refuse an oversized frame before its first bytes are copied anywhere.
+            (length,) = _HEADER.unpack_from(data)
+            if length > self.max_frame_size:
+                raise FrameTooLargeError(length, self.max_frame_size)
         buffer += data
         payloads: list[bytes | bytearray] = []
         while True:

@@ -15,7 +15,14 @@ from typing import Final
 
 from surprise.errors import ConnectionClosedError, FrameTooLargeError, ProtocolError
 from surprise.session import TAG_SIZE, FrameAuth
-from surprise.wire import MAX_FRAME_SIZE, FrameDecoder, Message, decode_payload, encode_payload
+from surprise.wire import (
+    HEADER_SIZE,
+    MAX_FRAME_SIZE,
+    FrameDecoder,
+    Message,
+    decode_payload,
+    encode_payload,
+)
 from surprise.wire import frame as make_frame
 
 __all__ = ["CHUNK_SIZE", "MessageStream"]
@@ -75,7 +82,9 @@ class MessageStream:
                 # Fail now rather than wait for bytes from a peer that may never send any.
                 self._decoder.feed_payloads(b"")
             try:
-                data = await self.reader.read(CHUNK_SIZE)
+                # Never more than a frame's worth at a time: before the handshake is done, a peer
+                # gets no more than its small frames buffered, whatever it sends.
+                data = await self.reader.read(min(CHUNK_SIZE, self.max_frame_size + HEADER_SIZE))
             except ConnectionError as exc:
                 raise ConnectionClosedError(f"connection lost: {exc}") from exc
             if not data:
