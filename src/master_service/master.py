@@ -1,9 +1,9 @@
 """The master: (1+1) online evolution over a swarm of robots, with checkpoint and resume.
 
-One round (DESIGN "One evaluation round"): wait until the swarm is complete -> send the genome with
-a fresh evaluation id -> collect one fitness per robot within the deadline -> if all arrived, tell
-the algorithm their mean and log the row; otherwise the round does not count and the same genome
-goes out again once the swarm is complete. A robot that drops out pauses the run; it never fails
+One round: wait until the swarm is complete -> send the genome with a fresh evaluation id ->
+collect one fitness per robot within the deadline -> if all arrived, tell the algorithm their mean
+and log the row; otherwise the round does not count and the same genome goes out again once the
+swarm is complete. A robot that drops out pauses the run; it never fails
 it. After the last counted evaluation, the best genome is post-evaluated with ``record=True`` and
 every robot's trace is stored.
 

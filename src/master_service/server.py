@@ -457,8 +457,8 @@ class RobotServer:
         stream.set_max_frame_size(self.max_frame_size)
         loop = asyncio.get_running_loop()
         session = Session(hello, stream, peer, loop.time())
-        # Register and welcome without awaiting in between: the admission check above stays
-        # true, and the Welcome is queued before any Evaluate the owner may send on_join.
+        # Nothing was awaited since the admission check in _negotiate, and nothing is here: it
+        # still holds, and the Welcome is queued before any Evaluate the owner may send on_join.
         stale = self.sessions.get(hello.robot_id)
         if stale is not None:
             self.drop(stale, f"replaced by a new connection from {peer}")

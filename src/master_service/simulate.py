@@ -53,7 +53,8 @@ __all__ = [
     "world_config",
 ]
 
-#: Basic behaviours stop at obstacles; object manipulation escapes (REFERENCE section 3).
+#: Basic behaviours stop at obstacles; object manipulation escapes (the authors' two safety
+#: behaviours).
 SAFETY_PROFILES = {"basic": "stop", "boxes": "escape", "gradient": "escape"}
 #: In-process agents reconnect at once: the master is on the same machine and never far away.
 _RECONNECT = BackoffConfig(initial=0.05, max=0.5, jitter=0.5)

@@ -1,6 +1,6 @@
 """The control loop: the steps of one evaluation at a fixed period on absolute deadlines.
 
-One step (DESIGN, "One control step on the robot")::
+One step::
 
     read s(t) (bounded by a timeout) -> score p(t), made at t-1, against s(t)
     -> actor a(t) from s(t), a(t-1) -> predictor p(t+1) from s(t), a(t)
@@ -144,7 +144,7 @@ class LoopOutcome:
 
 
 class ControlLoop:
-    """Runs evaluations on one body: the per-step work of DESIGN's "One control step".
+    """Runs evaluations on one body: the per-step work described in the module docstring.
 
     ``layer`` is the safety layer for ``body.sensors`` (it sees every sensor of the body, not just
     the experiment's). ``watchdog``, if given, is fed every step and checked before every drive;

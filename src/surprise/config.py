@@ -103,7 +103,7 @@ MAX_STEP_PERIOD = 10.0
 
 
 class NetworkConfig(Strict):
-    """Sizes of the actor-predictor pair (REFERENCE section 1).
+    """Sizes of the actor-predictor pair.
 
     ``predictor_hidden`` defaults to R + 1 where R is the number of sensors. ``initial_action`` is
     a(-1), the previous action fed to the actor at the first step of an evaluation.
@@ -115,7 +115,7 @@ class NetworkConfig(Strict):
 
 
 class EvolutionConfig(Strict):
-    """(1+1) online evolution with re-evaluation (REFERENCE section 2)."""
+    """(1+1) online evolution with re-evaluation (paper Sec. V-A)."""
 
     evaluations: PositiveInt = 1000
     reevaluation_probability: Probability = 0.2
