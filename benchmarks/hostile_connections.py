@@ -6,9 +6,10 @@ Two measurements, each with the master, the robots and the attacker in separate 
 65,000 empty sensor names (the largest that fit a 64 KiB frame), then keeps them open for a few
 seconds. Figures: the master's resident memory before, while the connections are held, and after
 the attacker closed them; and how many connections the master closed before the attacker did.
-Run with the master's default settings, and again with ``max_pending_connections`` raised to the
-number of connections (when the master has that setting) so that the per-message bounds are
-measured on their own.
+Run with the master's default settings, and (when the master has ``max_pending_connections``)
+again with the limit raised to the number of connections, so that the per-message bounds are
+measured on their own, and with the largest Hello those bounds allow, which the master then
+holds for the whole handshake.
 
 ``flood``: a run with 4 scripted robots (answering 10 ms after each Evaluate) goes on while an
 attacker opens ``--flood`` connections (default 10,000) as fast as it can and holds them for a
@@ -59,6 +60,24 @@ def hostile_hello() -> bytes:
             "software_version": "x",
             "protocol_version": 1,
             "sensors": [""] * HOSTILE_SENSORS,
+        }
+    )
+    return struct.pack(">I", len(payload)) + payload
+
+
+def largest_hello() -> bytes:
+    """The largest Hello protocol version 2 accepts (every field at its bound): the most an
+    unauthenticated peer can make the master hold for a whole handshake."""
+    from surprise.wire import MAX_NAME_LENGTH, MAX_SENSORS, PROTOCOL_VERSION
+
+    payload = msgspec.msgpack.encode(
+        {
+            "type": "hello",
+            "robot_id": "r" * 64,
+            "software_version": "v" * 64,
+            "protocol_version": PROTOCOL_VERSION,
+            "sensors": [f"{i:0{MAX_NAME_LENGTH}d}" for i in range(MAX_SENSORS)],
+            "nonce": bytes(32),
         }
     )
     return struct.pack(">I", len(payload)) + payload
@@ -219,8 +238,8 @@ def _get(queue: Any, tag: str, timeout: float = 120.0) -> tuple[Any, ...]:
     return item[1:]
 
 
-def measure_held(connections: int, max_pending: int | None) -> dict[str, Any]:
-    """Memory of the master while ``connections`` hostile Hellos are held, and after."""
+def measure_held(connections: int, max_pending: int | None, hello: bytes) -> dict[str, Any]:
+    """Memory of the master while ``connections`` send ``hello`` and are held, and after."""
     context = multiprocessing.get_context("spawn")
     queue, stop, release = context.Queue(), context.Event(), context.Event()
     attacks = context.Queue()
@@ -231,7 +250,7 @@ def measure_held(connections: int, max_pending: int | None) -> dict[str, Any]:
     before = _rss(pid)
     attacker = context.Process(
         target=_attacker_process,
-        args=(attacks, release, port, connections, hostile_hello(), 60.0),
+        args=(attacks, release, port, connections, hello, 60.0),
     )
     attacker.start()
     _get(attacks, "opened")
@@ -326,13 +345,16 @@ def main() -> None:
     parser.add_argument("--flood", type=int, default=10_000)
     args = parser.parse_args()
     mib = 2**20
-    for label, cap in (("default", None), ("uncapped", args.held)):
-        if label == "uncapped":
-            from master_service import MasterConfig
+    from master_service import MasterConfig
 
-            if "max_pending_connections" not in MasterConfig.__struct_fields__:
-                continue
-        held = measure_held(args.held, cap)
+    runs = [("default", None, hostile_hello())]
+    if "max_pending_connections" in MasterConfig.__struct_fields__:
+        runs += [
+            ("uncapped", args.held, hostile_hello()),
+            ("largest_hello_uncapped", args.held, largest_hello()),
+        ]
+    for label, cap, hello in runs:
+        held = measure_held(args.held, cap, hello)
         name = f"held_{args.held}_{label}"
         print(f"{name}_master_rss_before: {held['before'] / mib:.1f} MiB")
         print(f"{name}_master_rss_held: {held['held'] / mib:.1f} MiB")
