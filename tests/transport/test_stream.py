@@ -3,13 +3,21 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import struct
 from collections.abc import Awaitable, Callable
 
 import numpy as np
 import pytest
 
-from surprise.errors import ConnectionClosedError, FrameTooLargeError, ProtocolError, SurpriseError
+from surprise.errors import (
+    AuthenticationError,
+    ConnectionClosedError,
+    FrameTooLargeError,
+    ProtocolError,
+    SurpriseError,
+)
+from surprise.session import TAG_SIZE, FrameAuth
 from surprise.wire import (
     MAX_FRAME_SIZE,
     Bye,
@@ -20,7 +28,10 @@ from surprise.wire import (
     Pong,
     Result,
     Trace,
+    decode_payload,
     encode,
+    encode_payload,
+    frame,
 )
 from transport.stream import MessageStream
 
@@ -172,3 +183,92 @@ async def test_stream_send_refuses_oversized_message_before_writing() -> None:
             await client.send(Bye(reason="x" * 200))
         await client.send(Ping(seq=1))
     assert received == [encode(Ping(seq=1))]
+
+
+# ---------------------------------------------------------------------------------------------
+# Authenticated sessions
+
+NR, NM = bytes(32), bytes(range(32))
+
+
+def session_pair() -> tuple[FrameAuth, FrameAuth]:
+    """The master's and the robot's side of one session."""
+    return (
+        FrameAuth.for_master(b"secret", NR, NM, "r1"),
+        FrameAuth.for_robot(b"secret", NR, NM, "r1"),
+    )
+
+
+async def test_an_authenticated_stream_tags_what_it_sends_and_checks_what_it_receives() -> None:
+    master_auth, robot_auth = session_pair()
+    on_the_wire: list[bytes] = []
+
+    async def master(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        for seq in range(3):
+            writer.write(frame(master_auth.seal(encode_payload(Ping(seq=seq)))))
+            (length,) = struct.unpack(">I", await reader.readexactly(4))
+            sealed = await reader.readexactly(length)
+            on_the_wire.append(sealed)
+            assert decode_payload(master_auth.open(sealed)) == Pong(seq=seq)
+        await reader.read()
+        writer.close()
+
+    async with asyncio.timeout(5), Loopback(master) as client:
+        client.authenticate(robot_auth)
+        for _ in range(3):
+            ping = await client.receive()
+            await client.send(Pong(seq=ping.seq))
+    # Each frame is the plain payload followed by its 16-byte tag.
+    for seq, sealed in enumerate(on_the_wire):
+        assert sealed[:-TAG_SIZE] == encode_payload(Pong(seq=seq)) and TAG_SIZE == 16
+    assert (robot_auth.sent, robot_auth.received) == (3, 3)
+
+
+async def test_a_plain_frame_in_an_authenticated_session_ends_it() -> None:
+    _, robot_auth = session_pair()
+
+    async def impostor(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        writer.write(encode(Ping(seq=1)) + encode(Ping(seq=2)))
+        await writer.drain()
+        await reader.read()
+        writer.close()
+
+    async with asyncio.timeout(5), Loopback(impostor) as client:
+        client.authenticate(robot_auth)
+        with pytest.raises(AuthenticationError):
+            await client.receive()
+        # Unusable from then on, even though a second frame had arrived with the first.
+        with pytest.raises(ProtocolError):
+            await client.receive()
+
+
+async def test_an_oversized_message_uses_up_no_sequence_number() -> None:
+    master_auth, robot_auth = session_pair()
+    received: list[Message] = []
+
+    async def master(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        async with MessageStream(reader, writer) as stream:
+            stream.authenticate(master_auth)
+            received.append(await stream.receive())
+
+    async with asyncio.timeout(5), Loopback(master, max_frame_size=200) as client:
+        client.authenticate(robot_auth)
+        with pytest.raises(FrameTooLargeError) as info:
+            await client.send(Bye(reason="x" * 190))  # fits untagged, not with its tag
+        assert info.value.size == len(encode(Bye(reason="x" * 190))) - 4 + TAG_SIZE
+        await client.send(Bye(reason="done"))
+    assert received == [Bye(reason="done")]  # the next frame still carries sequence number 0
+
+
+async def test_before_the_handshake_a_stream_reads_no_more_than_a_small_frame() -> None:
+    async def flood(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        writer.write(struct.pack(">I", 3000) + bytes(1024 * 1024))
+        with contextlib.suppress(ConnectionError):
+            await writer.drain()
+            await reader.read()
+        writer.close()
+
+    async with asyncio.timeout(5), Loopback(flood, max_frame_size=4096) as client:
+        with pytest.raises(ProtocolError):
+            await client.receive()
+        assert client.bytes_received <= 4096 + 4
