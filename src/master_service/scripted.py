@@ -77,8 +77,9 @@ M = TypeVar("M")
 
 def deterministic_fitness(genome: np.ndarray, index: int) -> float:
     """A fitness that depends on the genome and the robot's index only: ``0.5 + 0.4 *
-    mean(tanh(genome)) - 0.01 * index`` (no hashing, so equal genomes give equal values)."""
-    return float(0.5 + 0.4 * np.tanh(genome).mean() - 0.01 * index)
+    mean(tanh(genome)) - 0.01 * (index mod 10)`` (no hashing, so equal genomes give equal
+    values), in [0.01, 0.9] however large the swarm, as a surprise fitness must be."""
+    return float(0.5 + 0.4 * np.tanh(genome).mean() - 0.01 * (index % 10))
 
 
 class RobotRefusedError(ConnectionError):

@@ -289,3 +289,10 @@ async def test_the_round_deadline_follows_the_experiments_step_period(tmp_path):
         await close(robots)
     assert summary.failed_attempts == 0
     assert {m.step_period for r in robots for m in r.evaluations} == {0.5}
+
+
+def test_scripted_robots_answer_a_fitness_in_range_however_large_the_swarm():
+    # The benchmarks run a thousand of them: their fitness must be one the master accepts.
+    for genome in (np.full(10, -50.0), np.zeros(10), np.full(10, 50.0)):
+        values = [deterministic_fitness(genome, index) for index in range(1000)]
+        assert min(values) >= 0.0 and max(values) <= 1.0
