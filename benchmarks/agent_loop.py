@@ -124,10 +124,16 @@ async def measure(seconds: float, body_kind: str) -> None:
     body = TimedBody(inner)
     clock = TimedClock(MonotonicClock())
     watchdog = Watchdog(body.stop)
-    runner = EvaluationRunner(body, clock, loop=LoopConfig(period=PERIOD), watchdog=watchdog)
+    runner = EvaluationRunner(body, clock, loop=LoopConfig(), watchdog=watchdog)
     spec = NetworkSpec(sensors=SENSORS, actor_hidden=8, predictor_hidden=len(SENSORS) + 1)
     genome = np.random.default_rng(0).uniform(-0.5, 0.5, GenomeLayout(spec).size)
-    msg = Evaluate(evaluation_id=0, genome=genome_to_bytes(genome), spec=spec, steps=steps)
+    msg = Evaluate(
+        evaluation_id=0,
+        genome=genome_to_bytes(genome),
+        spec=spec,
+        steps=steps,
+        step_period=PERIOD,
+    )
 
     print(f"# body: {source}; {steps} steps at {PERIOD * 1e3:.0f} ms; load {_load()}")
     async with watchdog:

@@ -25,6 +25,7 @@ import time
 from pathlib import Path
 
 from master_service import Master, MasterConfig
+from master_service.config import DEFAULT_MAX_PENDING_CONNECTIONS
 from master_service.rundir import RunDir, format_row
 from master_service.scripted import ScriptedRobot
 from surprise.config import EvolutionConfig, ExperimentConfig
@@ -44,10 +45,11 @@ def _robots_process(port: int, count: int) -> None:
             ScriptedRobot(f"r{i:04d}", SECRET, port, index=i, delay=ANSWER_DELAY)
             for i in range(count)
         ]
-        # Connect in batches: a thousand simultaneous handshakes are fine, but batches keep the
-        # child's own event loop responsive while it connects.
-        for start in range(0, count, 100):
-            await asyncio.gather(*(r.connect() for r in robots[start : start + 100]))
+        # Connect in batches no larger than the master's limit of handshakes at once (real robots
+        # beyond it retry with backoff; these scripted ones do not retry).
+        batch = DEFAULT_MAX_PENDING_CONNECTIONS
+        for start in range(0, count, batch):
+            await asyncio.gather(*(r.connect() for r in robots[start : start + batch]))
         await asyncio.gather(*(r.closed.wait() for r in robots))
 
     asyncio.run(main())

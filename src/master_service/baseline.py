@@ -21,8 +21,7 @@ import msgspec
 import numpy as np
 
 from master_service.rundir import write_atomic
-from master_service.simulate import SAFETY_PROFILES, world_config
-from robot_agent.config import LoopConfig
+from master_service.simulate import SAFETY_PROFILES, simulated_loop, world_config
 from robot_agent.runner import EvaluationRunner
 from sim_stub import metrics as sim_metrics
 from sim_stub.body import SimSwarm
@@ -57,9 +56,10 @@ def _pair_entry(
     for result in results:
         trace = result.trace
         assert trace is not None and trace.poses is not None
-        steps = min(evaluation_steps, len(trace.sensors))
-        fitnesses.append(surprise_fitness(trace.predictions[:steps], trace.sensors[:steps]))
-        poses.append(np.asarray(trace.poses))
+        steps = min(evaluation_steps, trace.steps)
+        predictions, sensors = trace.array("predictions"), trace.array("sensors")
+        fitnesses.append(surprise_fitness(predictions[:steps], sensors[:steps]))
+        poses.append(trace.array("poses"))
     length = min(len(p) for p in poses)
     stacked = np.stack([p[:length] for p in poses], axis=1)
     behaviour = sim_metrics.behaviour_metrics(stacked, boxes.get("start"), boxes.get("end"))
@@ -92,7 +92,9 @@ async def run_baseline(experiment: ExperimentConfig, pairs: int, out: str | Path
     async with contextlib.AsyncExitStack() as stack:
         bodies = [await stack.enter_async_context(swarm.body(i)) for i in range(experiment.robots)]
         runners = [
-            EvaluationRunner(body, body.clock, loop=LoopConfig(), safety=safety, safety_seed=i)
+            EvaluationRunner(
+                body, body.clock, loop=simulated_loop(experiment), safety=safety, safety_seed=i
+            )
             for i, body in enumerate(bodies)
         ]
         for k in range(pairs):
@@ -105,6 +107,7 @@ async def run_baseline(experiment: ExperimentConfig, pairs: int, out: str | Path
                 genome=genome_to_bytes(genome),
                 spec=spec,
                 steps=steps,
+                step_period=experiment.step_period,
                 record=True,
             )
             results = await _evaluate_pair(runners, msg)

@@ -20,7 +20,6 @@ Example::
 
 from __future__ import annotations
 
-import re
 import ssl
 from pathlib import Path
 from typing import Annotated, Final
@@ -29,53 +28,48 @@ import msgspec
 
 from surprise.config import ExperimentConfig, Strict, decode, load_experiment, load_yaml
 from surprise.errors import ConfigError
-from surprise.wire import MAX_FRAME_SIZE
+from surprise.wire import (
+    DEFAULT_PORT,
+    MAX_FRAME_SIZE,
+    MAX_HEARTBEAT_INTERVAL,
+    MIN_HEARTBEAT_INTERVAL,
+    ROBOT_ID_PATTERN,
+)
 from telemetry.config import TelemetryConfig
+from transport.tls import ServerTlsConfig, server_context
 
 __all__ = [
     "DEFAULT_HANDSHAKE_TIMEOUT",
     "DEFAULT_HEARTBEAT_INTERVAL",
-    "DEFAULT_PORT",
+    "DEFAULT_MAX_PENDING_CONNECTIONS",
     "DEFAULT_ROUND_MARGIN",
-    "ROBOT_ID_PATTERN",
     "MasterConfig",
-    "TlsConfig",
     "build_ssl_context",
     "load_master_config",
     "load_secret",
 ]
 
-#: Default TCP port of the master.
-DEFAULT_PORT: Final = 7474
-#: protocol.md: each handshake step has a 10 s deadline; generous for a Pi on a busy lab WLAN,
-#: short enough that a half-open connection does not linger.
+#: protocol.md: the whole handshake (TLS included) has a 10 s deadline; generous for a Pi on a busy
+#: lab WLAN, short enough that a half-open or dribbling connection does not hold its slot long.
 DEFAULT_HANDSHAKE_TIMEOUT: Final = 10.0
+#: Handshakes that may run at once. A lab's swarm is a few dozen robots that reconnect with
+#: backoff, so 64 lets all of them reconnect together; beyond it a connection is closed at once,
+#: so that peers without the secret can never use up the master's file descriptors (the run's
+#: checkpoints need some) or its memory.
+DEFAULT_MAX_PENDING_CONNECTIONS: Final = 64
 #: The link is declared dead after 3 intervals without any message (protocol.md). 2 s notices a
 #: dropped robot within 6-8 s, less than one 10 s evaluation, at a negligible ping traffic.
 DEFAULT_HEARTBEAT_INTERVAL: Final = 2.0
-#: Added to ``steps * 0.1 s`` for a round's deadline: covers building the networks on the Pi, the
-#: Result's transfer and a few late control steps, yet loses little time when a robot is stuck.
+#: Added to ``steps * step_period`` for a round's deadline: covers building the networks on the
+#: Pi, the Result's transfer and a few late control steps, yet loses little time when a robot is
+#: stuck.
 DEFAULT_ROUND_MARGIN: Final = 5.0
 
-#: What a robot id may look like: it names a CSV column and a trace file, so no separators or
-#: spaces, and a bounded length.
-ROBOT_ID_PATTERN: Final = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"
-_ROBOT_ID_RE = re.compile(ROBOT_ID_PATTERN)
-
 _PositiveSeconds = Annotated[float, msgspec.Meta(gt=0.0, le=86400.0)]
+_HeartbeatInterval = Annotated[
+    float, msgspec.Meta(ge=MIN_HEARTBEAT_INTERVAL, le=MAX_HEARTBEAT_INTERVAL)
+]
 _RobotId = Annotated[str, msgspec.Meta(pattern=ROBOT_ID_PATTERN)]
-
-
-class TlsConfig(Strict):
-    """TLS for the robots' connections: the master's certificate chain and private key.
-
-    With ``ca_file`` the robots must present a client certificate signed by that CA (mutual TLS).
-    The HMAC challenge is still required: TLS protects the link, the secret admits the robot.
-    """
-
-    cert_file: str
-    key_file: str
-    ca_file: str | None = None
 
 
 class MasterConfig(Strict):
@@ -87,9 +81,11 @@ class MasterConfig(Strict):
     a round starts only when that many are connected. The swarm is fixed when it first completes
     (those robots' ids are the CSV's columns); from then on only its members are admitted, so
     with spares in ``allowed_robots`` the first robots to connect take part. ``round_margin`` is
-    added to ``steps * 0.1 s`` for a round's deadline; ``heartbeat_interval`` is how often the
-    master pings (a link is dead after three silent intervals); ``handshake_timeout`` bounds each
-    handshake step; ``max_frame_size`` bounds one incoming message (bytes). ``telemetry``
+    added to ``steps * step_period`` (the experiment's) for a round's deadline;
+    ``heartbeat_interval`` is how often the master pings (a link is dead after three silent
+    intervals; robots accept 0.05 s to 60 s); ``handshake_timeout`` bounds a whole handshake;
+    ``max_pending_connections`` bounds how many handshakes run at once (a connection beyond is
+    closed at once); ``max_frame_size`` bounds one incoming message (bytes). ``telemetry``
     (optional) publishes the run's status over MQTT (``docs/telemetry.md``).
     """
 
@@ -100,10 +96,11 @@ class MasterConfig(Strict):
     secret_file: str | None = None
     allowed_robots: list[_RobotId] = msgspec.field(default_factory=list)
     expected_robots: Annotated[int, msgspec.Meta(ge=1)] | None = None
-    tls: TlsConfig | None = None
+    tls: ServerTlsConfig | None = None
     round_margin: _PositiveSeconds = DEFAULT_ROUND_MARGIN
-    heartbeat_interval: _PositiveSeconds = DEFAULT_HEARTBEAT_INTERVAL
+    heartbeat_interval: _HeartbeatInterval = DEFAULT_HEARTBEAT_INTERVAL
     handshake_timeout: _PositiveSeconds = DEFAULT_HANDSHAKE_TIMEOUT
+    max_pending_connections: Annotated[int, msgspec.Meta(ge=1)] = DEFAULT_MAX_PENDING_CONNECTIONS
     max_frame_size: Annotated[int, msgspec.Meta(ge=1024)] = MAX_FRAME_SIZE
     telemetry: TelemetryConfig | None = None
 
@@ -128,11 +125,6 @@ class MasterConfig(Strict):
         if self.experiment is None:
             raise ConfigError("the experiment is not loaded yet", key="experiment_file")
         return self.experiment.robots
-
-
-def is_valid_robot_id(robot_id: str) -> bool:
-    """Whether ``robot_id`` matches :data:`ROBOT_ID_PATTERN`."""
-    return _ROBOT_ID_RE.match(robot_id) is not None
 
 
 def _resolve(base: Path, value: str | None) -> str | None:
@@ -162,7 +154,7 @@ def load_master_config(path: str | Path) -> MasterConfig:
         experiment = load_experiment(experiment_path)
     tls = config.tls
     if tls is not None:
-        tls = TlsConfig(
+        tls = ServerTlsConfig(
             cert_file=_resolve(base, tls.cert_file) or "",
             key_file=_resolve(base, tls.key_file) or "",
             ca_file=_resolve(base, tls.ca_file),
@@ -212,21 +204,6 @@ def load_secret(path: str | Path) -> bytes:
     return secret
 
 
-def build_ssl_context(tls: TlsConfig) -> ssl.SSLContext:
+def build_ssl_context(tls: ServerTlsConfig) -> ssl.SSLContext:
     """A server-side TLS context from ``tls``; a bad certificate or key is a ConfigError."""
-    context = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
-    try:
-        context.load_cert_chain(tls.cert_file, tls.key_file)
-    except (OSError, ssl.SSLError) as exc:
-        raise ConfigError(
-            f"cannot load the certificate and key: {exc}", file=tls.cert_file, key="tls.cert_file"
-        ) from None
-    if tls.ca_file is not None:
-        try:
-            context.load_verify_locations(cafile=tls.ca_file)
-        except (OSError, ssl.SSLError) as exc:
-            raise ConfigError(
-                f"cannot load the CA certificates: {exc}", file=tls.ca_file, key="tls.ca_file"
-            ) from None
-        context.verify_mode = ssl.CERT_REQUIRED
-    return context
+    return server_context(tls, key="tls")

@@ -1,9 +1,9 @@
 """The master: (1+1) online evolution over a swarm of robots, with checkpoint and resume.
 
-One round (DESIGN "One evaluation round"): wait until the swarm is complete -> send the genome with
-a fresh evaluation id -> collect one fitness per robot within the deadline -> if all arrived, tell
-the algorithm their mean and log the row; otherwise the round does not count and the same genome
-goes out again once the swarm is complete. A robot that drops out pauses the run; it never fails
+One round: wait until the swarm is complete -> send the genome with a fresh evaluation id ->
+collect one fitness per robot within the deadline -> if all arrived, tell the algorithm their mean
+and log the row; otherwise the round does not count and the same genome goes out again once the
+swarm is complete. A robot that drops out pauses the run; it never fails
 it. After the last counted evaluation, the best genome is post-evaluated with ``record=True`` and
 every robot's trace is stored.
 
@@ -43,7 +43,7 @@ from typing import Any, Final
 import numpy as np
 
 from master_service.config import MasterConfig, build_ssl_context
-from master_service.rounds import STEP_PERIOD, Attempt, RoundRunner
+from master_service.rounds import Attempt, RoundRunner
 from master_service.rundir import (
     CONFIG_SNAPSHOT,
     EVALUATION_COLUMNS,
@@ -59,7 +59,8 @@ from surprise.errors import ConfigError
 from surprise.evolution import OnePlusOne
 from surprise.fitness import swarm_fitness
 from surprise.network import GenomeLayout, spec_from_config
-from surprise.wire import REFUSED_UNKNOWN_ROBOT, Evaluate, Failed, Result, encode
+from surprise.session import TAG_SIZE
+from surprise.wire import REFUSED_UNKNOWN_ROBOT, Evaluate, Failed, Result, encode_payload
 from telemetry.config import require_client_library
 from telemetry.payloads import RunStatus, master_status_suffix, now, run_status_suffix
 from telemetry.publisher import TelemetryPublisher
@@ -155,9 +156,10 @@ class Master:
             genome=bytes(8 * self.genome_size),
             spec=self.spec,
             steps=widest,
+            step_period=self.experiment.step_period,
             record=False,  # one byte either way; a recorded one may not have this many steps
         )
-        if len(encode(probe, max_frame_size=2**62)) - 4 > config.max_frame_size:
+        if len(encode_payload(probe)) + TAG_SIZE > config.max_frame_size:
             raise ConfigError(
                 f"{config.max_frame_size} bytes cannot hold the genome of "
                 f"{self.genome_size} values sent with every evaluation",
@@ -192,6 +194,7 @@ class Master:
             run_id=self.run_id,
             heartbeat_interval=config.heartbeat_interval,
             handshake_timeout=config.handshake_timeout,
+            max_pending_connections=config.max_pending_connections,
             max_frame_size=config.max_frame_size,
             ssl_context=self._ssl,
             admit=self._admit,
@@ -394,6 +397,7 @@ class Master:
                 genome=candidate.genome,
                 spec=self.spec,
                 steps=self.experiment.evaluation_steps,
+                step_period=self.experiment.step_period,
                 record=False,
                 robots=robots,
             )
@@ -402,14 +406,8 @@ class Master:
                 await self._attempt_failed(attempt, f"evaluation {opt.evaluations + 1}")
                 continue
             fitnesses = attempt.fitnesses()
-            with np.errstate(over="ignore"):
-                fitness = swarm_fitness(fitnesses)
-            if not np.isfinite(fitness):
-                # Finite fitnesses whose mean overflows: garbage from a robot must not stop the run.
-                attempt.failure = f"the robots' fitnesses {fitnesses} have no finite mean"
-                opt.tell_failed()
-                await self._attempt_failed(attempt, f"evaluation {opt.evaluations + 1}")
-                continue
+            # Each in [0, 1]: the codec refuses anything else, so the mean is one too.
+            fitness = swarm_fitness(fitnesses)
             outcome = opt.tell(fitness)
             duration = attempt.completed - attempt.started
             row = format_row(
@@ -463,6 +461,7 @@ class Master:
                 genome=opt.best,
                 spec=self.spec,
                 steps=steps,
+                step_period=self.experiment.step_period,
                 record=True,
                 robots=robots,
             )
@@ -640,7 +639,10 @@ class Master:
         remaining = self.experiment.evolution.evaluations - state.optimizer.evaluations
         # Measured once possible, so a simulated swarm in lockstep (far faster than 10 Hz) is
         # estimated right too, its post-evaluation included.
-        per_step = statistics.fmean(self._intervals) / steps if self._intervals else STEP_PERIOD
+        if self._intervals:
+            per_step = statistics.fmean(self._intervals) / steps
+        else:
+            per_step = self.experiment.step_period
         return (remaining * steps + self.experiment.post_evaluation_steps) * per_step
 
     def _counted(self, fitness: float) -> None:

@@ -1,10 +1,11 @@
 """One evaluation attempt: send a genome to the swarm, collect one result per robot or give up.
 
 An attempt succeeds when every robot of the swarm answered with a Result before the deadline
-(``steps * STEP_PERIOD + margin``). It fails on the first Failed, when a robot that has not
-answered yet leaves, or at the deadline; a failed attempt is aborted on every robot. Results of
-other evaluation ids (late answers to aborted attempts) and second answers are ignored: the
-evaluation id is unique per attempt, so nothing can be counted twice.
+(``steps * step_period + margin``, with the experiment's period that the Evaluate carries). It
+fails on the first Failed, when a robot that has not answered yet leaves, or at the deadline; a
+failed attempt is aborted on every robot. Results of other evaluation ids (late answers to aborted
+attempts) and second answers are ignored: the evaluation id is unique per attempt, so nothing can
+be counted twice.
 
 The evolution loop that asks and tells lives in :mod:`master_service.master`.
 """
@@ -22,13 +23,18 @@ import numpy as np
 
 from master_service.server import RobotServer, Session
 from surprise.network import NetworkSpec
-from surprise.wire import Abort, Evaluate, Failed, Result, encode, genome_to_bytes
+from surprise.wire import (
+    Abort,
+    Evaluate,
+    Failed,
+    Result,
+    encode_payload,
+    genome_to_bytes,
+    printable,
+)
 
-__all__ = ["STEP_PERIOD", "Attempt", "RoundRunner"]
+__all__ = ["Attempt", "RoundRunner"]
 
-#: Seconds per control step: the robots run at 10 Hz (protocol.md: deadline = steps * 0.1 s +
-#: margin). A simulated swarm may be faster; the deadline is only an upper bound.
-STEP_PERIOD: Final = 0.1
 #: How many per-round overheads to keep for benchmarks and diagnostics.
 OVERHEAD_HISTORY: Final = 10_000
 
@@ -91,9 +97,10 @@ class RoundRunner:
         self.overheads: collections.deque[float] = collections.deque(maxlen=OVERHEAD_HISTORY)
         self._previous_completed: float | None = None
 
-    def deadline(self, steps: int) -> float:
-        """Seconds an attempt of ``steps`` control steps may take."""
-        return steps * STEP_PERIOD + self.margin
+    def deadline(self, steps: int, step_period: float) -> float:
+        """Seconds an attempt of ``steps`` control steps of ``step_period`` seconds may take (a
+        simulated swarm in lockstep is faster; the deadline is only an upper bound)."""
+        return steps * step_period + self.margin
 
     # -- callbacks from the server -----------------------------------------------------------
 
@@ -125,7 +132,7 @@ class RoundRunner:
             )
             return
         if isinstance(msg, Failed):
-            attempt.fail(f"robot {robot_id} could not evaluate: {msg.reason}")
+            attempt.fail(f"robot {robot_id} could not evaluate: {printable(msg.reason)}")
             return
         if attempt.record and msg.trace is None:
             self.log.warning("robot %s sent its post-evaluation without a trace", robot_id)
@@ -150,6 +157,7 @@ class RoundRunner:
         genome: np.ndarray,
         spec: NetworkSpec,
         steps: int,
+        step_period: float,
         record: bool,
         robots: Sequence[str],
     ) -> Attempt:
@@ -160,20 +168,21 @@ class RoundRunner:
             genome=genome_to_bytes(genome),
             spec=spec,
             steps=steps,
+            step_period=step_period,
             record=record,
         )
-        # One encoding for the whole swarm: every robot gets the same bytes.
-        frame = encode(message, max_frame_size=self.server.max_frame_size)
+        # One encoding for the whole swarm: every robot gets the same bytes, tagged per session.
+        payload = encode_payload(message)
         self.current = attempt
         try:
-            missed = self.server.send(robots, frame)
+            missed = self.server.send(robots, payload)
             attempt.started = time.perf_counter()
             if self._previous_completed is not None:
                 self.overheads.append(attempt.started - self._previous_completed)
             self._previous_completed = None
             if missed:
                 attempt.fail(f"robots {', '.join(missed)} could not be sent the genome")
-            deadline = self.deadline(steps)
+            deadline = self.deadline(steps, step_period)
             try:
                 async with asyncio.timeout(deadline):
                     await attempt.finished.wait()
@@ -187,8 +196,6 @@ class RoundRunner:
             self._previous_completed = attempt.completed
         else:
             abort = Abort(evaluation_id=evaluation_id, reason=attempt.failure or "cancelled")
-            self.server.send(
-                [r for r in robots if r in self.server.sessions],
-                encode(abort, max_frame_size=self.server.max_frame_size),
-            )
+            live = [r for r in robots if r in self.server.sessions]
+            self.server.send(live, encode_payload(abort))
         return attempt

@@ -395,14 +395,14 @@ def _trace_npz(result: Result) -> bytes:
     trace = result.trace
     assert trace is not None
     arrays: dict[str, np.ndarray] = {
-        "sensors": np.asarray(trace.sensors, dtype=np.float64),
-        "predictions": np.asarray(trace.predictions, dtype=np.float64),
-        "actions": np.asarray(trace.actions, dtype=np.float64),
-        "commands": np.asarray(trace.commands, dtype=np.float64),
+        "sensors": trace.array("sensors"),
+        "predictions": trace.array("predictions"),
+        "actions": trace.array("actions"),
+        "commands": trace.array("commands"),
         "safety": np.asarray(trace.safety, dtype=str),
     }
     if trace.poses is not None:
-        arrays["poses"] = np.asarray(trace.poses, dtype=np.float64)
+        arrays["poses"] = trace.array("poses")
     buffer = io.BytesIO()
     np.savez_compressed(buffer, **arrays)
     return buffer.getvalue()

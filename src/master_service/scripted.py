@@ -4,6 +4,10 @@ It answers every Evaluate with a fitness computed from the genome alone
 (:func:`deterministic_fitness`), so two runs with the same seed give the same ``evaluations.csv``
 whatever faults happened in between. A ``behaviour(count, evaluate)`` callable can make it
 misbehave for the ``count``-th Evaluate it receives: return one of the ``REPLY``... constants.
+
+It speaks the whole handshake (``docs/protocol.md``), checking the master's proof; with
+``verify_master=False`` it answers even a master whose proof is wrong (a robot with a wrong
+secret then reaches the master's own check, which refuses it).
 """
 
 from __future__ import annotations
@@ -16,30 +20,31 @@ from typing import Final, TypeVar
 
 import numpy as np
 
-from surprise.errors import ProtocolError
+from surprise.errors import AuthenticationError, ConnectionClosedError, ProtocolError
 from surprise.sensors import ALL_SENSORS
+from surprise.session import FrameAuth, master_proof, new_nonce, proof_matches, robot_proof
 from surprise.wire import (
     PROTOCOL_VERSION,
     Abort,
     Authenticate,
     Bye,
     Challenge,
-    ConnectionClosedError,
     Evaluate,
     EvaluationStats,
     Failed,
     Hello,
     Message,
-    MessageStream,
     Ping,
     Pong,
     Refused,
     Result,
     Trace,
     Welcome,
-    compute_mac,
+    encode_payload,
+    frame,
     genome_from_bytes,
 )
+from transport.stream import MessageStream
 
 __all__ = [
     "DISCONNECT",
@@ -72,8 +77,9 @@ M = TypeVar("M")
 
 def deterministic_fitness(genome: np.ndarray, index: int) -> float:
     """A fitness that depends on the genome and the robot's index only: ``0.5 + 0.4 *
-    mean(tanh(genome)) - 0.01 * index`` (no hashing, so equal genomes give equal values)."""
-    return float(0.5 + 0.4 * np.tanh(genome).mean() - 0.01 * index)
+    mean(tanh(genome)) - 0.01 * (index mod 10)`` (no hashing, so equal genomes give equal
+    values), in [0.01, 0.9] however large the swarm, as a surprise fitness must be."""
+    return float(0.5 + 0.4 * np.tanh(genome).mean() - 0.01 * (index % 10))
 
 
 class RobotRefusedError(ConnectionError):
@@ -108,6 +114,7 @@ class ScriptedRobot:
         answer_pings: bool = True,
         poses: bool = False,
         ssl_context: ssl.SSLContext | None = None,
+        verify_master: bool = True,
     ) -> None:
         self.robot_id = robot_id
         self.secret = secret
@@ -122,6 +129,7 @@ class ScriptedRobot:
         self.answer_pings = answer_pings
         self.poses = poses
         self.ssl_context = ssl_context
+        self.verify_master = verify_master
         self.welcome: Welcome | None = None
         self.evaluations: list[Evaluate] = []
         self.aborts: list[Abort] = []
@@ -135,7 +143,9 @@ class ScriptedRobot:
     # -- connection --------------------------------------------------------------------------
 
     async def connect(self) -> Welcome:
-        """Connect and complete the handshake; raises :class:`RobotRefusedError` if refused."""
+        """Connect and complete the handshake; raises :class:`RobotRefusedError` if refused and
+        :class:`~surprise.errors.AuthenticationError` if the master's proof is wrong (unless
+        ``verify_master`` is off)."""
         reader, writer = await asyncio.open_connection(
             self.host,
             self.port,
@@ -143,18 +153,29 @@ class ScriptedRobot:
             server_hostname=self.host if self.ssl_context else None,
         )
         stream = MessageStream(reader, writer)
+        secret, robot_id, robot_nonce = self.secret, self.robot_id, new_nonce()
         try:
             await stream.send(
                 Hello(
-                    robot_id=self.robot_id,
+                    robot_id=robot_id,
                     software_version="scripted",
                     protocol_version=self.protocol_version,
                     sensors=self.sensors,
+                    nonce=robot_nonce,
                 )
             )
             challenge = _expect(await stream.receive(), Challenge)
-            mac = compute_mac(self.secret, challenge.nonce, self.robot_id)
-            await stream.send(Authenticate(mac=mac))
+            master_nonce = challenge.nonce
+            expected = master_proof(secret, robot_nonce, master_nonce, robot_id)
+            same_secret = proof_matches(expected, challenge.proof)
+            if not same_secret and self.verify_master:
+                raise AuthenticationError("the master did not prove the shared secret")
+            proof = robot_proof(secret, robot_nonce, master_nonce, robot_id)
+            await stream.send(Authenticate(proof=proof))
+            if same_secret:
+                # With different secrets no tag could verify; the master's refusal comes plain.
+                auth = FrameAuth.for_robot(secret, robot_nonce, master_nonce, robot_id)
+                stream.authenticate(auth)
             welcome = _expect(await stream.receive(), Welcome)
         except BaseException:
             await stream.close()
@@ -177,9 +198,22 @@ class ScriptedRobot:
             await self._serving
 
     def send_raw(self, data: bytes) -> None:
-        """Write raw bytes on the connection (garbage, a forged header...)."""
+        """Write raw bytes on the connection (garbage, a forged header...), untagged."""
         if self._stream is not None:
             self._stream.writer.write(data)
+
+    def sealed_frame(self, msg: Message) -> bytes:
+        """``msg`` as the session's next frame, tagged, for a test to write in pieces with
+        :meth:`send_raw` (it uses up the frame's sequence number: send nothing in between)."""
+        assert self._stream is not None and self._stream.auth is not None, "connect() first"
+        sealed = self._stream.auth.seal(encode_payload(msg))
+        return frame(sealed, max_frame_size=self._stream.max_frame_size)
+
+    def send_payload(self, payload: bytes) -> None:
+        """Write one message's payload, tagged like any other: a message this robot's software
+        would never send (say, a fitness outside [0, 1]), from an authenticated robot."""
+        if self._stream is not None:
+            self._stream.write(payload)
 
     def drop(self) -> None:
         """Cut the connection abruptly (like a robot whose Wi-Fi went away)."""
@@ -280,21 +314,20 @@ class ScriptedRobot:
 
     def _trace(self, steps: int, sensors: int) -> Trace:
         base = 0.1 * (self.index + 1)
-        readings = [
-            [base + 0.01 * (i % 10) + 0.001 * s for s in range(sensors)] for i in range(steps)
-        ]
+        i = np.arange(steps)
+        readings = base + 0.01 * (i[:, None] % 10) + 0.001 * np.arange(sensors)
         poses = None
         if self.poses:
             # Robots staggered 10 cm apart in x and 5 cm in y, each driving 1 cm and turning
             # 0.1 rad per step.
             x, y = 0.1 * self.index, 0.05 * self.index
-            poses = [[x + 0.01 * i, y, 0.1 * i] for i in range(steps)]
-        return Trace(
+            poses = np.column_stack([x + 0.01 * i, np.full(steps, y), 0.1 * i])
+        return Trace.from_arrays(
             sensors=readings,
-            predictions=[[base] * sensors for _ in range(steps)],
-            actions=[[0.5, 0.5] for _ in range(steps)],
-            commands=[[0.5, 0.5] for _ in range(steps)],
-            safety=["" if i % 5 else "stop" for i in range(steps)],
+            predictions=np.full((steps, sensors), base),
+            actions=np.full((steps, 2), 0.5),
+            commands=np.full((steps, 2), 0.5),
+            safety=["" if k % 5 else "stop" for k in range(steps)],
             poses=poses,
         )
 

@@ -1,27 +1,40 @@
 """The robots' TCP server: handshake, authenticated sessions, replacement and keep-alive.
 
 The conversation follows ``docs/protocol.md``. A connection becomes a :class:`Session` once the
-robot has said Hello with our protocol version, answered the challenge with the shared secret, and
-been admitted (allow-list, swarm membership, sensors). Anything else gets a ``Refused`` with a code
-and a reason the robot logs, and the connection is closed.
+robot has said Hello with our protocol version and its nonce, checked our proof of the shared
+secret, proved the secret itself, and been admitted (allow-list, swarm membership, sensors).
+Anything else gets a ``Refused`` with a code and a reason the robot logs, and the connection is
+closed. From the Welcome on, every frame in both directions is tagged with the session's keys; a
+frame whose tag does not verify (forged, replayed, reflected) closes the session.
 
 The server knows nothing about evolution: it reports joins, departures and the robots' Result and
-Failed messages to callbacks, and offers :meth:`RobotServer.send` for already encoded frames, so a
-genome sent to a hundred robots is encoded once.
+Failed messages to callbacks, and offers :meth:`RobotServer.send` for already encoded messages, so
+a genome sent to a hundred robots is encoded once and only tagged per session.
+
+Connections that have not authenticated cost the master as little as possible and can never
+starve it: at most ``max_pending_connections`` handshakes run at once (a connection beyond that is
+accepted and closed at once, with no handshake work, so its file descriptor is free again); the
+whole handshake, TLS included, has one deadline; its frames are small and every field in them is
+bounded; and what goes wrong with such connections is logged through a :class:`ThrottledLog`.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 import ssl
 from collections.abc import Callable, Iterable, Sequence
-from typing import Final
+from typing import Any, Final
 
-from master_service.config import is_valid_robot_id
-from surprise.errors import ProtocolError
+from master_service.throttled_log import ThrottledLog
+from surprise.errors import AuthenticationError, ConnectionClosedError, ProtocolError
+from surprise.session import FrameAuth, master_proof, new_nonce, proof_matches, robot_proof
 from surprise.wire import (
+    DEAD_AFTER_HEARTBEATS,
+    HANDSHAKE_MAX_FRAME_SIZE,
+    MAX_REASON_LENGTH,
     PROTOCOL_VERSION,
     REFUSED_BAD_SECRET,
     REFUSED_MISSING_SENSORS,
@@ -30,41 +43,82 @@ from surprise.wire import (
     Authenticate,
     Bye,
     Challenge,
-    ConnectionClosedError,
     Error,
     Failed,
     Hello,
     Message,
-    MessageStream,
     Ping,
     Pong,
     Refused,
     Result,
     Welcome,
-    encode,
-    new_nonce,
-    verify_mac,
+    encode_payload,
+    printable,
 )
+from transport.stream import MessageStream
 
-__all__ = ["DEAD_AFTER_HEARTBEATS", "RobotServer", "Session"]
+__all__ = ["RobotServer", "Session"]
 
-#: protocol.md: a link is dead when nothing at all arrived for this many heartbeat intervals.
-DEAD_AFTER_HEARTBEATS: Final = 3
 #: Bytes a session may have queued unsent before we call the peer stuck and drop it. Far above
 #: anything the master sends in one go (an Evaluate is a few kB), far below hurting memory.
 MAX_PENDING_OUTPUT: Final = 4 * 1024 * 1024
 #: How long a closing connection may take to flush its last message (a Refused, a Bye) before
 #: it is aborted; the peer is not worth more of our time.
 CLOSE_TIMEOUT: Final = 2.0
-#: Bytes one frame may have before the peer authenticated: far above any Hello or Authenticate,
-#: far below the limit for Results, so that unauthenticated peers cannot make the master buffer
-#: megabytes each until their handshake times out.
-HANDSHAKE_MAX_FRAME_SIZE: Final = 64 * 1024
 #: The listen backlog: a thousand robots (the benchmark) may connect at the same instant; the
 #: default of 100 would make some retry their SYN a second later.
 LISTEN_BACKLOG: Final = 1024
 
 Admit = Callable[[str], tuple[str, str] | None]
+
+
+class _Refusal(Exception):
+    """A handshake ends with a Refused(code, reason); internal to the server."""
+
+    def __init__(self, code: str, reason: str) -> None:
+        self.code = code
+        self.reason = reason[:MAX_REASON_LENGTH]
+        super().__init__(f"{code}: {reason}")
+
+
+class _Slot:
+    """One unauthenticated connection counted against ``max_pending_connections``; given back
+    exactly once, when its handshake ends or its connection is lost, whichever comes first."""
+
+    __slots__ = ("_server", "released")
+
+    def __init__(self, server: RobotServer) -> None:
+        self._server = server
+        self.released = False
+
+    def release(self) -> None:
+        if not self.released:
+            self.released = True
+            self._server.pending_connections -= 1
+
+
+class _PendingProtocol(asyncio.StreamReaderProtocol):
+    """A stream protocol whose connection holds a handshake slot until it ends."""
+
+    def __init__(self, reader: asyncio.StreamReader, handler: Any, slot: _Slot) -> None:
+        super().__init__(reader, handler)
+        self._slot = slot
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._slot.release()
+        super().connection_lost(exc)
+
+
+class _Refuse(asyncio.Protocol):
+    """A connection beyond ``max_pending_connections``: closed the moment it is accepted."""
+
+    def __init__(self, on_refused: Callable[[str], None]) -> None:
+        self._on_refused = on_refused
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        peer = _peer_name(transport)
+        transport.abort()  # type: ignore[attr-defined]
+        self._on_refused(peer)
 
 
 class Session:
@@ -89,10 +143,11 @@ class Session:
 class RobotServer:
     """Accepts robots and keeps their sessions; callbacks tell the owner what happens.
 
-    ``admit(robot_id)`` returns None or a ``(code, reason)`` refusal; it is asked after the
-    secret was verified. ``on_join(session)`` and ``on_leave(session, reason)`` are called once
-    per session; ``on_message(session, msg)`` gets every Result and Failed. Callbacks run in the
-    event loop and must not block.
+    ``handshake_timeout`` bounds a whole handshake (TLS included); ``max_pending_connections``
+    bounds how many run at once. ``admit(robot_id)`` returns None or a ``(code, reason)``
+    refusal; it is asked after the secret was verified. ``on_join(session)`` and
+    ``on_leave(session, reason)`` are called once per session; ``on_message(session, msg)`` gets
+    every Result and Failed. Callbacks run in the event loop and must not block.
     """
 
     def __init__(
@@ -105,6 +160,7 @@ class RobotServer:
         run_id: str,
         heartbeat_interval: float,
         handshake_timeout: float,
+        max_pending_connections: int,
         max_frame_size: int,
         ssl_context: ssl.SSLContext | None,
         admit: Admit,
@@ -120,6 +176,7 @@ class RobotServer:
         self.run_id = run_id
         self.heartbeat_interval = heartbeat_interval
         self.handshake_timeout = handshake_timeout
+        self.max_pending_connections = max_pending_connections
         self.max_frame_size = max_frame_size
         self._ssl = ssl_context
         self._admit = admit
@@ -127,11 +184,22 @@ class RobotServer:
         self._on_leave = on_leave
         self._on_message = on_message
         self.log = logger
+        #: What happens to connections that have not authenticated: anyone can cause it.
+        self.unauthenticated_log = ThrottledLog(
+            logger, "refused or failed connections of unauthenticated peers"
+        )
+        #: Connections whose handshake is running now.
+        self.pending_connections = 0
+        #: Connections closed at once because max_pending_connections handshakes were running.
+        self.refused_connections = 0
         #: The live session of each robot id.
         self.sessions: dict[str, Session] = {}
         self._server: asyncio.Server | None = None
         self._port: int | None = None
         self._handlers: set[asyncio.Task[None]] = set()
+        # The handlers still in their handshake: nothing of theirs is worth waiting for.
+        self._handshaking: set[asyncio.Task[None]] = set()
+        self._closing = False
         self._keepalive: asyncio.Task[None] | None = None
 
     # -- lifecycle ---------------------------------------------------------------------------
@@ -139,12 +207,13 @@ class RobotServer:
     async def bind(self) -> None:
         """Bind the listening socket without accepting yet (errors such as a busy port surface
         here, before the run directory is touched)."""
-        self._server = await asyncio.start_server(
-            self._handle,
+        # Plain TCP: TLS starts inside the handshake, under its deadline and its slot, so that
+        # connections beyond the limit are refused before any TLS work too.
+        loop = asyncio.get_running_loop()
+        self._server = await loop.create_server(
+            self._make_protocol,
             self.host,
             self.requested_port,
-            ssl=self._ssl,
-            ssl_handshake_timeout=self.handshake_timeout if self._ssl else None,
             backlog=LISTEN_BACKLOG,
             start_serving=False,
         )
@@ -164,17 +233,20 @@ class RobotServer:
 
     async def close(self, reason: str = "master shutting down") -> None:
         """Stop accepting, say Bye to every robot and close every connection."""
+        self._closing = True
         if self._keepalive is not None:
             self._keepalive.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await self._keepalive
         if self._server is not None:
             self._server.close()
-        bye = encode(Bye(reason=reason))
+        bye = encode_payload(Bye(reason=reason))
         for session in list(self.sessions.values()):
             self._write(session, bye)
             self.drop(session, reason, graceful=True)
-        # Let handlers flush their Bye and finish; cancel the ones that do not (handshakes).
+        for task in self._handshaking:
+            task.cancel()
+        # Let the sessions' handlers flush their Bye and finish; cancel the ones that do not.
         if self._handlers:
             _, pending = await asyncio.wait(set(self._handlers), timeout=CLOSE_TIMEOUT)
             for task in pending:
@@ -183,28 +255,30 @@ class RobotServer:
                 await asyncio.wait(pending)
         if self._server is not None:
             await self._server.wait_closed()
+        self.unauthenticated_log.flush()
 
     # -- sending -----------------------------------------------------------------------------
 
-    def send(self, robot_ids: Iterable[str], frame: bytes) -> list[str]:
-        """Write an encoded frame to each robot's live session; return the ids it did not reach.
+    def send(self, robot_ids: Iterable[str], payload: bytes) -> list[str]:
+        """Write one encoded message (:func:`~surprise.wire.encode_payload`) to each robot's live
+        session, tagged for that session; return the ids it did not reach.
 
         Never waits: a peer that lets output pile up past :data:`MAX_PENDING_OUTPUT` is dropped.
         """
         missed = []
         for robot_id in robot_ids:
             session = self.sessions.get(robot_id)
-            if session is None or not self._write(session, frame):
+            if session is None or not self._write(session, payload):
                 missed.append(robot_id)
         return missed
 
-    def _write(self, session: Session, frame: bytes) -> bool:
+    def _write(self, session: Session, payload: bytes) -> bool:
         if session.closed:
             return False
         transport = session.stream.writer.transport
         if transport.is_closing():
             return False
-        transport.write(frame)
+        session.stream.write(payload)
         if transport.get_write_buffer_size() > MAX_PENDING_OUTPUT:
             self.drop(session, "the robot does not read what the master sends")
             return False
@@ -231,113 +305,171 @@ class RobotServer:
 
     # -- one connection ----------------------------------------------------------------------
 
-    async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+    def _make_protocol(self) -> asyncio.BaseProtocol:
+        """A protocol for a connection just accepted: a handshake, or an immediate close when
+        ``max_pending_connections`` handshakes are running (or the server is closing)."""
+        if self.pending_connections >= self.max_pending_connections or self._closing:
+            return _Refuse(self._refused)
+        self.pending_connections += 1
+        slot = _Slot(self)
+        return _PendingProtocol(asyncio.StreamReader(), functools.partial(self._handle, slot), slot)
+
+    def _refused(self, peer: str) -> None:
+        self.refused_connections += 1
+        self.unauthenticated_log.log(
+            logging.WARNING,
+            "refused a connection from %s at once: %d handshakes are running "
+            "(max_pending_connections)",
+            peer,
+            self.pending_connections,
+        )
+
+    async def _handle(
+        self, slot: _Slot, reader: asyncio.StreamReader, writer: asyncio.StreamWriter
+    ) -> None:
         task = asyncio.current_task()
         assert task is not None
         self._handlers.add(task)
-        peer = _peer_name(writer)
-        limit = min(HANDSHAKE_MAX_FRAME_SIZE, self.max_frame_size)
-        stream = MessageStream(reader, writer, max_frame_size=limit)
+        self._handshaking.add(task)
+        peer = _peer_name(writer.transport)
         session: Session | None = None
         reason = "connection closed"
+        cancelled = False
         try:
-            session = await self._handshake(stream, peer)
+            session = await self._handshake(reader, writer, peer)
+            self._handshaking.discard(task)
+            slot.release()
             if session is not None:
                 reason = await self._serve(session)
         except asyncio.CancelledError:
+            # Only close() cancels a connection's task. It ends here, quietly: a connection task
+            # ending cancelled would make asyncio print a traceback for every one of them.
+            cancelled = True
             reason = "master shutting down"
-            raise
         except Exception:
             # A bug must cost one connection, never the master.
             self.log.exception("unexpected error on the connection from %s", peer)
             reason = "internal error"
         finally:
+            slot.release()
             if session is not None:
                 self.drop(session, reason)
-            await _close(writer)
+            if cancelled:
+                writer.transport.abort()
+            else:
+                await _close(writer)
             self._handlers.discard(task)
+            self._handshaking.discard(task)
 
-    async def _receive(self, stream: MessageStream) -> Message:
-        # asyncio.timeout rather than wait_for, which in Python 3.11 may swallow a cancellation.
-        async with asyncio.timeout(self.handshake_timeout):
-            return await stream.receive()
-
-    async def _handshake(self, stream: MessageStream, peer: str) -> Session | None:
+    async def _handshake(
+        self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, peer: str
+    ) -> Session | None:
+        """Run the handshake under one deadline; returns the new session, or None when the
+        connection was refused or lost (and logged)."""
+        stream: MessageStream | None = None
         robot_id = "?"
-
-        async def refuse(code: str, reason: str) -> None:
-            self.log.warning("refused robot %s (%s): %s: %s", robot_id, peer, code, reason)
-            refused = Refused(code=code, reason=reason)
-            with contextlib.suppress(Exception):
-                async with asyncio.timeout(CLOSE_TIMEOUT):
-                    await stream.send(refused)
-
         try:
-            hello = await self._receive(stream)
-            if not isinstance(hello, Hello):
-                await refuse(REFUSED_PROTOCOL, f"expected hello, got {type(hello).__name__}")
-                return None
-            robot_id = hello.robot_id[:80]
-            if hello.protocol_version != PROTOCOL_VERSION:
-                await refuse(
-                    REFUSED_VERSION_MISMATCH,
-                    f"the master speaks protocol version {PROTOCOL_VERSION}, "
-                    f"the robot {hello.protocol_version}",
-                )
-                return None
-            if not is_valid_robot_id(hello.robot_id):
-                await refuse(
-                    REFUSED_PROTOCOL,
-                    "a robot id is 1-64 letters, digits, '.', '_' or '-', starting with a letter "
-                    "or digit",
-                )
-                return None
-            nonce = new_nonce()
-            await stream.send(Challenge(nonce=nonce))
-            auth = await self._receive(stream)
-            if not isinstance(auth, Authenticate):
-                await refuse(REFUSED_PROTOCOL, f"expected auth, got {type(auth).__name__}")
-                return None
-            if not verify_mac(self._secret, nonce, hello.robot_id, auth.mac):
-                await refuse(REFUSED_BAD_SECRET, "the answer to the challenge does not match")
-                return None
-            refusal = self._admit(hello.robot_id)
-            if refusal is not None:
-                await refuse(*refusal)
-                return None
-            missing = [name for name in self._sensors if name not in hello.sensors]
-            if missing:
-                await refuse(
-                    REFUSED_MISSING_SENSORS,
-                    f"the experiment needs the sensors {', '.join(missing)}, which the robot lacks",
-                )
-                return None
+            # One deadline for everything, TLS included: a peer dribbling a byte now and then
+            # holds its slot no longer than that.
+            async with asyncio.timeout(self.handshake_timeout):
+                if self._ssl is not None:
+                    await writer.start_tls(self._ssl)
+                limit = min(HANDSHAKE_MAX_FRAME_SIZE, self.max_frame_size)
+                stream = MessageStream(reader, writer, max_frame_size=limit)
+                hello = await stream.receive()
+                if isinstance(hello, Hello):
+                    # Decoding checked it against ROBOT_ID_PATTERN: plain and short.
+                    robot_id = hello.robot_id
+                hello = await self._negotiate(stream, hello)
+        except _Refusal as refusal:
+            await self._refuse(stream, robot_id, peer, refusal)
+            return None
         except TimeoutError:
-            await refuse(
-                REFUSED_PROTOCOL, f"a handshake step took longer than {self.handshake_timeout} s"
+            refusal = _Refusal(
+                REFUSED_PROTOCOL, f"the handshake took longer than {self.handshake_timeout:g} s"
             )
+            await self._refuse(stream, robot_id, peer, refusal)
             return None
         except ProtocolError as exc:
             # Garbage or an oversized frame: the stream is out of sync; say why and close.
-            await refuse(REFUSED_PROTOCOL, str(exc))
+            await self._refuse(stream, robot_id, peer, _Refusal(REFUSED_PROTOCOL, str(exc)))
             return None
-        except (ConnectionClosedError, OSError) as exc:
-            self.log.info("connection from %s closed during the handshake: %s", peer, exc)
+        except (ConnectionClosedError, OSError) as exc:  # ssl.SSLError is an OSError
+            self.unauthenticated_log.log(
+                logging.INFO, "connection from %s closed during the handshake: %s", peer, exc
+            )
             return None
+        return self._admit_session(stream, hello, peer)
 
+    async def _negotiate(self, stream: MessageStream, hello: Message) -> Hello:
+        """The handshake after the first message: both proofs, then admission. Returns the
+        robot's Hello with the session's tagging turned on, or raises :class:`_Refusal`."""
+        if not isinstance(hello, Hello):
+            raise _Refusal(REFUSED_PROTOCOL, f"expected hello, got {type(hello).__name__}")
+        robot_id = hello.robot_id
+        if hello.protocol_version != PROTOCOL_VERSION:
+            raise _Refusal(
+                REFUSED_VERSION_MISMATCH,
+                f"the master speaks protocol version {PROTOCOL_VERSION}, "
+                f"the robot {hello.protocol_version}",
+            )
+        if hello.nonce is None:
+            raise _Refusal(REFUSED_PROTOCOL, "the hello carries no nonce")
+        robot_nonce, master_nonce = hello.nonce, new_nonce()
+        proof = master_proof(self._secret, robot_nonce, master_nonce, robot_id)
+        await stream.send(Challenge(nonce=master_nonce, proof=proof))
+        auth = await stream.receive()
+        if not isinstance(auth, Authenticate):
+            raise _Refusal(REFUSED_PROTOCOL, f"expected auth, got {type(auth).__name__}")
+        expected = robot_proof(self._secret, robot_nonce, master_nonce, robot_id)
+        if not proof_matches(expected, auth.proof):
+            raise _Refusal(REFUSED_BAD_SECRET, "the robot's proof of the secret does not match")
+        # From here on the robot is authenticated: every frame is tagged, a refusal too.
+        stream.authenticate(FrameAuth.for_master(self._secret, robot_nonce, master_nonce, robot_id))
+        refusal = self._admit(robot_id)
+        if refusal is not None:
+            raise _Refusal(*refusal)
+        missing = [name for name in self._sensors if name not in hello.sensors]
+        if missing:
+            raise _Refusal(
+                REFUSED_MISSING_SENSORS,
+                f"the experiment needs the sensors {', '.join(missing)}, which the robot lacks",
+            )
+        return hello
+
+    async def _refuse(
+        self, stream: MessageStream | None, robot_id: str, peer: str, refusal: _Refusal
+    ) -> None:
+        """Log a refusal and send it (best effort, bounded); an authenticated robot's refusal is
+        logged as such, anyone else's through the throttled log."""
+        line = ("refused robot %s (%s): %s: %s", robot_id, peer, refusal.code, refusal.reason)
+        if stream is not None and stream.auth is not None:
+            self.log.warning(*line)
+        else:
+            self.unauthenticated_log.log(logging.WARNING, *line)
+        if stream is None:
+            return  # TLS never completed: there is nobody to tell
+        with contextlib.suppress(Exception):
+            async with asyncio.timeout(CLOSE_TIMEOUT):
+                await stream.send(Refused(code=refusal.code, reason=refusal.reason))
+
+    def _admit_session(self, stream: MessageStream, hello: Hello, peer: str) -> Session:
         stream.set_max_frame_size(self.max_frame_size)
         loop = asyncio.get_running_loop()
         session = Session(hello, stream, peer, loop.time())
-        # Register and welcome without awaiting in between: the admission check above stays
-        # true, and the Welcome is queued before any Evaluate the owner may send on_join.
+        # Nothing was awaited since the admission check in _negotiate, and nothing is here: it
+        # still holds, and the Welcome is queued before any Evaluate the owner may send on_join.
         stale = self.sessions.get(hello.robot_id)
         if stale is not None:
             self.drop(stale, f"replaced by a new connection from {peer}")
         self.sessions[hello.robot_id] = session
         welcome = Welcome(run_id=self.run_id, heartbeat_interval=self.heartbeat_interval)
-        self._write(session, encode(welcome, max_frame_size=self.max_frame_size))
+        self._write(session, encode_payload(welcome))
         self.log.info(
-            "robot %s joined from %s (software %s)", hello.robot_id, peer, hello.software_version
+            "robot %s joined from %s (software %s)",
+            hello.robot_id,
+            peer,
+            printable(hello.software_version),
         )
         self._on_join(session)
         return session
@@ -351,6 +483,11 @@ class RobotServer:
                 msg = await stream.receive()
             except ConnectionClosedError as exc:
                 return f"connection closed by the robot ({exc})"
+            except AuthenticationError as exc:
+                # Not the robot's own doing, unless it is broken: someone on the path forged,
+                # replayed or reflected a frame. Whatever else that connection carries is suspect.
+                self.log.error("robot %s: %s; the session is closed", session.robot_id, exc)
+                return self._close_with_error(session, "authentication", str(exc))
             except ProtocolError as exc:
                 self.log.error("malformed input from robot %s: %s", session.robot_id, exc)
                 return self._close_with_error(session, "malformed", f"malformed input: {exc}")
@@ -362,23 +499,22 @@ class RobotServer:
             if isinstance(msg, Result | Failed):
                 self._on_message(session, msg)
             elif isinstance(msg, Ping):
-                self._write(session, encode(Pong(seq=msg.seq)))
+                self._write(session, encode_payload(Pong(seq=msg.seq)))
             elif isinstance(msg, Pong):
                 pass
             elif isinstance(msg, Bye):
-                return f"the robot said bye: {msg.reason}"
+                return f"the robot said bye: {printable(msg.reason)}"
             elif isinstance(msg, Error):
-                self.log.error(
-                    "robot %s reported an error: %s: %s", session.robot_id, msg.code, msg.message
-                )
-                return f"the robot reported an error: {msg.code}"
+                code, text = printable(msg.code), printable(msg.message)
+                self.log.error("robot %s reported an error: %s: %s", session.robot_id, code, text)
+                return f"the robot reported an error: {code}"
             else:
                 text = f"unexpected {type(msg).__name__} after the handshake"
                 return self._close_with_error(session, "protocol", text)
 
     def _close_with_error(self, session: Session, code: str, text: str) -> str:
         # Graceful: an abort (RST) could destroy the Error before the robot has read it.
-        self._write(session, encode(Error(code=code, message=text)))
+        self._write(session, encode_payload(Error(code=code, message=text)))
         self.drop(session, text, graceful=True)
         return text
 
@@ -390,7 +526,7 @@ class RobotServer:
         while True:
             await asyncio.sleep(self.heartbeat_interval)
             seq += 1
-            ping = encode(Ping(seq=seq))
+            ping = encode_payload(Ping(seq=seq))
             now = loop.time()
             for session in list(self.sessions.values()):
                 received = session.stream.bytes_received
@@ -405,8 +541,8 @@ class RobotServer:
                     self._write(session, ping)
 
 
-def _peer_name(writer: asyncio.StreamWriter) -> str:
-    peer = writer.get_extra_info("peername")
+def _peer_name(transport: asyncio.BaseTransport) -> str:
+    peer = transport.get_extra_info("peername")
     if isinstance(peer, tuple) and len(peer) >= 2:
         return f"{peer[0]}:{peer[1]}"
     return str(peer)

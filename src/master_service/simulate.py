@@ -29,7 +29,7 @@ from master_service.master import Master, Progress, RunSummary
 from master_service.report import SIMULATION_FILE
 from master_service.rundir import write_atomic
 from robot_agent.agent import Agent
-from robot_agent.config import AgentConfig
+from robot_agent.config import AgentConfig, LoopConfig
 from robot_agent.config import MasterConfig as AgentMasterConfig
 from sim_stub.body import SimSwarm
 from sim_stub.scenarios import SCENARIOS, WorldConfig, scenario_config
@@ -47,12 +47,14 @@ __all__ = [
     "SimulatedSwarm",
     "quiet_agents",
     "robot_ids",
+    "simulated_loop",
     "simulation_experiment",
     "summary_text",
     "world_config",
 ]
 
-#: Basic behaviours stop at obstacles; object manipulation escapes (REFERENCE section 3).
+#: Basic behaviours stop at obstacles; object manipulation escapes (the authors' two safety
+#: behaviours).
 SAFETY_PROFILES = {"basic": "stop", "boxes": "escape", "gradient": "escape"}
 #: In-process agents reconnect at once: the master is on the same machine and never far away.
 _RECONNECT = BackoffConfig(initial=0.05, max=0.5, jitter=0.5)
@@ -150,12 +152,17 @@ class SimulatedSwarm:
         )
 
     def agent_config(self, robot_id: str, port: int) -> AgentConfig:
-        """One in-process agent's configuration (the secret is handed over directly)."""
+        """One in-process agent's configuration (the secret is handed over directly).
+
+        A simulated body's sensors have no update rate: the agents run whatever period the
+        experiment gives (``loop.min_period`` is the experiment's own).
+        """
         profile = SAFETY_PROFILES.get(self.experiment.scenario, "stop")
         return AgentConfig(
             robot_id=robot_id,
             master=AgentMasterConfig(host="127.0.0.1", port=port, secret_file="(in-process)"),
             safety=SafetyConfig(profile=profile),
+            loop=simulated_loop(self.experiment),
             reconnect=_RECONNECT,
         )
 
@@ -218,6 +225,16 @@ class SimulatedSwarm:
                 "end": self.world.box_positions.tolist(),
             }
         write_atomic(run_dir / SIMULATION_FILE, json.dumps(data).encode("utf-8"))
+
+
+def simulated_loop(experiment: ExperimentConfig) -> LoopConfig:
+    """The control loop's limits for a simulated body: the experiment's period is the shortest
+    (a simulated sensor has no update rate) and its longest evaluation fits."""
+    longest = max(experiment.evaluation_steps, experiment.post_evaluation_steps)
+    return LoopConfig(
+        min_period=min(experiment.step_period, LoopConfig().min_period),
+        max_steps=max(longest, LoopConfig().max_steps),
+    )
 
 
 def summary_text(metrics: dict[str, Any], out: Path, seconds: float) -> str:

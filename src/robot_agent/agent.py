@@ -100,9 +100,7 @@ class Agent:
                 client_id=f"surprise-{config.robot_id}",
                 name=f"telemetry[{config.robot_id}]",
             )
-            robot_telemetry = RobotTelemetry(
-                self.telemetry, config.robot_id, period=config.loop.period
-            )
+            robot_telemetry = RobotTelemetry(self.telemetry, config.robot_id)
         self.runner = EvaluationRunner(
             body,
             clock,

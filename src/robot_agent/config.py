@@ -14,7 +14,7 @@ One YAML file per robot::
         server_hostname: master.lab
     body: {thymio: {speed_scale: 315, failsafe: true}}   # drivers.config.BodyConfig
     safety: {profile: stop}                              # surprise.safety.SafetyConfig
-    loop: {period: 0.1, read_timeout: 0.15, max_read_failures: 3}
+    loop: {min_period: 0.1, max_steps: 36000, read_timeout: 0.15, max_read_failures: 3}
     reconnect: {initial: 0.5, max: 30, jitter: 0.25}
     telemetry: {broker: mqtt://192.168.1.10:1883}        # optional; see docs/telemetry.md
 
@@ -28,7 +28,6 @@ around for snapshots) by :func:`read_secret`.
 
 from __future__ import annotations
 
-import re
 import ssl
 from pathlib import Path
 from typing import Annotated
@@ -41,42 +40,30 @@ from surprise.backoff import BackoffConfig
 from surprise.config import Strict, load_yaml
 from surprise.errors import ConfigError
 from surprise.safety import SafetyConfig
+from surprise.wire import DEFAULT_PORT, is_valid_robot_id
 from telemetry.config import TelemetryConfig
+from transport.tls import ClientTlsConfig, client_context
 
 __all__ = [
-    "DEFAULT_PORT",
+    "MAX_PERIOD",
     "AgentConfig",
     "BackoffConfig",
     "LoopConfig",
     "MasterConfig",
-    "TlsConfig",
     "load_agent_config",
     "make_ssl_context",
     "read_secret",
 ]
 
-#: The master's default TCP port.
-DEFAULT_PORT = 7474
-
-# A robot id appears in logs, in the master's file names and in MACs: keep it plain.
-_ROBOT_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
 Port = Annotated[int, msgspec.Meta(ge=1, le=65535)]
 Seconds = Annotated[float, msgspec.Meta(gt=0.0)]
 
-
-class TlsConfig(Strict):
-    """TLS towards the master. Without ``ca_file`` the system's trusted CAs verify the master;
-    ``cert_file`` (with ``key_file`` if the key is separate) is the robot's client certificate;
-    ``server_hostname`` overrides the name checked in the master's certificate (default: host)."""
-
-    ca_file: str | None = None
-    cert_file: str | None = None
-    key_file: str | None = None
-    server_hostname: str | None = None
-
-    def __post_init__(self) -> None:
-        if self.key_file is not None and self.cert_file is None:
-            raise ValueError("`key_file`: a key needs its certificate in cert_file")
+#: Seconds of one control step besides the sensor read (network, safety, motor write): the margin
+#: between a step's period or read and the watchdog's timeout.
+STEP_MARGIN = 0.03
+#: The longest control step the robot accepts: the loop feeds the watchdog once per step, so a
+#: longer period would let the watchdog trip between two steps.
+MAX_PERIOD = WATCHDOG_TIMEOUT - STEP_MARGIN
 
 
 class MasterConfig(Strict):
@@ -86,7 +73,7 @@ class MasterConfig(Strict):
     #: file holding the shared secret (surrounding whitespace, e.g. a final newline, is ignored)
     secret_file: str
     port: Port = DEFAULT_PORT
-    tls: TlsConfig | None = None
+    tls: ClientTlsConfig | None = None
 
     def __post_init__(self) -> None:
         if not self.host:
@@ -96,15 +83,22 @@ class MasterConfig(Strict):
 
 
 class LoopConfig(Strict):
-    """The control loop's timing.
+    """The control loop's limits; the period itself comes with each evaluation (the experiment's
+    ``step_period``), and one outside [``min_period``, :data:`MAX_PERIOD`] is refused.
 
     The watchdog (``robot_agent.watchdog``) stops the motors after 0.25 s without a feed; the loop
     feeds it at the start and at the end of every step, so both the period and one sensor read must
     fit inside that time, with a margin for the rest of the step.
     """
 
-    #: seconds per control step (10 Hz in the paper; the Thymio's sensors also update at 10 Hz)
-    period: Seconds = 0.1
+    #: the shortest step the robot runs, in seconds. A real Thymio updates its sensors at 10 Hz: a
+    #: shorter step would read the same values again and score predictions against stale
+    #: readings. Simulated bodies have no such limit.
+    min_period: Seconds = 0.1
+    #: the longest evaluation the robot runs, in steps (an hour at 10 Hz; the paper's evaluations
+    #: are 100 steps and its post-evaluation 1000): no master, however configured, keeps a robot
+    #: driving for days.
+    max_steps: Annotated[int, msgspec.Meta(ge=1)] = 36_000
     #: seconds one sensor read may take. The Thymio answers after its next 10 Hz sensor update
     #: (up to 100 ms) plus D-Bus latency; 150 ms allows that and still stops a hung read well
     #: before the watchdog would.
@@ -116,16 +110,14 @@ class LoopConfig(Strict):
     stop_timeout: Seconds = 0.5
 
     def __post_init__(self) -> None:
-        # Margin for the work of one step besides the read (network, safety, motor write).
-        margin = 0.03
-        if self.period > WATCHDOG_TIMEOUT - margin:
+        if self.min_period > MAX_PERIOD:
             raise ValueError(
-                f"`period`: at most {WATCHDOG_TIMEOUT - margin:.2f} s, so that the watchdog "
+                f"`min_period`: at most {MAX_PERIOD:.2f} s, so that the watchdog "
                 f"({WATCHDOG_TIMEOUT} s without a feed) does not trip between steps"
             )
-        if self.read_timeout > WATCHDOG_TIMEOUT - margin:
+        if self.read_timeout > MAX_PERIOD:
             raise ValueError(
-                f"`read_timeout`: at most {WATCHDOG_TIMEOUT - margin:.2f} s, so that a hung read "
+                f"`read_timeout`: at most {MAX_PERIOD:.2f} s, so that a hung read "
                 f"is given up before the watchdog ({WATCHDOG_TIMEOUT} s) trips"
             )
 
@@ -143,7 +135,7 @@ class AgentConfig(Strict):
     telemetry: TelemetryConfig | None = None
 
     def __post_init__(self) -> None:
-        if not _ROBOT_ID.fullmatch(self.robot_id):
+        if not is_valid_robot_id(self.robot_id):
             raise ValueError(
                 "`robot_id`: expected 1 to 64 letters, digits, '.', '_' or '-' (not starting "
                 f"with a symbol), got {self.robot_id!r}"
@@ -210,20 +202,4 @@ def make_ssl_context(
     tls = config.master.tls
     if tls is None:
         return None
-    file = str(config_file) if config_file else None
-    try:
-        context = ssl.create_default_context(cafile=tls.ca_file)
-    except (OSError, ssl.SSLError) as exc:
-        raise ConfigError(
-            f"cannot load the CA file {tls.ca_file}: {exc}", file=file, key="master.tls.ca_file"
-        ) from None
-    if tls.cert_file is not None:
-        try:
-            context.load_cert_chain(tls.cert_file, tls.key_file)
-        except (OSError, ssl.SSLError) as exc:
-            raise ConfigError(
-                f"cannot load the certificate {tls.cert_file} (key {tls.key_file}): {exc}",
-                file=file,
-                key="master.tls.cert_file",
-            ) from None
-    return context
+    return client_context(tls, file=str(config_file) if config_file else None, key="master.tls")

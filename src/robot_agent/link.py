@@ -2,8 +2,17 @@
 
 The conversation is fixed by ``docs/protocol.md``::
 
-    Hello -> (Challenge | Refused) -> Authenticate -> (Welcome | Refused)
-    then: Evaluate -> Result | Failed;  Abort;  Ping -> Pong;  Bye / Error close the session
+    Hello(nonce) -> (Challenge(nonce, proof) | Refused) -> Authenticate(proof)
+    -> (Welcome | Refused); then, every frame tagged:
+    Evaluate -> Result | Failed;  Abort;  Ping -> Pong;  Bye / Error close the session
+
+The robot trusts nothing from a master that has not proved the shared secret: it checks the
+Challenge's proof before it sends anything else, and from then on accepts only frames tagged with
+the session's key, so neither an impostor nor a relay can make it drive. It also bounds what even
+a genuine master may ask: frames before the Welcome are small (``HANDSHAKE_MAX_FRAME_SIZE``), the
+heartbeat interval lies within the protocol's bounds (checked as the Welcome is decoded), an
+evaluation is at most ``loop.max_steps`` long (the runner refuses longer ones) and a master's text
+is cut and cleaned before it is logged.
 
 :class:`Link.run` loops forever: one session per connection, and after any end of a session
 (refused, closed, silent for too long, broken input) a delay from :class:`Backoff` before the next
@@ -27,8 +36,12 @@ from robot_agent.config import AgentConfig
 from robot_agent.runner import EvaluationRunner, finish
 from robot_agent.watchdog import Watchdog
 from surprise.backoff import Backoff
-from surprise.errors import FrameTooLargeError, ProtocolError, SurpriseError
+from surprise.errors import AuthenticationError, FrameTooLargeError, ProtocolError, SurpriseError
+from surprise.session import FrameAuth, master_proof, new_nonce, proof_matches, robot_proof
 from surprise.wire import (
+    DEAD_AFTER_HEARTBEATS,
+    HANDSHAKE_MAX_FRAME_SIZE,
+    MAX_FRAME_SIZE,
     PROTOCOL_VERSION,
     REFUSED_VERSION_MISMATCH,
     Abort,
@@ -40,20 +53,19 @@ from surprise.wire import (
     Failed,
     Hello,
     Message,
-    MessageStream,
     Ping,
     Pong,
     Refused,
     Result,
     Welcome,
-    compute_mac,
-    encode,
+    encode_payload,
+    printable,
 )
+from transport.stream import MessageStream
 
 __all__ = [
     "CLOSE_TIMEOUT",
     "CONNECT_TIMEOUT",
-    "DEAD_AFTER_HEARTBEATS",
     "HANDSHAKE_TIMEOUT",
     "PROBE_AFTER_HEARTBEATS",
     "Backoff",
@@ -68,10 +80,10 @@ log = logging.getLogger(__name__)
 #: milliseconds; a host that silently drops packets would otherwise hold us for minutes of SYN
 #: retries instead of backing off.
 CONNECT_TIMEOUT: Final = 10.0
-#: Seconds for each step of the handshake (``HANDSHAKE_TIMEOUT`` of docs/protocol.md).
+#: Seconds for the whole handshake, from Hello to Welcome (``HANDSHAKE_TIMEOUT`` of
+#: docs/protocol.md): generous for a busy lab WLAN, short enough that a master that stalls is
+#: left for another attempt.
 HANDSHAKE_TIMEOUT: Final = 10.0
-#: The link is dead when nothing at all arrived for this many heartbeat intervals (protocol.md).
-DEAD_AFTER_HEARTBEATS: Final = 3.0
 #: After this many heartbeat intervals without a message the robot sends a Ping itself: a live
 #: master answers with a Pong, so a master that is late with its own pings (busy writing a
 #: checkpoint) is not dropped, while a dead one still is at DEAD_AFTER_HEARTBEATS. Above 1 so that
@@ -86,7 +98,8 @@ _M = TypeVar("_M", Challenge, Welcome)
 
 
 class RefusedError(SurpriseError, ConnectionError):
-    """The master refused the robot; ``code`` is one of ``surprise.wire.REFUSED_CODES``."""
+    """The master refused the robot; ``code`` is one of ``surprise.wire.REFUSED_CODES`` (both
+    ``code`` and ``reason`` come cut and cleaned for the log)."""
 
     def __init__(self, code: str, reason: str) -> None:
         self.code = code
@@ -167,6 +180,9 @@ class Link:
                 # A version mismatch never fixes itself; keep it loud on every try.
                 level = logging.ERROR if exc.code == REFUSED_VERSION_MISMATCH else logging.WARNING
                 self.log.log(level, "%s", exc)
+            except AuthenticationError as exc:
+                # An impostor, a relay tampering with frames, or a secret that differs: loud.
+                self.log.error("link to %s:%d: %s", master.host, master.port, exc)
             except (OSError, ProtocolError) as exc:  # includes timeouts and lost connections
                 self.log.warning("link to %s:%d: %s", master.host, master.port, _describe(exc))
             except Exception:  # a bug in a session must not end the agent: log it and retry
@@ -188,7 +204,8 @@ class Link:
                 reader, writer = await asyncio.open_connection(master.host, master.port, **extra)
         except TimeoutError:
             raise TimeoutError(f"no connection within {CONNECT_TIMEOUT} s") from None
-        stream = MessageStream(reader, writer)
+        # Small frames until the master has proved the secret and welcomed us.
+        stream = MessageStream(reader, writer, max_frame_size=HANDSHAKE_MAX_FRAME_SIZE)
         bye: str | None = None
         try:
             welcome = await self._handshake(stream)
@@ -210,41 +227,48 @@ class Link:
             await self._cancel_evaluation("session ended", link_lost=True)
             if bye is not None:
                 # Best effort and without waiting: we are being cancelled.
-                with contextlib.suppress(OSError, RuntimeError):
-                    stream.writer.write(encode(Bye(reason=bye)))
+                with contextlib.suppress(OSError, RuntimeError, ProtocolError):
+                    stream.write(encode_payload(Bye(reason=bye)))
             await finish(stream.close(), CLOSE_TIMEOUT)
 
     async def _handshake(self, stream: MessageStream) -> Welcome:
-        robot_id = self.config.robot_id
-        async with asyncio.timeout(HANDSHAKE_TIMEOUT):
-            await stream.send(
-                Hello(
-                    robot_id=robot_id,
-                    software_version=surprise.__version__,
-                    protocol_version=PROTOCOL_VERSION,
-                    sensors=self.sensors,
-                )
-            )
-        challenge = await self._handshake_receive(stream, Challenge)
-        async with asyncio.timeout(HANDSHAKE_TIMEOUT):
-            await stream.send(Authenticate(mac=compute_mac(self.secret, challenge.nonce, robot_id)))
-        return await self._handshake_receive(stream, Welcome)
-
-    async def _handshake_receive(self, stream: MessageStream, expected: type[_M]) -> _M:
+        robot_id, secret = self.config.robot_id, self.secret
+        robot_nonce = new_nonce()
+        step = Challenge
         try:
+            # One deadline for the whole handshake: a master dribbling bytes gains nothing.
             async with asyncio.timeout(HANDSHAKE_TIMEOUT):
-                msg = await stream.receive()
+                await stream.send(
+                    Hello(
+                        robot_id=robot_id,
+                        software_version=surprise.__version__,
+                        protocol_version=PROTOCOL_VERSION,
+                        sensors=self.sensors,
+                        nonce=robot_nonce,
+                    )
+                )
+                challenge = _expect(await stream.receive(), Challenge)
+                master_nonce = challenge.nonce
+                expected = master_proof(secret, robot_nonce, master_nonce, robot_id)
+                if not proof_matches(expected, challenge.proof):
+                    # Nothing more goes to this peer: not even our own proof.
+                    raise AuthenticationError(
+                        "the master did not prove that it knows the shared secret: an impostor, "
+                        "or this robot's secret file differs from the master's"
+                    )
+                proof = robot_proof(secret, robot_nonce, master_nonce, robot_id)
+                await stream.send(Authenticate(proof=proof))
+                stream.authenticate(
+                    FrameAuth.for_robot(secret, robot_nonce, master_nonce, robot_id)
+                )
+                step = Welcome
+                welcome = _expect(await stream.receive(), Welcome)
         except TimeoutError:
             raise TimeoutError(
-                f"no {expected.__name__} from the master within {HANDSHAKE_TIMEOUT} s"
+                f"no {step.__name__} from the master within {HANDSHAKE_TIMEOUT} s"
             ) from None
-        if isinstance(msg, expected):
-            return msg
-        if isinstance(msg, Refused):
-            raise RefusedError(msg.code, msg.reason)
-        if isinstance(msg, Error):
-            raise ProtocolError(f"the master reported an error ({msg.code}): {msg.message}")
-        raise ProtocolError(f"expected {expected.__name__} during the handshake, got {_kind(msg)}")
+        stream.set_max_frame_size(MAX_FRAME_SIZE)
+        return welcome
 
     # ------------------------------------------------------------------ a welcomed session
 
@@ -276,6 +300,7 @@ class Link:
                 case Abort(evaluation_id=eid, reason=reason):
                     running = self._evaluation[0] if self._evaluation is not None else None
                     if running == eid:
+                        reason = printable(reason)
                         self.log.info("evaluation %d aborted by the master: %s", eid, reason)
                         await self._cancel_evaluation("aborted")
                     else:
@@ -287,9 +312,10 @@ class Link:
                 case Pong():
                     pass  # any message proves the link alive; nothing else to do
                 case Bye(reason=reason):
-                    self.log.info("the master closed the session: %s", reason)
+                    self.log.info("the master closed the session: %s", printable(reason))
                     return
                 case Error(code=code, message=text):
+                    code, text = printable(code), printable(text)
                     self.log.error("the master reported an error (%s): %s", code, text)
                     return
                 case _:
@@ -362,6 +388,18 @@ class Link:
 
 def _kind(msg: object) -> str:
     return type(msg).__name__
+
+
+def _expect(msg: Message, expected: type[_M]) -> _M:
+    """``msg`` if it is the handshake's ``expected`` message; else the error it amounts to."""
+    if isinstance(msg, expected):
+        return msg
+    if isinstance(msg, Refused):
+        raise RefusedError(printable(msg.code), printable(msg.reason))
+    if isinstance(msg, Error):
+        code, text = printable(msg.code), printable(msg.message)
+        raise ProtocolError(f"the master reported an error ({code}): {text}")
+    raise ProtocolError(f"expected {expected.__name__} during the handshake, got {_kind(msg)}")
 
 
 def _describe(exc: BaseException) -> str:

@@ -6,7 +6,8 @@ One step (docs/robot-agent.md, "One control step")::
     -> actor a(t) from s(t), a(t-1) -> predictor p(t+1) from s(t), a(t)
     -> safety: the command to apply -> drive -> feed the watchdog -> sleep to the next deadline
 
-Timing: with ``t0 = clock.now()`` at the start, step k must end by ``t0 + (k + 1) * period``. The
+Timing: with ``t0 = clock.now()`` at the start, step k must end by ``t0 + (k + 1) * period``, where
+the period is the evaluation's (the experiment's ``step_period``, sent in each Evaluate). The
 deadline is computed from ``t0`` every time, never by adding periods, so it cannot drift. A step
 that ends after its deadline counts as an overrun and the next step starts at once, in the period
 it is already in: later steps stay on the original grid and a long stall does not cause a burst of
@@ -162,7 +163,6 @@ class ControlLoop:
         clock: Clock,
         layer: SafetyLayer,
         *,
-        period: float = 0.1,
         read_timeout: float = 0.15,
         max_read_failures: int = 3,
         drive_timeout: float = 0.5,
@@ -173,12 +173,12 @@ class ControlLoop:
         self.body = body
         self.clock = clock
         self.layer = layer
-        self.period = period
         self.read_timeout = read_timeout
         self.max_read_failures = max_read_failures
         self.drive_timeout = drive_timeout
         self.watchdog = watchdog
-        self.deadlines = Deadlines(clock, period)
+        #: the deadlines of the evaluation running now (or the last one)
+        self.deadlines: Deadlines | None = None
         # Passed to the safety layer for a step without a reading; it only checks the shape.
         self._no_values = np.zeros(len(body.sensors))
         self._has_pose = hasattr(body, "pose")
@@ -190,10 +190,12 @@ class ControlLoop:
         steps: int,
         state: SafetyState,
         *,
+        period: float = 0.1,
         record: bool = False,
         sink: StepSink | None = None,
     ) -> LoopOutcome:
-        """Run ``steps`` control steps of ``network`` (already reset) from where the robot stands.
+        """Run ``steps`` control steps of ``period`` seconds of ``network`` (already reset) from
+        where the robot stands.
 
         ``index`` maps a body frame to the network's sensor order (see :func:`sensor_index`);
         ``state`` is the safety state to start from; ``sink`` (optional) sees every step with a
@@ -212,14 +214,19 @@ class ControlLoop:
         read_failures = consecutive_failures = 0
         drop_pending = False
         failure: str | None = None
-        trace_sensors: list[list[float]] = []
-        trace_predictions: list[list[float]] = []
-        trace_actions: list[list[float]] = []
-        trace_commands: list[list[float]] = []
+        # A recording fills preallocated rows (a recorded evaluation is at most
+        # MAX_RECORDED_STEPS long, so at most a few MB); ``recorded`` counts the rows filled.
+        width = network.layout.sensors
+        rows = steps if record else 0
+        trace_sensors = np.empty((rows, width))
+        trace_predictions = np.empty((rows, width))
+        trace_actions = np.empty((rows, 2))
+        trace_commands = np.empty((rows, 2))
+        trace_poses = np.empty((rows if has_pose else 0, 3))
         trace_safety: list[str] = []
-        trace_poses: list[list[float]] = []
+        recorded = 0
 
-        deadlines = self.deadlines
+        deadlines = self.deadlines = Deadlines(clock, period)
         deadlines.start()
         step = 0
         while step < steps:
@@ -287,13 +294,14 @@ class ControlLoop:
                 if sink is not None:
                     sink(step, s, prediction, command, reason)
                 if record:
-                    trace_sensors.append(s.tolist())
-                    trace_predictions.append(prediction.tolist())
-                    trace_actions.append(action.tolist())
-                    trace_commands.append([float(command[0]), float(command[1])])
+                    trace_sensors[recorded] = s
+                    trace_predictions[recorded] = prediction
+                    trace_actions[recorded] = action
+                    trace_commands[recorded] = command
                     trace_safety.append(reason or "")
                     if has_pose:
-                        trace_poses.append([float(x) for x in body.pose])  # type: ignore[attr-defined]
+                        trace_poses[recorded] = body.pose  # type: ignore[attr-defined]
+                    recorded += 1
 
             # --- drive, unless the watchdog has taken over
             if watchdog is not None and watchdog.tripped:
@@ -321,13 +329,13 @@ class ControlLoop:
         )
         trace = None
         if record:
-            trace = Trace(
-                sensors=trace_sensors,
-                predictions=trace_predictions,
-                actions=trace_actions,
-                commands=trace_commands,
+            trace = Trace.from_arrays(
+                sensors=trace_sensors[:recorded],
+                predictions=trace_predictions[:recorded],
+                actions=trace_actions[:recorded],
+                commands=trace_commands[:recorded],
                 safety=trace_safety,
-                poses=trace_poses if has_pose else None,
+                poses=trace_poses[:recorded] if has_pose else None,
             )
         return LoopOutcome(
             fitness=float(score.fitness),

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import math
 from collections.abc import Awaitable
 from typing import TYPE_CHECKING
 
@@ -18,7 +17,7 @@ import numpy as np
 
 from drivers.body import Body
 from drivers.clock import Clock
-from robot_agent.config import LoopConfig
+from robot_agent.config import MAX_PERIOD, LoopConfig
 from robot_agent.loop import (
     FAILED_UNREACHABLE,
     ControlLoop,
@@ -41,6 +40,8 @@ __all__ = [
     "FAILED_HARDWARE",
     "FAILED_INTERNAL",
     "FAILED_MISSING_SENSORS",
+    "FAILED_PERIOD",
+    "FAILED_STEPS",
     "FAILED_UNREACHABLE",
     "EvaluationRunner",
     "finish",
@@ -56,6 +57,10 @@ log = logging.getLogger(__name__)
 FAILED_MISSING_SENSORS = "missing-sensors"
 #: the genome does not fit the spec
 FAILED_GENOME = "genome"
+#: the step period is one this robot cannot keep (see LoopConfig.min_period and MAX_PERIOD)
+FAILED_PERIOD = "period"
+#: more steps than this robot runs in one evaluation (LoopConfig.max_steps)
+FAILED_STEPS = "steps"
 #: a motor write failed or hung
 FAILED_HARDWARE = "hardware"
 #: a bug (an unexpected exception); the log holds the traceback
@@ -140,7 +145,6 @@ class EvaluationRunner:
             body,
             clock,
             self.layer,
-            period=self.config.period,
             read_timeout=self.config.read_timeout,
             max_read_failures=self.config.max_read_failures,
             drive_timeout=self.config.stop_timeout,
@@ -152,6 +156,20 @@ class EvaluationRunner:
 
     def prepare(self, msg: Evaluate) -> tuple[NetworkPair, np.ndarray | None] | Failed:
         """The network and sensor index for ``msg``, or the Failed to answer if it cannot run."""
+        config = self.config
+        if not config.min_period <= msg.step_period <= MAX_PERIOD:
+            return Failed(
+                evaluation_id=msg.evaluation_id,
+                reason=f"{FAILED_PERIOD}: this robot runs steps of {config.min_period:g} s to "
+                f"{MAX_PERIOD:g} s (its sensors' update rate, loop.min_period, and its watchdog), "
+                f"not {msg.step_period:g} s",
+            )
+        if msg.steps > config.max_steps:
+            return Failed(
+                evaluation_id=msg.evaluation_id,
+                reason=f"{FAILED_STEPS}: this robot runs at most {config.max_steps} steps in one "
+                f"evaluation (loop.max_steps), not {msg.steps}",
+            )
         try:
             index = sensor_index(msg.spec.sensors, self.body.sensors)
         except MissingSensorsError as exc:
@@ -168,7 +186,9 @@ class EvaluationRunner:
         """Run ``msg.genome`` for ``msg.steps`` steps from where the robot stands.
 
         Returns the :class:`Result` (with a trace if ``msg.record``) or a :class:`Failed` whose
-        reason starts with a ``FAILED_*`` word, ``sensor-read`` or ``watchdog``. The motors are
+        reason starts with a ``FAILED_*`` word, ``sensor-read`` or ``watchdog``: among them a
+        ``step_period`` outside [``loop.min_period``, :data:`MAX_PERIOD`] or more steps than
+        ``loop.max_steps``. The motors are
         stopped and the watchdog disarmed on every exit path, cancellation included.
         """
         prepared = self.prepare(msg)
@@ -187,9 +207,10 @@ class EvaluationRunner:
             # A new genome: no escape manoeuvre carries over (the network was just built fresh).
             state = self.layer.reset(self.safety_state)
             log.info(
-                "evaluation %d: %d steps%s",
+                "evaluation %d: %d steps of %g s%s",
                 msg.evaluation_id,
                 msg.steps,
+                msg.step_period,
                 " (recorded)" * msg.record,
             )
             failure: str | None = None
@@ -197,7 +218,9 @@ class EvaluationRunner:
             outcome: LoopOutcome | None = None
             telemetry = self.telemetry
             # Telemetry's sampler rate-limits and copies; it never formats or sends in a step.
-            sampler = telemetry.sampler(msg.evaluation_id, msg.spec.sensors) if telemetry else None
+            sampler = None
+            if telemetry is not None:
+                sampler = telemetry.sampler(msg.evaluation_id, msg.spec.sensors, msg.step_period)
             started = self.clock.now()
             if self.watchdog is not None:
                 self.watchdog.arm()
@@ -207,6 +230,7 @@ class EvaluationRunner:
                     index,
                     msg.steps,
                     state,
+                    period=msg.step_period,
                     record=msg.record,
                     sink=None if sampler is None else sampler.sample,
                 )
@@ -234,8 +258,10 @@ class EvaluationRunner:
         if outcome is not None:
             self.safety_state = outcome.safety_state
             failure = outcome.failure
-            if failure is None and not math.isfinite(outcome.fitness):
-                failure = f"{FAILED_INTERNAL}: non-finite fitness {outcome.fitness}"
+            if failure is None and not 0.0 <= outcome.fitness <= 1.0:
+                # The master refuses it (a protocol error that would cost the session): say why
+                # instead. A body reporting values outside [0, 1] leads here, as would a bug.
+                failure = f"{FAILED_INTERNAL}: fitness {outcome.fitness} outside [0, 1]"
             if failure is not None and failure.startswith(f"{FAILED_UNREACHABLE}:"):
                 unreachable = unreachable or failure.partition(": ")[2]
         if unreachable is not None:

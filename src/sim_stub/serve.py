@@ -53,6 +53,7 @@ from sim_stub.medulla_model import SignallingWorld, SimThymio, serve_sim_thymio
 from sim_stub.scenarios import SCENARIOS, scenario_config
 from surprise.errors import ConfigError
 from surprise.sensors import GROUND_SENSORS, IR_SENSORS
+from surprise.wire import DEFAULT_PORT
 
 __all__ = ["EXIT_FAILURE", "EXIT_OK", "EXIT_USAGE", "main", "serve"]
 
@@ -65,9 +66,8 @@ EXIT_FAILURE = 1
 #: Exit code for bad arguments (argparse's own code for usage errors).
 EXIT_USAGE = 2
 
-#: The master's default TCP port (``robot_agent.config.DEFAULT_PORT``; the simulator must not
-#: import the agent).
-DEFAULT_MASTER_PORT = 7474
+#: The master's default TCP port.
+DEFAULT_MASTER_PORT = DEFAULT_PORT
 #: Robot ids are ``sim-<index>``: they name CSV columns and trace files on the master.
 ROBOT_ID_PREFIX = "sim-"
 ROBOTS_FILE = "robots.json"

@@ -91,13 +91,19 @@ def to_builtins(config: msgspec.Struct) -> dict[str, Any]:
 
 
 #: The longest recorded evaluation (post-evaluation): its trace must fit one wire frame. A step of
-#: a 12-sensor trace is about 290 bytes of msgpack (31 floats), so 20,000 steps (33 minutes at
-#: 10 Hz) are about 5.8 MB, inside the 8 MiB frame limit with room to spare.
+#: a 12-sensor trace is 31 packed float64 values (248 bytes) and a short safety word, so 20,000
+#: steps (33 minutes at 10 Hz) are about 5 MB, inside the 8 MiB frame limit with room to spare
+#: (even at the protocol's most sensors, ``surprise.wire.MAX_SENSORS``).
 MAX_RECORDED_STEPS = 20_000
+
+#: The longest control step an experiment may ask for, in seconds. Real robots run at 0.1 s and
+#: refuse what their watchdog cannot follow; this bound only catches units mistaken (ms for s)
+#: and keeps every deadline derived from the period finite.
+MAX_STEP_PERIOD = 10.0
 
 
 class NetworkConfig(Strict):
-    """Sizes of the actor-predictor pair (REFERENCE section 1).
+    """Sizes of the actor-predictor pair.
 
     ``predictor_hidden`` defaults to R + 1 where R is the number of sensors. ``initial_action`` is
     a(-1), the previous action fed to the actor at the first step of an evaluation.
@@ -109,7 +115,7 @@ class NetworkConfig(Strict):
 
 
 class EvolutionConfig(Strict):
-    """(1+1) online evolution with re-evaluation (REFERENCE section 2)."""
+    """(1+1) online evolution with re-evaluation (paper Sec. V-A)."""
 
     evaluations: PositiveInt = 1000
     reevaluation_probability: Probability = 0.2
@@ -140,6 +146,8 @@ class ExperimentConfig(Strict):
     predefined: dict[str, float] = msgspec.field(default_factory=dict)
     evaluation_steps: PositiveInt = 100
     post_evaluation_steps: Annotated[int, msgspec.Meta(ge=0, le=MAX_RECORDED_STEPS)] = 1000
+    #: seconds per control step on every robot (the paper: 10 Hz); sent with every evaluation
+    step_period: Annotated[float, msgspec.Meta(gt=0.0, le=MAX_STEP_PERIOD)] = 0.1
     scenario: str = "basic"
     robots: PositiveInt = 10
     seed: Annotated[int, msgspec.Meta(ge=0)] = 0

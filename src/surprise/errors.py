@@ -34,6 +34,19 @@ class ProtocolError(SurpriseError, ValueError):
     """Bytes or a message on the wire violate the protocol; the connection should be closed."""
 
 
+class ConnectionClosedError(SurpriseError, ConnectionError):
+    """The peer closed the connection; ``mid_frame`` is true if it stopped inside a frame."""
+
+    def __init__(self, message: str = "peer closed the connection", *, mid_frame: bool = False):
+        self.mid_frame = mid_frame
+        super().__init__(message)
+
+
+class AuthenticationError(ProtocolError):
+    """The peer did not prove it knows the shared secret, or a frame's tag does not verify (it
+    was forged, replayed, reordered or reflected); the connection must be closed."""
+
+
 class FrameTooLargeError(ProtocolError):
     """A frame announces a length above the limit; ``size`` and ``limit`` are in bytes."""
 

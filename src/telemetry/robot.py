@@ -106,23 +106,22 @@ class StepSampler:
 class RobotTelemetry:
     """What one robot's agent publishes: ``robot/<id>/evaluation`` and ``robot/<id>/sample``.
 
-    ``period`` is the control loop's period (to turn ``rate_hz`` into steps). The publisher's
-    lifecycle (start, close) belongs to the agent.
+    The publisher's lifecycle (start, close) belongs to the agent.
     """
 
-    def __init__(self, publisher: TelemetryPublisher, robot_id: str, *, period: float) -> None:
+    def __init__(self, publisher: TelemetryPublisher, robot_id: str) -> None:
         self.publisher = publisher
         self.robot_id = robot_id
-        #: control steps between two samples (None: no samples)
-        self.every = steps_between_samples(publisher.config.rate_hz, period)
         self._evaluation_suffix = robot_suffix(robot_id, "evaluation")
         self._sample_suffix = robot_suffix(robot_id, "sample")
 
-    def sampler(self, evaluation: int, names: tuple[str, ...]) -> StepSampler | None:
-        """A fresh sampler for one evaluation over the sensors ``names`` (None: no samples)."""
-        if self.every is None:
+    def sampler(self, evaluation: int, names: tuple[str, ...], period: float) -> StepSampler | None:
+        """A fresh sampler for one evaluation over the sensors ``names`` whose steps take
+        ``period`` seconds (to turn ``rate_hz`` into steps); None when no samples are wanted."""
+        every = steps_between_samples(self.publisher.config.rate_hz, period)
+        if every is None:
             return None
-        return StepSampler(self.publisher, self._sample_suffix, evaluation, names, self.every)
+        return StepSampler(self.publisher, self._sample_suffix, evaluation, names, every)
 
     def evaluation(
         self,

@@ -15,21 +15,20 @@ import numpy as np
 from drivers.body import Body, SensorFrame
 from drivers.clock import Clock
 from robot_agent.config import AgentConfig, BackoffConfig, MasterConfig
-from surprise.errors import HardwareError
+from surprise.errors import ConnectionClosedError, HardwareError
 from surprise.network import GenomeLayout, NetworkSpec
 from surprise.sensors import GROUND_SENSORS, IR_SENSORS
+from surprise.session import FrameAuth, master_proof, new_nonce, proof_matches, robot_proof
 from surprise.wire import (
     REFUSED_BAD_SECRET,
     Authenticate,
     Challenge,
     Hello,
     Message,
-    MessageStream,
     Refused,
     Welcome,
-    new_nonce,
-    verify_mac,
 )
+from transport.stream import MessageStream
 
 #: What the fake body carries by default: a plain Thymio.
 THYMIO = IR_SENSORS + GROUND_SENSORS
@@ -225,17 +224,26 @@ class ScriptedMaster:
         heartbeat: float = 30.0,
         run_id: str = "run-1",
     ) -> Hello:
-        """Play the accepting side of the handshake; returns the robot's Hello."""
+        """Play the accepting side of the handshake with ``secret``; returns the robot's Hello.
+
+        Raises ``AssertionError`` if the robot does not answer the challenge (it refused our
+        proof) or its proof does not verify.
+        """
         hello = await receive(stream)
-        assert isinstance(hello, Hello)
-        nonce = new_nonce()
-        await stream.send(Challenge(nonce=nonce))
-        auth = await receive(stream)
+        assert isinstance(hello, Hello) and hello.nonce is not None
+        robot_id, robot_nonce, master_nonce = hello.robot_id, hello.nonce, new_nonce()
+        proof = master_proof(secret, robot_nonce, master_nonce, robot_id)
+        await stream.send(Challenge(nonce=master_nonce, proof=proof))
+        try:
+            auth = await receive(stream)
+        except ConnectionClosedError:
+            raise AssertionError("the robot did not accept the master's proof") from None
         assert isinstance(auth, Authenticate)
-        if not verify_mac(secret, nonce, hello.robot_id, auth.mac):
-            await stream.send(Refused(code=REFUSED_BAD_SECRET, reason="wrong MAC"))
+        if not proof_matches(robot_proof(secret, robot_nonce, master_nonce, robot_id), auth.proof):
+            await stream.send(Refused(code=REFUSED_BAD_SECRET, reason="wrong proof"))
             await stream.close()
-            raise AssertionError("the robot's MAC did not verify")
+            raise AssertionError("the robot's proof did not verify")
+        stream.authenticate(FrameAuth.for_master(secret, robot_nonce, master_nonce, robot_id))
         await stream.send(Welcome(run_id=run_id, heartbeat_interval=heartbeat))
         return hello
 

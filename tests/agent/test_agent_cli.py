@@ -17,22 +17,14 @@ from agent_fakes import SECRET, FakeBody, FakeClock, ScriptedMaster, genome, spe
 
 from robot_agent import cli
 from robot_agent.config import (
-    DEFAULT_PORT,
     AgentConfig,
     load_agent_config,
     make_ssl_context,
     read_secret,
 )
 from sim_stub.fake_medulla import StaticThymioModel, serve_fake_medulla
-from surprise.errors import ConfigError, HardwareError
-from surprise.wire import (
-    Bye,
-    ConnectionClosedError,
-    Evaluate,
-    Failed,
-    Result,
-    genome_to_bytes,
-)
+from surprise.errors import ConfigError, ConnectionClosedError, HardwareError
+from surprise.wire import DEFAULT_PORT, Bye, Evaluate, Failed, Result, genome_to_bytes
 
 MINIMAL = """
 robot_id: thymio-01
@@ -56,7 +48,7 @@ def test_a_minimal_file_gets_the_defaults_and_relative_paths_are_resolved(tmp_pa
     assert isinstance(config, AgentConfig)
     assert config.robot_id == "thymio-01" and config.master.port == DEFAULT_PORT
     assert config.master.secret_file == str(tmp_path / "secret.key")
-    assert config.loop.period == 0.1 and config.loop.max_read_failures == 3
+    assert config.loop.min_period == 0.1 and config.loop.max_read_failures == 3
     assert config.reconnect.initial == 0.5 and config.reconnect.max == 30.0
     assert config.safety.profile == "stop" and config.master.tls is None
     assert read_secret(config) == b"s3cret"  # the final newline is not part of the secret
@@ -76,7 +68,7 @@ master:
   tls: {ca_file: ca.pem, server_hostname: master}
 body: {thymio: {speed_scale: 300, failsafe: true}, force: {address: 0x49}}
 safety: {profile: escape, force_threshold: 0.3}
-loop: {period: 0.1, read_timeout: 0.12, max_read_failures: 5}
+loop: {min_period: 0.1, max_steps: 600, read_timeout: 0.12, max_read_failures: 5}
 reconnect: {initial: 1, max: 10, jitter: 0.1}
 """,
         )
@@ -96,6 +88,12 @@ reconnect: {initial: 1, max: 10, jitter: 0.1}
         ("robot_id: r1\nmaster: {host: h, secret_file: s, port: 0}", "master.port", ">= 1"),
         ("robot_id: r1\nmaster: {host: h, secret_file: s}\nloop: {read_timeout: 0.5}",
          "loop.read_timeout", "watchdog"),
+        ("robot_id: r1\nmaster: {host: h, secret_file: s}\nloop: {min_period: 0.5}",
+         "loop.min_period", "watchdog"),
+        ("robot_id: r1\nmaster: {host: h, secret_file: s}\nloop: {period: 0.1}",
+         "loop.period", "unknown key"),
+        ("robot_id: r1\nmaster: {host: h, secret_file: s}\nloop: {max_steps: 0}",
+         "loop.max_steps", ">= 1"),
         ("robot_id: r1\nmaster: {host: h, secret_file: s}\nreconnect: {initial: 5, max: 1}",
          "reconnect.max", "at least initial"),
         ("robot_id: r1\nmaster: {host: h, secret_file: s, tls: {key_file: k}}",
@@ -196,7 +194,11 @@ async def test_a_robot_switched_on_later_is_served_once_it_is_there(tmp_path, ca
         stream = await master.next()
         await master.welcome(stream)
         evaluate = Evaluate(
-            evaluation_id=1, genome=genome_to_bytes(genome(network)), spec=network, steps=5
+            evaluation_id=1,
+            genome=genome_to_bytes(genome(network)),
+            spec=network,
+            steps=5,
+            step_period=0.1,
         )
         await stream.send(evaluate)
         failed = await asyncio.wait_for(stream.receive(), 5)
@@ -255,7 +257,8 @@ async def test_a_signal_stops_the_motors_and_exits_0(tmp_path, signum):
                 evaluation_id=1,
                 genome=genome_to_bytes(genome(network, speed_bias=2.0)),
                 spec=network,
-                steps=10**6,
+                steps=30_000,  # long: it only ends when stopped
+                step_period=0.1,
             )
         )
         await asyncio.wait_for(body.moved.wait(), 5)

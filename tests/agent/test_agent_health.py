@@ -55,6 +55,7 @@ def evaluate(eid: int, steps: int = 10) -> Evaluate:
         genome=genome_to_bytes(genome(network, speed_bias=2.0)),
         spec=network,
         steps=steps,
+        step_period=0.1,
     )
 
 

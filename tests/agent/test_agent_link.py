@@ -7,6 +7,7 @@ import asyncio
 import contextlib
 import logging
 import random
+import struct
 from collections.abc import AsyncIterator
 
 import pytest
@@ -23,28 +24,35 @@ from agent_fakes import (
 )
 
 import surprise
+from relay import Relay, tagged_message
 from robot_agent.agent import Agent
 from robot_agent.config import BackoffConfig
 from surprise.backoff import Backoff
+from surprise.errors import ConnectionClosedError
+from surprise.session import NONCE_SIZE, master_proof, new_nonce
 from surprise.wire import (
+    LOGGED_TEXT_LIMIT,
+    MAX_REASON_LENGTH,
     PROTOCOL_VERSION,
     REFUSED_BAD_SECRET,
     REFUSED_VERSION_MISMATCH,
     Abort,
     Bye,
-    ConnectionClosedError,
+    Challenge,
     Evaluate,
     Failed,
     Hello,
-    MessageStream,
     Ping,
     Pong,
     Refused,
     Result,
+    Welcome,
+    encode,
     genome_to_bytes,
 )
+from transport.stream import MessageStream
 
-LONG = 10**6  # steps of an evaluation that only ends when stopped
+LONG = 30_000  # steps of an evaluation that only ends when stopped
 
 
 @pytest.fixture
@@ -74,11 +82,18 @@ def make_agent(port: int, *, body: FakeBody | None = None, secret: bytes = SECRE
     return agent, body
 
 
-def evaluate(eid: int, steps: int, *, speed: float = 2.0, network=None, record=False) -> Evaluate:
+def evaluate(
+    eid: int, steps: int, *, speed: float = 2.0, network=None, record=False, period=0.1
+) -> Evaluate:
     network = network if network is not None else spec()
     g = genome(network, speed_bias=speed)
     return Evaluate(
-        evaluation_id=eid, genome=genome_to_bytes(g), spec=network, steps=steps, record=record
+        evaluation_id=eid,
+        genome=genome_to_bytes(g),
+        spec=network,
+        steps=steps,
+        step_period=period,
+        record=record,
     )
 
 
@@ -106,23 +121,28 @@ async def test_handshake_introduces_the_robot_and_answers_the_challenge(master):
             software_version=surprise.__version__,
             protocol_version=PROTOCOL_VERSION,
             sensors=THYMIO,
+            nonce=hello.nonce,
         )
+        assert hello.nonce is not None and len(hello.nonce) == NONCE_SIZE
         await asyncio.wait_for(agent.connected.wait(), 5)
         assert agent.link.run_id == "run-7" and agent.link.heartbeat_interval == 2.0
 
 
-async def test_a_wrong_secret_is_refused_and_the_robot_backs_off_and_retries(master, caplog):
+async def test_a_wrong_secret_is_found_out_and_the_robot_backs_off_and_retries(master, caplog):
+    # The secrets differ: the master's proof does not verify on the robot, which says so loudly,
+    # sends nothing more and tries again later (the lab may fix the secret file).
     agent, _ = make_agent(master.port, secret=b"not the lab secret")
     caplog.set_level(logging.INFO, logger="robot_agent")
     async with running(agent):
         for attempt in (1, 2, 3):
             stream = await master.next()
-            with pytest.raises(AssertionError, match="MAC"):
+            with pytest.raises(AssertionError, match="did not accept the master's proof"):
                 await master.welcome(stream)
             await wait_for(lambda a=attempt: agent.link.backoff.attempts == a)
         assert not agent.connected.is_set()
-    refusals = [r for r in caplog.records if "bad-secret" in r.getMessage()]
-    assert len(refusals) >= 3 and all(r.levelno == logging.WARNING for r in refusals)
+    failures = [r for r in caplog.records if "did not prove" in r.getMessage()]
+    assert len(failures) >= 3 and all(r.levelno == logging.ERROR for r in failures)
+    assert "secret file differs" in failures[0].getMessage()
     assert any("reconnecting in" in r.getMessage() for r in caplog.records)
 
 
@@ -180,7 +200,7 @@ async def test_evaluate_runs_and_returns_the_result(master):
         result = await receive(stream)
         assert isinstance(result, Result) and result.evaluation_id == 7
         assert result.fitness == pytest.approx(0.5) and result.stats.steps_run == 12
-        assert result.trace is not None and len(result.trace.sensors) == 12
+        assert result.trace is not None and result.trace.steps == 12
         assert body.motors == (0.0, 0.0)
 
 
@@ -357,7 +377,8 @@ async def test_the_link_can_run_over_tls(tmp_path):
     import ssl
     import subprocess
 
-    from robot_agent.config import MasterConfig, TlsConfig
+    from robot_agent.config import MasterConfig
+    from transport.tls import ClientTlsConfig
 
     if shutil.which("openssl") is None:
         pytest.skip("openssl is not installed")
@@ -374,7 +395,7 @@ async def test_the_link_can_run_over_tls(tmp_path):
     master = ScriptedMaster()
     await master.start(ssl=server_context)
     try:
-        tls = TlsConfig(ca_file=str(cert), server_hostname="master.test")
+        tls = ClientTlsConfig(ca_file=str(cert), server_hostname="master.test")
         agent, _ = make_agent(
             master.port,
             master=MasterConfig(host="127.0.0.1", port=master.port, secret_file="x", tls=tls),
@@ -386,3 +407,127 @@ async def test_the_link_can_run_over_tls(tmp_path):
             assert await receive(stream) == Pong(seq=9)
     finally:
         await master.close()
+
+
+# --------------------------------------------------------------------------- who may drive
+
+
+async def test_an_impostor_master_cannot_make_the_robot_drive(master):
+    # A server without the secret: its proof cannot be right, so the robot sends it nothing more
+    # and runs nothing, however eagerly the impostor sends its Welcome and Evaluate.
+    agent, body = make_agent(master.port)
+    async with running(agent):
+        stream = await master.next()
+        hello = await receive(stream)
+        nonce = new_nonce()
+        guess = master_proof(b"a guessed secret", hello.nonce, nonce, hello.robot_id)
+        stream.writer.write(
+            encode(Challenge(nonce=nonce, proof=guess))
+            + encode(Welcome(run_id="impostor", heartbeat_interval=30.0))
+            + encode(evaluate(1, LONG))
+        )
+        with pytest.raises(ConnectionClosedError):
+            await receive(stream)  # no Authenticate, no Result: the robot just leaves
+        await master.next()  # and tries again later
+        assert body.drives == [] and not body.moved.is_set()
+        assert not agent.connected.is_set() and agent.link.sessions == 0
+
+
+@pytest.fixture
+async def relay(master):
+    r = Relay(master.port)
+    await r.start()
+    yield r
+    await r.close()
+
+
+async def test_an_evaluate_injected_by_a_relay_is_detected_and_never_run(master, relay):
+    agent, body = make_agent(relay.port)
+    async with running(agent):
+        stream, _ = await connect(master)  # the handshake passes the relay untouched
+        await asyncio.wait_for(agent.connected.wait(), 5)
+        relay.connections[0].inject_to_client(encode(evaluate(1, LONG)))
+        with pytest.raises(ConnectionClosedError):
+            await receive(stream)
+        await master.next()  # the robot reconnects
+        assert body.drives == [] and not body.moved.is_set()
+
+
+async def test_an_evaluate_replayed_by_a_relay_is_detected_and_not_run_again(master, relay):
+    agent, body = make_agent(relay.port)
+    async with running(agent):
+        stream, _ = await connect(master)
+        await stream.send(evaluate(1, 3))
+        assert isinstance(await receive(stream), Result)
+        drives = len(body.drives)
+        link = relay.connections[0]
+        genuine = [f for f in link.to_client if isinstance(tagged_message(f), Evaluate)]
+        link.inject_to_client(genuine[0])
+        with pytest.raises(ConnectionClosedError):
+            await receive(stream)
+        await master.next()
+        assert len(body.drives) == drives  # the replay never ran
+
+
+async def test_a_frame_sent_back_to_the_robot_is_detected(master, relay):
+    agent, _ = make_agent(relay.port)
+    async with running(agent):
+        stream, _ = await connect(master)
+        await stream.send(Ping(seq=5))
+        assert await receive(stream) == Pong(seq=5)
+        link = relay.connections[0]
+        pongs = lambda: [f for f in link.to_server if isinstance(tagged_message(f), Pong)]  # noqa: E731
+        await relay.wait_for(lambda: bool(pongs()))
+        pong = pongs()[0]
+        link.inject_to_client(pong)  # the robot's own answer, returned to it
+        with pytest.raises(ConnectionClosedError):
+            await receive(stream)
+        await master.next()
+
+
+# --------------------------------------------------------------------------- what a master may ask
+
+
+@pytest.mark.parametrize("heartbeat", [1e-4, 1e6])
+async def test_a_heartbeat_interval_out_of_bounds_ends_the_session(master, heartbeat, caplog):
+    # A tiny interval would make the robot ping in a busy loop and drop the link at once; a huge
+    # one would let it miss a dead master for days.
+    agent, _ = make_agent(master.port)
+    async with running(agent):
+        stream = await master.next()
+        with pytest.raises(ConnectionClosedError):
+            await master.welcome(stream, heartbeat=heartbeat)
+            await receive(stream)
+        assert not agent.connected.is_set() and agent.link.sessions == 0
+        await master.next()
+    assert any("heartbeat_interval" in r.getMessage() for r in caplog.records)
+
+
+async def test_a_large_frame_before_the_welcome_is_refused_at_once(master):
+    # Before the master has proved the secret, nobody makes the robot wait for or buffer a big
+    # frame: a header announcing 1 MiB ends the connection right away.
+    agent, _ = make_agent(master.port)
+    async with running(agent):
+        stream = await master.next()
+        assert isinstance(await receive(stream), Hello)
+        stream.writer.write(struct.pack(">I", 1024 * 1024))
+        with pytest.raises(ConnectionClosedError):
+            # Far below the 10 s handshake timeout: the robot did not wait for the body.
+            await receive(stream, timeout=2.0)
+        await master.next()
+
+
+async def test_a_refusal_reason_is_cut_and_cleaned_before_it_is_logged(master, caplog):
+    agent, _ = make_agent(master.port)
+    caplog.set_level(logging.INFO, logger="robot_agent")
+    async with running(agent):
+        stream = await master.next()
+        assert isinstance(await receive(stream), Hello)
+        reason = "\x1b[2J\x1b[31mwipe the screen\n" + "x" * (MAX_REASON_LENGTH - 40)
+        await stream.send(Refused(code=REFUSED_BAD_SECRET, reason=reason))
+        await stream.close()
+        await master.next()
+    (record,) = [r for r in caplog.records if "refused by the master" in r.getMessage()]
+    text = record.getMessage()
+    assert "\x1b" not in text and "\n" not in text and "?[2J?[31mwipe the screen?" in text
+    assert len(text) < LOGGED_TEXT_LIMIT + 100 and text.endswith("...")

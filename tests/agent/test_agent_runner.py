@@ -20,9 +20,14 @@ from surprise.wire import Evaluate, Failed, Result, genome_to_bytes
 ALL_PREDEFINED = 0.25
 
 
-def evaluate(network, g, steps, *, eid=1, record=False) -> Evaluate:
+def evaluate(network, g, steps, *, eid=1, record=False, period=0.1) -> Evaluate:
     return Evaluate(
-        evaluation_id=eid, genome=genome_to_bytes(g), spec=network, steps=steps, record=record
+        evaluation_id=eid,
+        genome=genome_to_bytes(g),
+        spec=network,
+        steps=steps,
+        step_period=period,
+        record=record,
     )
 
 
@@ -74,8 +79,8 @@ async def test_three_steps_by_hand_with_a_learned_and_a_predefined_prediction():
     assert outcome.fitness == pytest.approx((0.925 + 0.8) / 2, abs=1e-12)
     trace = outcome.trace
     assert trace is not None
-    np.testing.assert_allclose(trace.sensors, [readings[0], readings[1], readings[2]])
-    np.testing.assert_allclose(trace.predictions, [[0.5, 0.75]] * 3)
+    np.testing.assert_allclose(trace.array("sensors"), [readings[0], readings[1], readings[2]])
+    np.testing.assert_allclose(trace.array("predictions"), [[0.5, 0.75]] * 3)
 
 
 async def test_a_fresh_network_and_safety_state_for_every_evaluation():
@@ -104,6 +109,43 @@ async def test_deadlines_are_absolute_and_do_not_drift():
     assert clock.deadlines == [t0 + (k + 1) * 0.1 for k in range(1000)]
     # The last deadline is where 1000 periods end, not where 1000 added periods would.
     assert clock.deadlines[-1] == pytest.approx(t0 + 100.0, abs=1e-9)
+
+
+async def test_the_evaluation_runs_at_the_period_the_master_sends():
+    clock = FakeClock(start=0.0)
+    body = FakeBody(0.5, clock=clock)
+    network = constant_prediction_spec()
+    runner = make_runner(body, clock)
+    outcome = await runner.run(evaluate(network, genome(network), 5, period=0.2))
+    assert isinstance(outcome, Result) and outcome.stats.overruns == 0
+    assert clock.deadlines == pytest.approx([0.2, 0.4, 0.6, 0.8, 1.0])
+    # The next evaluation brings its own period: nothing of the last one is kept.
+    await runner.run(evaluate(network, genome(network), 2, period=0.125))
+    assert clock.deadlines[5:] == pytest.approx([1.125, 1.25])
+
+
+@pytest.mark.parametrize(
+    "loop, period, steps, words",
+    [
+        # A Thymio's sensors update at 10 Hz: a shorter step would read the same values again.
+        ({}, 0.05, 10, "period: this robot runs steps of 0.1 s to 0.22 s"),
+        # The watchdog (0.25 s without a feed) would trip between two steps.
+        ({}, 0.3, 10, "not 0.3 s"),
+        ({"min_period": 0.2}, 0.1, 10, "period: this robot runs steps of 0.2 s"),
+        ({"max_steps": 50}, 0.1, 51, "steps: this robot runs at most 50 steps"),
+    ],
+)
+async def test_an_evaluation_the_robot_cannot_keep_is_refused_with_a_reason(
+    loop, period, steps, words
+):
+    clock = FakeClock()
+    body = FakeBody(0.5, clock=clock)
+    network = constant_prediction_spec()
+    outcome = await make_runner(body, clock, **loop).run(
+        evaluate(network, genome(network), steps, period=period)
+    )
+    assert isinstance(outcome, Failed) and words in outcome.reason
+    assert body.drives == [] and body.reads == 0
 
 
 async def test_an_overrun_is_counted_and_the_next_step_starts_at_once_on_the_grid():
@@ -144,14 +186,15 @@ async def test_record_mode_fills_the_trace_with_poses_when_the_body_has_them():
     outcome = await make_runner(body, clock).run(evaluate(network, g, 4, record=True))
     assert isinstance(outcome, Result) and outcome.trace is not None
     trace = outcome.trace
-    assert len(trace.sensors) == len(trace.predictions) == len(trace.actions) == 4
-    assert trace.sensors[0] == [0.0] * len(THYMIO)
-    np.testing.assert_allclose(trace.predictions, 0.5)  # sigmoid(0)
-    np.testing.assert_allclose(trace.actions, math.tanh(1.0))
-    assert trace.commands == trace.actions  # nothing in the way: safety let it pass
+    assert trace.steps == 4 and trace.width == len(THYMIO)
+    assert trace.array("sensors")[0].tolist() == [0.0] * len(THYMIO)
+    np.testing.assert_allclose(trace.array("predictions"), 0.5)  # sigmoid(0)
+    np.testing.assert_allclose(trace.array("actions"), math.tanh(1.0))
+    # Nothing in the way: safety let it pass.
+    assert np.array_equal(trace.array("commands"), trace.array("actions"))
     assert trace.safety == [""] * 4
     # The pose is taken right after each reading, before that step's drive.
-    assert trace.poses == [[float(k), 0.0, 0.0] for k in range(4)]
+    assert trace.array("poses").tolist() == [[float(k), 0.0, 0.0] for k in range(4)]
 
 
 async def test_trace_without_pose_and_no_trace_without_record():
@@ -183,7 +226,7 @@ async def test_safety_interventions_are_counted_by_reason_and_applied():
     assert body.drives == [(ahead, ahead), (0, 0), (0, 0), (0, 0), (ahead, ahead)]
     assert outcome.trace is not None
     assert outcome.trace.safety == ["", "front", "front", "ground", ""]
-    np.testing.assert_allclose(outcome.trace.actions, ahead)  # intended, not applied
+    np.testing.assert_allclose(outcome.trace.array("actions"), ahead)  # intended, not applied
 
 
 async def test_a_stale_frame_is_stopped_by_safety():
@@ -248,7 +291,7 @@ async def test_cancelling_an_evaluation_stops_the_motors():
     body = FakeBody(0.0, clock=clock)
     network = spec()
     runner = make_runner(body, clock)
-    task = asyncio.create_task(runner.run(evaluate(network, genome(network, speed_bias=2), 10**6)))
+    task = asyncio.create_task(runner.run(evaluate(network, genome(network, speed_bias=2), 30_000)))
     await body.moved.wait()
     assert body.motors != (0.0, 0.0)
     task.cancel()
@@ -312,7 +355,8 @@ async def test_a_single_lost_reading_stops_one_step_and_drops_its_prediction():
     # Scored: steps 3 and 4 against 0.4 -> 0.9. Step 2 has no prediction left to score (scoring
     # the one made for step 1 against 0.0 would give 0.5 and a mean of 0.77).
     assert outcome.fitness == pytest.approx(0.9)
-    assert len(outcome.trace.sensors) == 4  # the lost step is not in the trace
+    assert outcome.trace.steps == 4  # the lost step is not in the trace
+    assert outcome.trace.array("sensors").shape == (4, len(THYMIO))
 
 
 async def test_a_tripped_watchdog_ends_the_evaluation_and_the_next_one_rearms_it():

@@ -55,6 +55,7 @@ async def run_swarm(seed: int) -> list[Result]:
                         genome=genome_to_bytes(g),
                         spec=network,
                         steps=STEPS,
+                        step_period=0.1,
                         record=True,
                     )
                 )
@@ -80,10 +81,11 @@ async def test_simulated_swarm_evaluates_in_lockstep_and_repeats_for_a_seed():
         assert result.stats.steps_run == STEPS and result.stats.overruns == 0
         assert 0.0 <= result.fitness <= 1.0
         trace = result.trace
-        assert trace is not None and trace.poses is not None and len(trace.poses) == STEPS
+        assert trace is not None and trace.poses is not None and trace.steps == STEPS
         # Each robot stands somewhere different; over the run at least one of them moved.
-    assert len({tuple(r.trace.poses[0]) for r in first}) == ROBOTS
-    assert any(r.trace.poses[0] != r.trace.poses[-1] for r in first)
+    poses = [r.trace.array("poses") for r in first]
+    assert len({tuple(p[0]) for p in poses}) == ROBOTS
+    assert any((p[0] != p[-1]).any() for p in poses)
     again = await run_swarm(seed=4)
     assert [r.fitness for r in again] == [r.fitness for r in first]
     assert [r.trace.poses for r in again] == [r.trace.poses for r in first]

@@ -48,8 +48,9 @@ from surprise.wire import Evaluate, Failed, Result, genome_to_bytes
 pytestmark = pytest.mark.slow
 
 SECRET = b"real aseba secret"
-#: A 10 Hz evaluation much longer than any test: the robot drives until the test acts.
-LONG = 100_000
+#: A 10 Hz evaluation much longer than any test (under the robots' loop.max_steps): the robot
+#: drives until the test acts.
+LONG = 30_000
 #: Seconds to wait for an agent process to connect and for its robot to move.
 AGENT_TIMEOUT = 30.0
 #: The failsafe's timeout in the agents' configuration (seconds).
@@ -209,6 +210,7 @@ def straight(evaluation_id: int, steps: int = LONG) -> Evaluate:
         genome=genome_to_bytes(genome(network, speed_bias=1.0)),
         spec=network,
         steps=steps,
+        step_period=0.1,
     )
 
 

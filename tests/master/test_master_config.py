@@ -11,14 +11,14 @@ from master_helpers import SECRET, master_config
 from master_service import Master
 from master_service.cli import main
 from master_service.config import (
-    DEFAULT_PORT,
     MasterConfig,
-    TlsConfig,
     build_ssl_context,
     load_master_config,
     load_secret,
 )
 from surprise.errors import ConfigError
+from surprise.wire import DEFAULT_PORT
+from transport.tls import ServerTlsConfig
 
 
 def write(directory: Path, text: str, name: str = "master.yaml") -> Path:
@@ -55,6 +55,7 @@ def test_an_inline_experiment_and_defaults(lab):
     assert config.robot_count == 1 and config.host == "127.0.0.1"
     assert config.round_margin == 5.0 and config.heartbeat_interval == 2.0
     assert config.handshake_timeout == 10.0 and config.tls is None
+    assert config.max_pending_connections == 64
 
 
 @pytest.mark.parametrize(
@@ -66,6 +67,10 @@ def test_an_inline_experiment_and_defaults(lab):
         ("experiment: {}\nprot: 1", "prot", "unknown key"),
         ("experiment: {}\nround_margin: 0", "round_margin", "> 0.0"),
         ("experiment: {}\nheartbeat_interval: soon", "heartbeat_interval", "float"),
+        # The robots refuse intervals outside the protocol's bounds: so does the master.
+        ("experiment: {}\nheartbeat_interval: 0.001", "heartbeat_interval", ">= 0.05"),
+        ("experiment: {}\nheartbeat_interval: 600", "heartbeat_interval", "<= 60.0"),
+        ("experiment: {}\nmax_pending_connections: 0", "max_pending_connections", ">= 1"),
         ("experiment: {}\nallowed_robots: ['a b']", "allowed_robots[0]", "matching regex"),
         ("experiment: {}\nallowed_robots: [a, a]", "allowed_robots", "listed twice"),
         ("experiment: {robots: 3}\nallowed_robots: [a, b]", "expected_robots", "lists only 2"),
@@ -105,7 +110,7 @@ def test_secret_files(tmp_path):
 def test_a_bad_certificate_is_a_configuration_error(tmp_path):
     cert = write(tmp_path, "not a certificate", "cert.pem")
     with pytest.raises(ConfigError, match="certificate") as info:
-        build_ssl_context(TlsConfig(cert_file=str(cert), key_file=str(cert)))
+        build_ssl_context(ServerTlsConfig(cert_file=str(cert), key_file=str(cert)))
     assert info.value.key == "tls.cert_file"
 
 

@@ -172,13 +172,21 @@ async def test_a_genome_failing_again_and_again_is_retried_with_a_pause(tmp_path
 
 
 @pytest.mark.parametrize(
-    "data",
+    "data, words",
     [
-        pytest.param(b"\x00\x00\x00\x07garbage", id="garbage"),
-        pytest.param(struct.pack(">I", MAX_FRAME_SIZE + 1), id="oversized"),
+        # Untagged bytes in a session: whoever sent them, they are not the robot's.
+        pytest.param(b"\x00\x00\x00\x07garbage", "robot r1: frame 2 is too short", id="garbage"),
+        pytest.param(
+            b"\x00\x00\x00\x17" + bytes(23), "robot r1: frame 2 fails authentication", id="forged"
+        ),
+        pytest.param(
+            struct.pack(">I", MAX_FRAME_SIZE + 1),
+            "malformed input from robot r1: frame of",
+            id="oversized",
+        ),
     ],
 )
-async def test_malformed_input_from_a_robot_costs_its_connection_only(tmp_path, data):
+async def test_malformed_input_from_a_robot_costs_its_connection_only(tmp_path, data, words):
     exp = experiment()
     async with Master(master_config(exp), tmp_path / "run", secret=SECRET) as master:
         robots = make_robots(master.port, 3)
@@ -198,7 +206,7 @@ async def test_malformed_input_from_a_robot_costs_its_connection_only(tmp_path, 
         await close(robots)
     assert_matches_reference(tmp_path / "run", exp, robot_ids(3))
     log = (tmp_path / "run" / "master.log").read_text()
-    assert "malformed input from robot r1" in log
+    assert words in log
 
 
 async def test_a_robot_dropping_out_of_the_post_evaluation_is_waited_for(tmp_path):
@@ -241,18 +249,50 @@ async def test_the_swarm_is_fixed_by_the_allow_list_order_independent(tmp_path):
     assert_matches_reference(tmp_path / "run", exp, robot_ids(3))
 
 
-async def test_fitnesses_whose_mean_overflows_do_not_stop_the_run(tmp_path):
-    # Each robot's fitness is finite (the codec checks that), but their mean may not be: such a
-    # round must not count, and must not crash the master either.
+@pytest.mark.parametrize("hostile", [1e300, -0.5, 1.0 + 1e-9])
+async def test_a_fitness_outside_zero_to_one_closes_that_session_and_the_round_repeats(
+    tmp_path, hostile
+):
+    # One result of 1e300 once made the best fitness 2.5e299 and froze the evolution for the rest
+    # of the run. A fitness outside [0, 1] is a protocol error: that robot's session closes, the
+    # round does not count, and it is repeated with the same genome once the robot is back.
     exp = experiment(evaluations=3)
-    huge = iter([1.7e308] * 3)
+    pending = [hostile]
 
     def fitness(genome, index):
-        return next(huge, None) or deterministic_fitness(genome, index)
+        if index == 1 and pending:
+            return pending.pop()
+        return deterministic_fitness(genome, index)
 
     async with Master(master_config(exp), tmp_path / "run", secret=SECRET) as master:
         robots = make_robots(master.port, 3, fitness=fitness)
-        summary = await run_with(master, robots)
+        run = asyncio.create_task(master.run())
+        await connect(robots)
+        await asyncio.wait_for(robots[1].closed.wait(), 5)
+        await robots[1].connect()
+        summary = await asyncio.wait_for(run, 15)
         await close(robots)
     assert summary.failed_attempts == 1
     assert_matches_reference(tmp_path / "run", exp, robot_ids(3))
+    log = (tmp_path / "run" / "master.log").read_text()
+    assert "malformed input from robot r1" in log and "fitness" in log
+
+
+async def test_the_round_deadline_follows_the_experiments_step_period(tmp_path):
+    # Robots at 0.5 s per step answer 2 steps after 0.7 s: far past a deadline of 2 * 0.1 s +
+    # margin, well inside 2 * 0.5 s + margin. Every Evaluate carries the period.
+    exp = experiment(evaluations=2, evaluation_steps=2, post_evaluation_steps=0, step_period=0.5)
+    async with Master(master_config(exp), tmp_path / "run", secret=SECRET) as master:
+        assert master.rounds.deadline(2, exp.step_period) == pytest.approx(1.0 + 0.3)
+        robots = make_robots(master.port, 3, delay=0.7)
+        summary = await run_with(master, robots)
+        await close(robots)
+    assert summary.failed_attempts == 0
+    assert {m.step_period for r in robots for m in r.evaluations} == {0.5}
+
+
+def test_scripted_robots_answer_a_fitness_in_range_however_large_the_swarm():
+    # The benchmarks run a thousand of them: their fitness must be one the master accepts.
+    for genome in (np.full(10, -50.0), np.zeros(10), np.full(10, 50.0)):
+        values = [deterministic_fitness(genome, index) for index in range(1000)]
+        assert min(values) >= 0.0 and max(values) <= 1.0

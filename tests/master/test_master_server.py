@@ -6,18 +6,21 @@ After every refusal or broken connection a good robot must still be welcomed.
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import logging
 import shutil
 import ssl
 import struct
 import subprocess
 
+import msgspec
 import pytest
 from master_helpers import SECRET, master_config
 
 from master_service import Master
-from master_service.config import TlsConfig
 from master_service.scripted import RobotRefusedError, ScriptedRobot
 from surprise.sensors import ALL_SENSORS, IR_SENSORS
+from surprise.session import FrameAuth, master_proof, new_nonce, proof_matches, robot_proof
 from surprise.wire import (
     MAX_FRAME_SIZE,
     PROTOCOL_VERSION,
@@ -30,14 +33,15 @@ from surprise.wire import (
     Bye,
     FrameDecoder,
     Hello,
-    MessageStream,
     Ping,
     Pong,
     Refused,
     Welcome,
-    compute_mac,
     encode,
+    frame,
 )
+from transport.stream import MessageStream
+from transport.tls import ServerTlsConfig
 
 
 async def still_serving(master: Master, robot_id: str = "good") -> None:
@@ -58,6 +62,19 @@ async def read_all(reader: asyncio.StreamReader, timeout: float = 3.0) -> list:
     return messages
 
 
+def hello_payload(**changes: object) -> bytes:
+    fields = {
+        "type": "hello",
+        "robot_id": "r0",
+        "software_version": "x",
+        "protocol_version": PROTOCOL_VERSION,
+        "sensors": list(ALL_SENSORS),
+        "nonce": new_nonce(),
+    }
+    fields.update(changes)
+    return msgspec.msgpack.encode(fields)
+
+
 async def test_a_robot_is_welcomed(tmp_path):
     async with Master(master_config(), tmp_path / "run", secret=SECRET) as master:
         robot = ScriptedRobot("r0", SECRET, master.port)
@@ -72,11 +89,13 @@ async def test_a_robot_is_welcomed(tmp_path):
 @pytest.mark.parametrize(
     "kwargs, config, code, words",
     [
-        ({"secret": b"wrong"}, {}, REFUSED_BAD_SECRET, "does not match"),
+        # A robot that answers although the master's proof did not verify on it (a real one
+        # would not): the master's own check refuses it.
+        ({"secret": b"wrong", "verify_master": False}, {}, REFUSED_BAD_SECRET, "does not match"),
         ({"protocol_version": PROTOCOL_VERSION + 1}, {}, REFUSED_VERSION_MISMATCH, "version"),
         ({}, {"allowed_robots": ["a", "b", "c"]}, REFUSED_UNKNOWN_ROBOT, "not among the allowed"),
         ({"sensors": IR_SENSORS}, {}, REFUSED_MISSING_SENSORS, "ground.0, ground.1"),
-        ({"robot_id": "no spaces"}, {}, REFUSED_PROTOCOL, "robot id"),
+        ({"robot_id": "no spaces"}, {}, REFUSED_PROTOCOL, "robot_id"),
     ],
 )
 async def test_refusals_carry_a_code_and_reason(tmp_path, kwargs, config, code, words):
@@ -123,8 +142,16 @@ async def test_a_complete_swarm_refuses_a_further_robot(tmp_path):
         pytest.param(b"\x00\x00\x00\x05\xc1\xc1\xc1\xc1\xc1", "malformed", id="garbage"),
         pytest.param(struct.pack(">I", MAX_FRAME_SIZE + 1), "exceeds the limit", id="oversized"),
         # Before authentication a frame cannot be large: an unauthenticated peer must not make
-        # the master buffer megabytes per connection until the handshake times out.
+        # the master buffer anything sizeable per connection until the handshake times out.
         pytest.param(struct.pack(">I", 1024 * 1024), "exceeds the limit", id="large-before-auth"),
+        pytest.param(struct.pack(">I", 8 * 1024), "exceeds the limit", id="8k-before-auth"),
+        # Within the small frame, every field is bounded too.
+        pytest.param(
+            frame(hello_payload(sensors=[""] * 17)), "length <= 16", id="too-many-sensors"
+        ),
+        pytest.param(
+            frame(hello_payload(software_version="v" * 65)), "software_version", id="long-version"
+        ),
         pytest.param(b"\x00\x00\x00\x00", "empty frame", id="empty"),
         pytest.param(encode(Ping(seq=1)), "expected hello", id="ping-first"),
     ],
@@ -193,7 +220,7 @@ async def test_a_long_message_still_arriving_keeps_the_link_alive(tmp_path):
     async with Master(master_config(heartbeat_interval=0.1), tmp_path / "run", secret=SECRET) as m:
         robot = ScriptedRobot("r0", SECRET, m.port, answer_pings=False)
         await robot.connect()
-        frame = encode(Bye(reason="x" * 4000))
+        frame = robot.sealed_frame(Bye(reason="x" * 4000))
         for i in range(0, len(frame) - 50, 50):  # 80 pieces over 1.6 s; dead after 0.3 s
             robot.send_raw(frame[i : i + 50])
             await asyncio.sleep(0.02)
@@ -207,11 +234,20 @@ async def test_the_master_answers_a_robots_ping(tmp_path):
     async with Master(master_config(), tmp_path / "run", secret=SECRET) as master:
         reader, writer = await asyncio.open_connection("127.0.0.1", master.port)
         stream = MessageStream(reader, writer)
-        await stream.send(
-            Hello(robot_id="r0", software_version="x", protocol_version=1, sensors=ALL_SENSORS)
+        robot_nonce = new_nonce()
+        hello = Hello(
+            robot_id="r0",
+            software_version="x",
+            protocol_version=PROTOCOL_VERSION,
+            sensors=ALL_SENSORS,
+            nonce=robot_nonce,
         )
+        await stream.send(hello)
         challenge = await stream.receive()
-        await stream.send(Authenticate(mac=compute_mac(SECRET, challenge.nonce, "r0")))
+        nonces = (robot_nonce, challenge.nonce, "r0")
+        assert proof_matches(master_proof(SECRET, *nonces), challenge.proof)
+        await stream.send(Authenticate(proof=robot_proof(SECRET, *nonces)))
+        stream.authenticate(FrameAuth.for_robot(SECRET, *nonces))
         assert isinstance(await stream.receive(), Welcome)
         await stream.send(Ping(seq=41))
         async with asyncio.timeout(2):
@@ -239,7 +275,7 @@ def _make_certificate(directory) -> tuple[str, str]:
 @pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl command")
 async def test_tls(tmp_path):
     cert, key = _make_certificate(tmp_path)
-    config = master_config(tls=TlsConfig(cert_file=cert, key_file=key))
+    config = master_config(tls=ServerTlsConfig(cert_file=cert, key_file=key))
     async with Master(config, tmp_path / "run", secret=SECRET) as master:
         client = ssl.create_default_context(cafile=cert)
         robot = ScriptedRobot("r0", SECRET, master.port, ssl_context=client)
@@ -261,3 +297,124 @@ async def test_sessions_of_a_closing_master_get_a_bye(tmp_path):
     await robot.connect()
     await master.close()
     await asyncio.wait_for(robot.closed.wait(), 2)
+
+
+# ---------------------------------------------------------------------------------------------
+# Peers without the secret cannot starve the master
+
+
+async def idle_connections(port: int, count: int) -> list[asyncio.StreamWriter]:
+    writers = []
+    for _ in range(count):
+        _, writer = await asyncio.open_connection("127.0.0.1", port)
+        writers.append(writer)
+    return writers
+
+
+async def test_connections_beyond_the_pending_limit_are_closed_at_once(tmp_path):
+    config = master_config(max_pending_connections=3, handshake_timeout=5.0)
+    async with Master(config, tmp_path / "run", secret=SECRET) as master:
+        idle = await idle_connections(master.port, 3)
+        reader, writer = await asyncio.open_connection("127.0.0.1", master.port)
+        # Closed without a word and long before the handshake timeout: no handshake work at all.
+        async with asyncio.timeout(1.0):
+            assert await reader.read() == b""
+        writer.close()
+        assert master.server.refused_connections == 1
+        assert master.server.pending_connections == 3
+        for w in idle:
+            w.close()
+        # Their slots come back as they close; then robots are served again.
+        async with asyncio.timeout(2.0):
+            while master.server.pending_connections:
+                await asyncio.sleep(0.01)
+        await still_serving(master)
+        assert master.server.pending_connections == 0
+    log = (tmp_path / "run" / "master.log").read_text()
+    assert "refused a connection from 127.0.0.1" in log and "3 handshakes are running" in log
+
+
+async def test_a_flood_of_refused_connections_logs_a_bounded_number_of_lines(tmp_path):
+    config = master_config(max_pending_connections=1, handshake_timeout=5.0)
+    async with Master(config, tmp_path / "run", secret=SECRET) as master:
+        (holder,) = await idle_connections(master.port, 1)
+        for _ in range(40):
+            reader, writer = await asyncio.open_connection("127.0.0.1", master.port)
+            assert await reader.read() == b""
+            writer.close()
+        holder.close()
+        assert master.server.refused_connections == 40
+    lines = (tmp_path / "run" / "master.log").read_text().splitlines()
+    refused = [line for line in lines if "refused a connection" in line]
+    assert len(refused) == 10  # ThrottledLog's lines per minute
+    # The other 30 (and the holder's end) are counted, in one line.
+    (count,) = [line for line in lines if "more refused or failed connections" in line]
+    assert int(count.split(" more ")[0].rsplit(" ", 1)[-1]) >= 30
+
+
+async def test_the_whole_handshake_has_one_deadline(tmp_path):
+    # A peer dribbling its bytes keeps each step under the timeout (0.7 s each, 1 s allowed),
+    # but not the whole handshake: it is refused at 1 s, never welcomed, however it goes on.
+    config = master_config(handshake_timeout=1.0)
+    async with Master(config, tmp_path / "run", secret=SECRET) as master:
+        reader, writer = await asyncio.open_connection("127.0.0.1", master.port)
+
+        async def dribble(data: bytes) -> None:
+            pieces = [
+                data[i : i + len(data) // 7 + 1] for i in range(0, len(data), len(data) // 7 + 1)
+            ]
+            for piece in pieces:
+                writer.write(piece)
+                await asyncio.sleep(0.1)
+
+        robot_nonce = new_nonce()
+        await dribble(frame(hello_payload(nonce=robot_nonce)))
+        decoder = FrameDecoder()
+        challenge = None
+        while challenge is None:
+            messages = decoder.feed(await reader.read(65536))
+            challenge = messages[0] if messages else None
+        assert proof_matches(
+            master_proof(SECRET, robot_nonce, challenge.nonce, "r0"), challenge.proof
+        )
+        proof = robot_proof(SECRET, robot_nonce, challenge.nonce, "r0")
+
+        async def collect() -> list:
+            # Until the master closes; what it sent arrives before our writes start to fail.
+            received = []
+            with contextlib.suppress(ConnectionError):
+                while data := await reader.read(65536):
+                    received += decoder.feed(data)
+            return received
+
+        answers = asyncio.create_task(collect())
+        with contextlib.suppress(ConnectionError):
+            await dribble(encode(Authenticate(proof=proof)))
+        messages = await asyncio.wait_for(answers, 3)
+        writer.close()
+        assert master.server.pending_connections == 0  # its slot is free again
+    assert len(messages) == 1 and isinstance(messages[0], Refused)
+    assert messages[0].code == REFUSED_PROTOCOL
+    assert "the handshake took longer than 1 s" in messages[0].reason
+
+
+async def test_stopping_the_master_with_handshakes_pending_prints_no_tracebacks(tmp_path, caplog):
+    caplog.set_level(logging.DEBUG)
+    # Handshakes that would still be waiting long after the master stopped.
+    master = Master(master_config(handshake_timeout=30.0), tmp_path / "run", secret=SECRET)
+    await master.start()
+    idle = await idle_connections(master.port, 20)
+    robot = ScriptedRobot("r0", SECRET, master.port)
+    await robot.connect()
+    async with asyncio.timeout(2.0):
+        while master.server.pending_connections < 20:
+            await asyncio.sleep(0.01)
+    await master.close()
+    for _ in range(5):  # let asyncio run whatever callbacks the closed connections left
+        await asyncio.sleep(0)
+    for w in idle:
+        w.close()
+    assert robot.closed.is_set()  # the robot's session had its Bye
+    errors = [r for r in caplog.records if r.levelno >= logging.ERROR or r.exc_info]
+    assert errors == []
+    assert "Traceback" not in (tmp_path / "run" / "master.log").read_text()

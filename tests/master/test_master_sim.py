@@ -75,6 +75,15 @@ def test_the_same_seed_gives_the_same_run(basic_run, tmp_path):
     assert first == again
 
 
+def test_simulated_agents_run_whatever_period_the_experiment_gives(tmp_path):
+    # A real Thymio's 10 Hz sensors set a real robot's shortest step, not a simulated body's: a
+    # simulation at 100 Hz runs, it is not refused by its own agents.
+    experiment = small(evaluations=3, step_period=0.01)
+    # (A refusing swarm would repeat the first round forever: bounded.)
+    result = asyncio.run(asyncio.wait_for(SimulatedSwarm(experiment).run(tmp_path / "run"), 60))
+    assert result.summary.evaluations == 3 and result.summary.failed_attempts == 0
+
+
 def test_object_manipulation_measures_box_displacement(tmp_path):
     experiment = small("boxes", evaluations=3)
     result = asyncio.run(SimulatedSwarm(experiment).run(tmp_path / "run"))

@@ -21,6 +21,7 @@ def test_empty_file_gives_the_papers_simulation_defaults(tmp_path):
     assert cfg.evolution.reevaluation_probability == 0.2
     assert cfg.evolution.mutation_probability == 0.1 and cfg.evolution.mutation_range == 0.4
     assert cfg.post_evaluation_steps == 1000 and len(cfg.sensors) == 9
+    assert cfg.step_period == 0.1  # 10 Hz, the paper's control rate
 
 
 def test_a_full_file_decodes(tmp_path):
@@ -56,6 +57,9 @@ simulation: {arena_side: 1.2}
         ("predefined: {force: 0.2}", "predefined.force", "not among"),
         ("predefined: {ir.f0: 2}", "predefined.ir.f0", "in [0, 1]"),
         ("seed: -1", "seed", ">= 0"),
+        ("step_period: 0", "step_period", "> 0.0"),
+        ("step_period: 100", "step_period", "<= 10.0"),
+        ("step_period: .inf", "step_period", "<= 10.0"),
     ],
 )
 def test_bad_values_name_file_and_key(tmp_path, text, key, words):

@@ -51,6 +51,7 @@ def evaluate(eid: int, steps: int) -> Evaluate:
         genome=genome_to_bytes(genome(network, speed_bias=2.0)),
         spec=network,
         steps=steps,
+        step_period=0.1,
         record=False,
     )
 
@@ -127,13 +128,14 @@ async def test_a_refused_evaluation_is_summarised_as_failed(mosquitto, subscribe
             TelemetryConfig(broker=mosquitto.url, reconnect=FAST), status_suffix="robot/r1/status"
         )
         async with pub:
-            runner = EvaluationRunner(body, clock, telemetry=RobotTelemetry(pub, "r1", period=0.1))
+            runner = EvaluationRunner(body, clock, telemetry=RobotTelemetry(pub, "r1"))
             network = spec((*THYMIO, "light.0"))
             msg = Evaluate(
                 evaluation_id=3,
                 genome=genome_to_bytes(genome(network)),
                 spec=network,
                 steps=10,
+                step_period=0.1,
                 record=False,
             )
             assert isinstance(await runner.run(msg), Failed)
@@ -163,7 +165,7 @@ async def test_a_full_queue_drops_the_oldest_without_touching_the_loop(started, 
         broker=f"mqtt://127.0.0.1:{closed_port}", rate_hz=10, queue_size=2, reconnect=FAST
     )
     pub = TelemetryPublisher(config, status_suffix="robot/r1/status")
-    runner = EvaluationRunner(body, clock, telemetry=RobotTelemetry(pub, "r1", period=0.1))
+    runner = EvaluationRunner(body, clock, telemetry=RobotTelemetry(pub, "r1"))
     if started:
         pub.start()
     try:
@@ -199,7 +201,7 @@ async def test_the_broker_stopped_and_restarted_mid_evaluation(mosquitto, subscr
     body = FakeBody(values, clock=clock)
     config = TelemetryConfig(broker=mosquitto.url, rate_hz=10, queue_size=1000, reconnect=FAST)
     async with TelemetryPublisher(config, status_suffix="robot/r1/status") as pub:
-        runner = EvaluationRunner(body, clock, telemetry=RobotTelemetry(pub, "r1", period=0.1))
+        runner = EvaluationRunner(body, clock, telemetry=RobotTelemetry(pub, "r1"))
         await eventually(lambda: pub.connected)
         outcome = await _run(runner, steps)
         assert outcome.fitness == reference.fitness and outcome.stats == reference.stats

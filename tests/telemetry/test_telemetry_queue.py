@@ -249,8 +249,8 @@ def test_after_a_lost_reading_the_sample_has_no_prediction():
 
 def test_robot_telemetry_follows_the_rate_and_summarises_evaluations():
     pub = publisher(rate_hz=0)
-    robot = RobotTelemetry(pub, "r1", period=0.1)
-    assert robot.sampler(1, ("a",)) is None
+    robot = RobotTelemetry(pub, "r1")
+    assert robot.sampler(1, ("a",), 0.1) is None
     robot.evaluation(5, requested=10, steps=3, fitness=None, failure="sensor-read: x")
     ((suffix, summary, qos),) = list(pub._queue)
     assert suffix == "robot/r1/evaluation" and qos == 1
