@@ -21,7 +21,7 @@ import msgspec
 import numpy as np
 
 from master_service.rundir import write_atomic
-from master_service.simulate import SAFETY_PROFILES, simulated_loop, world_config
+from master_service.simulate import simulated_loop, simulated_safety, world_config
 from robot_agent.runner import EvaluationRunner
 from sim_stub import metrics as sim_metrics
 from sim_stub.body import SimSwarm
@@ -30,7 +30,6 @@ from surprise.config import ExperimentConfig
 from surprise.evolution import random_genome
 from surprise.fitness import surprise_fitness, swarm_fitness
 from surprise.network import GenomeLayout, spec_from_config
-from surprise.safety import SafetyConfig
 from surprise.wire import Evaluate, Result, genome_to_bytes
 
 __all__ = ["BASELINE_FILE", "load_baseline", "run_baseline"]
@@ -87,7 +86,7 @@ async def run_baseline(experiment: ExperimentConfig, pairs: int, out: str | Path
     steps = max(experiment.post_evaluation_steps, experiment.evaluation_steps)
     world = World(world_config(experiment), seed=experiment.seed)
     swarm = SimSwarm(world, attach_all=True)
-    safety = SafetyConfig(profile=SAFETY_PROFILES.get(experiment.scenario, "stop"))
+    safety = simulated_safety(experiment)
     entries = []
     async with contextlib.AsyncExitStack() as stack:
         bodies = [await stack.enter_async_context(swarm.body(i)) for i in range(experiment.robots)]

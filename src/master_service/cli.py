@@ -74,7 +74,16 @@ def _parser() -> argparse.ArgumentParser:
     _experiment_options(sim)
     sim.add_argument("--evaluations", type=int, help="evaluations to count (default: 1000)")
     sim.add_argument("--out", type=Path, help="run directory (default: runs/<time>-sim-<scenario>)")
-    sim.add_argument("--realtime", action="store_true", help="pace the world at 10 Hz")
+    sim.add_argument(
+        "--engine",
+        choices=("fast", "agents"),
+        default="fast",
+        help="fast: the compiled engine (default); agents: the master and one real agent per "
+        "robot over loopback TCP, as in a lab",
+    )
+    sim.add_argument(
+        "--realtime", action="store_true", help="pace the world in real time (--engine agents)"
+    )
     sim.set_defaults(handler=_sim)
 
     baseline = sub.add_parser("baseline", help="evaluate random network pairs in an arena")
@@ -101,9 +110,19 @@ def _parser() -> argparse.ArgumentParser:
 
 def _experiment_options(parser: argparse.ArgumentParser) -> None:
     from sim_stub.scenarios import SCENARIOS
+    from surprise.settings import SETTINGS
 
     parser.add_argument(
         "--scenario", choices=SCENARIOS, help="arena and robots (default: basic, or the file's)"
+    )
+    parser.add_argument(
+        "--setting",
+        choices=SETTINGS,
+        help="paper: the authors' Webots simulation; lab: the real robots (default: the file's, "
+        "else paper)",
+    )
+    parser.add_argument(
+        "--arena", type=float, metavar="SIDE", help="side of the carpet in metres (basic: 0.7-1.5)"
     )
     parser.add_argument("--robots", type=int, help="number of robots (default: the scenario's)")
     parser.add_argument("--seed", type=int, help="seed of every random draw (default: 0)")
@@ -219,6 +238,8 @@ def _sim_experiment(args: argparse.Namespace, evaluations: int | None = None):
             raise ConfigError(f"expected a positive number, got {value}", key=f"--{name}")
     return simulation_experiment(
         args.scenario,
+        setting=args.setting,
+        arena=args.arena,
         config_file=args.config,
         robots=args.robots,
         evaluations=evaluations,
@@ -234,6 +255,8 @@ def _sim(args: argparse.Namespace) -> int:
     from master_service.simulate import SimulatedSwarm, quiet_agents, summary_text
 
     experiment = _sim_experiment(args, args.evaluations)
+    if args.realtime and args.engine != "agents":
+        raise ConfigError("real time needs the agents: add --engine agents", key="--realtime")
     out = args.out or _default_out("sim", experiment.scenario)
     RunDir(out).check_new()
     quiet_agents()
@@ -242,15 +265,23 @@ def _sim(args: argparse.Namespace) -> int:
         # A simulated run counts dozens of evaluations a second: the panel shows the progress,
         # master.log keeps every line, the console only what needs a look.
         display.level = logging.WARNING
+    mode = "real time" if args.realtime else "lockstep"
     with display:
-        swarm = SimulatedSwarm(experiment, realtime=args.realtime, on_progress=display.update)
         print(
-            f"simulating {experiment.scenario}: {experiment.robots} robots, "
+            f"simulating {experiment.scenario} ({experiment.setting} setting, "
+            f"{args.engine} engine): {experiment.robots} robots, "
             f"{experiment.evolution.evaluations} evaluations of {experiment.evaluation_steps} "
-            f"steps, seed {experiment.seed}{', real time' if args.realtime else ', lockstep'}"
+            f"steps of {experiment.step_period:g} s, seed {experiment.seed}"
+            + (f", {mode}" if args.engine == "agents" else "")
         )
         started = time.perf_counter()
-        result = asyncio.run(swarm.run(out))
+        if args.engine == "fast":
+            from master_service.engine_run import FastRun
+
+            result = FastRun(experiment, on_progress=display.update).run(out)
+        else:
+            swarm = SimulatedSwarm(experiment, realtime=args.realtime, on_progress=display.update)
+            result = asyncio.run(swarm.run(out))
     print(summary_text(result.metrics, out, time.perf_counter() - started))
     return 0
 

@@ -26,7 +26,14 @@ from typing import Annotated, Final
 
 import msgspec
 
-from surprise.config import ExperimentConfig, Strict, decode, load_experiment, load_yaml
+from surprise.config import (
+    ExperimentConfig,
+    Strict,
+    decode,
+    load_experiment,
+    read_yaml,
+    with_setting,
+)
 from surprise.errors import ConfigError
 from surprise.wire import (
     DEFAULT_PORT,
@@ -140,7 +147,11 @@ def load_master_config(path: str | Path) -> MasterConfig:
     file's, or the experiment file's when that one is wrong. The files it names must exist.
     """
     path = Path(path)
-    config = load_yaml(path, MasterConfig)
+    raw = read_yaml(path)
+    if isinstance(raw.get("experiment"), dict):
+        # An inline experiment takes what it leaves out from its setting, as a file does.
+        raw["experiment"] = with_setting(raw["experiment"])
+    config = decode(raw, MasterConfig, file=path)
     base = path.resolve().parent
     experiment = config.experiment
     if config.experiment_file is not None:

@@ -33,14 +33,14 @@ from robot_agent.config import AgentConfig, LoopConfig
 from robot_agent.config import MasterConfig as AgentMasterConfig
 from sim_stub.body import SimSwarm
 from sim_stub.scenarios import SCENARIOS, WorldConfig, scenario_config
+from sim_stub.settings import SETTINGS, safety_config, world_overrides
 from sim_stub.world import World
 from surprise.backoff import BackoffConfig
-from surprise.config import ExperimentConfig, decode, read_yaml
+from surprise.config import ExperimentConfig, decode_experiment, read_yaml
 from surprise.errors import ConfigError
 from surprise.safety import SafetyConfig
 
 __all__ = [
-    "SAFETY_PROFILES",
     "SCENARIOS",
     "SIMULATION_FILE",
     "SimulatedRun",
@@ -48,14 +48,12 @@ __all__ = [
     "quiet_agents",
     "robot_ids",
     "simulated_loop",
+    "simulated_safety",
     "simulation_experiment",
     "summary_text",
     "world_config",
 ]
 
-#: Basic behaviours stop at obstacles; object manipulation escapes (the authors' two safety
-#: behaviours).
-SAFETY_PROFILES = {"basic": "stop", "boxes": "escape", "gradient": "escape"}
 #: In-process agents reconnect at once: the master is on the same machine and never far away.
 _RECONNECT = BackoffConfig(initial=0.05, max=0.5, jitter=0.5)
 
@@ -68,6 +66,8 @@ def robot_ids(count: int) -> list[str]:
 def simulation_experiment(
     scenario: str | None = None,
     *,
+    setting: str | None = None,
+    arena: float | None = None,
     config_file: str | Path | None = None,
     robots: int | None = None,
     evaluations: int | None = None,
@@ -75,24 +75,31 @@ def simulation_experiment(
 ) -> ExperimentConfig:
     """The experiment of a simulated run.
 
-    Layers, each overriding the one before: the scenario's robots and sensors (the world's own
-    defaults; the rest from :class:`~surprise.config.ExperimentConfig`, i.e. the paper's
-    simulation parameters), the experiment file ``config_file``, then the arguments given. A bad
-    file or value raises :class:`ConfigError` naming the file and key.
+    Layers, each overriding the one before: the setting's defaults (``paper`` unless the file or
+    ``setting`` names another; see ``sim_stub.settings``), the scenario's robots and sensors, the
+    experiment file ``config_file``, then the arguments given (``arena``: the carpet's side in
+    metres). A bad file or value raises :class:`ConfigError` naming the file and key.
     """
     data: dict[str, Any] = {} if config_file is None else read_yaml(config_file)
     if scenario is not None:
         data["scenario"] = scenario
+    if setting is not None:
+        data["setting"] = setting
+    data.setdefault("setting", "paper")
+    if arena is not None:
+        if not arena > 0:
+            raise ConfigError(f"expected a positive side in metres, got {arena}", key="--arena")
+        data["simulation"] = {**(data.get("simulation") or {}), "arena_side": arena}
     name = data.get("scenario", "basic")
-    world = scenario_config(name, data.get("simulation"), file=config_file)
+    world = _world(data.get("setting"), name, data.get("simulation"), config_file)
     data.setdefault("robots", world.robots)
     data.setdefault("sensors", list(world.sensors))
     for key, value in (("robots", robots), ("seed", seed)):
         if value is not None:
             data[key] = value
     if evaluations is not None:
-        data["evolution"] = {**data.get("evolution", {}), "evaluations": evaluations}
-    experiment = decode(data, ExperimentConfig, file=config_file)
+        data["evolution"] = {**(data.get("evolution") or {}), "evaluations": evaluations}
+    experiment = decode_experiment(data, file=config_file)
     missing = [s for s in experiment.sensors if s not in world.sensors]
     if missing:
         raise ConfigError(
@@ -101,14 +108,56 @@ def simulation_experiment(
             file=str(config_file) if config_file else None,
             key="sensors",
         )
+    simulated_safety(experiment, file=config_file)  # a bad safety key fails now, by name
+    world_config(experiment, file=config_file)
     return experiment
 
 
-def world_config(experiment: ExperimentConfig) -> WorldConfig:
-    """The world an experiment runs in: its scenario with its ``simulation`` overrides."""
+def _world(setting: Any, scenario: str, overrides: Any, file: str | Path | None) -> WorldConfig:
+    if setting not in SETTINGS:
+        raise ConfigError(
+            f"unknown setting {setting!r}; expected one of: {', '.join(SETTINGS)}",
+            file=str(file) if file else None,
+            key="setting",
+        )
+    if overrides is not None and not isinstance(overrides, dict):
+        raise ConfigError(
+            "expected a mapping of world parameters",
+            file=str(file) if file else None,
+            key="simulation",
+        )
+    if scenario not in SCENARIOS:
+        return scenario_config(scenario, file=file)  # raises, naming the scenario
     return scenario_config(
-        experiment.scenario, {**experiment.simulation, "robots": experiment.robots}
+        scenario, {**world_overrides(setting, scenario), **(overrides or {})}, file=file
     )
+
+
+def world_config(experiment: ExperimentConfig, *, file: str | Path | None = None) -> WorldConfig:
+    """The world an experiment runs in: its scenario in its setting with its ``simulation``
+    overrides, stepping at the experiment's step period (one world step per control step)."""
+    given = experiment.simulation.get("dt")
+    if given is not None and given != experiment.step_period:
+        raise ConfigError(
+            f"the world steps once per control step: simulation.dt ({given}) must equal "
+            f"step_period ({experiment.step_period}), or be left out",
+            file=str(file) if file else None,
+            key="simulation.dt",
+        )
+    overrides = {
+        **experiment.simulation,
+        "robots": experiment.robots,
+        "dt": experiment.step_period,
+    }
+    return _world(experiment.setting, experiment.scenario, overrides, file)
+
+
+def simulated_safety(
+    experiment: ExperimentConfig, *, file: str | Path | None = None
+) -> SafetyConfig:
+    """The simulated robots' safety layer: the setting's for the scenario, with the experiment's
+    ``safety`` overrides."""
+    return safety_config(experiment.setting, experiment.scenario, experiment.safety, file=file)
 
 
 @dataclass(frozen=True)
@@ -157,11 +206,10 @@ class SimulatedSwarm:
         A simulated body's sensors have no update rate: the agents run whatever period the
         experiment gives (``loop.min_period`` is the experiment's own).
         """
-        profile = SAFETY_PROFILES.get(self.experiment.scenario, "stop")
         return AgentConfig(
             robot_id=robot_id,
             master=AgentMasterConfig(host="127.0.0.1", port=port, secret_file="(in-process)"),
-            safety=SafetyConfig(profile=profile),
+            safety=simulated_safety(self.experiment),
             loop=simulated_loop(self.experiment),
             reconnect=_RECONNECT,
         )

@@ -93,8 +93,10 @@ _SLOP = 1e-5
 _ROBOT_PASSES = 8
 # Rounds of settling boxes around robots wedged among them.
 _SETTLE_ROUNDS = 3
-# Rounds of robot separation and box pushing per step.
-_CONTACT_ROUNDS = 3
+# Rounds of robot separation and box pushing per step: a robot sent back to where it was by
+# boxes may touch another robot again, which may push it into boxes again; most steps need one
+# or two, jams of bladed robots among boxes up to five.
+_CONTACT_ROUNDS = 6
 _FAR = 1e6
 
 

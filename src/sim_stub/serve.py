@@ -51,6 +51,7 @@ from sim_stub.body import SimSwarm
 from sim_stub.fake_medulla import private_bus
 from sim_stub.medulla_model import SignallingWorld, SimThymio, serve_sim_thymio
 from sim_stub.scenarios import SCENARIOS, scenario_config
+from sim_stub.warmup import warm_up
 from surprise.errors import ConfigError
 from surprise.sensors import GROUND_SENSORS, IR_SENSORS
 from surprise.wire import DEFAULT_PORT
@@ -296,6 +297,9 @@ async def serve(args: argparse.Namespace) -> int:
 
     for sig in _SIGNALS:
         loop.add_signal_handler(sig, on_signal, sig)
+    # Compile (or load) the world's kernels before any robot is served: a first step that
+    # compiles would stall the real-time world for seconds, and the agents' reads time out.
+    await asyncio.to_thread(warm_up)
     world = SignallingWorld(config, args.seed, record=args.poses)
     announced = False
     try:

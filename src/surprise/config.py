@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import Annotated, Any, TypeVar
+from typing import Annotated, Any, Literal, TypeVar
 
 import msgspec
 import yaml
@@ -126,15 +126,23 @@ class EvolutionConfig(Strict):
     mutation_range: NonNegativeFloat = 0.4
     #: the initial genome is uniform in [-initial_range, initial_range]
     initial_range: NonNegativeFloat = 0.5
+    #: the first genome evaluated: the random one, or a mutant of it (the authors' code)
+    first_genome: Literal["random", "mutant"] = "random"
 
 
 class ExperimentConfig(Strict):
     """Everything that defines one experiment, whatever runs it (simulator or real robots).
 
+    ``setting`` names the bundle of defaults the experiment starts from (``surprise.settings``:
+    ``paper``, the authors' Webots simulation, or ``lab``, the real robots); a file decoded with
+    :func:`decode_experiment` takes every timing and genome value it leaves out from it.
     ``predefined`` maps sensor names to fixed predictions in [0, 1] (paper Sec. IV-F).
-    ``simulation`` holds overrides of the scenario's world parameters; it is decoded by
-    ``sim_stub`` and ignored on real robots.
+    ``simulation`` and ``safety`` hold overrides of the simulated world's parameters and of the
+    simulated robots' safety layer; ``sim_stub`` decodes them, real robots ignore them (their
+    safety layer is in each robot's own configuration).
     """
+
+    setting: Literal["paper", "lab"] = "lab"
 
     sensors: list[str] = msgspec.field(
         default_factory=lambda: [
@@ -152,6 +160,7 @@ class ExperimentConfig(Strict):
     robots: PositiveInt = 10
     seed: Annotated[int, msgspec.Meta(ge=0)] = 0
     simulation: dict[str, Any] = msgspec.field(default_factory=dict)
+    safety: dict[str, Any] = msgspec.field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if not self.sensors:
@@ -169,6 +178,57 @@ class ExperimentConfig(Strict):
                 )
 
 
+_DEFAULT_SENSORS = len(ExperimentConfig().sensors)
+
+
+def with_setting(data: dict[str, Any]) -> dict[str, Any]:
+    """Experiment data with its setting's defaults under every value it leaves out.
+
+    The setting is ``data["setting"]`` (default ``lab``); an unknown one is left for decoding to
+    reject by name. The input is not modified.
+    """
+    from surprise.settings import SETTINGS, experiment_defaults
+
+    if not isinstance(data, dict):
+        return data
+    setting = data.get("setting", "lab")
+    if setting not in SETTINGS:
+        return data
+    d = experiment_defaults(setting)
+    sensors = data.get("sensors")
+    count = len(sensors) if isinstance(sensors, list) else _DEFAULT_SENSORS
+    out = dict(data)
+    for key, value in (
+        ("step_period", d.step_period),
+        ("evaluation_steps", d.evaluation_steps),
+        ("post_evaluation_steps", d.post_evaluation_steps),
+    ):
+        out.setdefault(key, value)
+    for section, values in (
+        (
+            "evolution",
+            {
+                "evaluations": d.evaluations,
+                "initial_range": d.initial_range,
+                "first_genome": d.first_genome,
+            },
+        ),
+        (
+            "network",
+            {"initial_action": d.initial_action, "actor_hidden": d.actor_hidden_for(count)},
+        ),
+    ):
+        given = out.get(section)
+        if given is None or isinstance(given, dict):
+            out[section] = {**values, **(given or {})}
+    return out
+
+
+def decode_experiment(data: Any, *, file: str | Path | None = None) -> ExperimentConfig:
+    """Decode experiment data, taking what it leaves out from its setting (:func:`with_setting`)."""
+    return decode(with_setting(data or {}), ExperimentConfig, file=file)
+
+
 def load_experiment(path: str | Path) -> ExperimentConfig:
     """Load an experiment configuration file (see :class:`ExperimentConfig`)."""
-    return load_yaml(path, ExperimentConfig)
+    return decode_experiment(read_yaml(path), file=path)

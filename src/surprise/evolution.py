@@ -101,12 +101,18 @@ class OnePlusOne:
         cfg = self.config
         if self.best is None:
             genome = random_genome(self.rng, self.genome_size, cfg.initial_range)
+            if cfg.first_genome == "mutant":  # the authors' code evaluates a mutant of it first
+                genome = self._mutant(genome)
             return Candidate(genome, "initial")
         if self.rng.random() < cfg.reevaluation_probability:
             return Candidate(self.best, "reevaluation")
+        return Candidate(self._mutant(self.best), "offspring")
+
+    def _mutant(self, genome: np.ndarray) -> np.ndarray:
+        cfg = self.config
         mask = self.rng.random(self.genome_size) < cfg.mutation_probability
         delta = self.rng.uniform(-cfg.mutation_range, cfg.mutation_range, self.genome_size)
-        return Candidate(self.best + np.where(mask, delta, 0.0), "offspring")
+        return genome + np.where(mask, delta, 0.0)
 
     def tell(self, fitness: float) -> Outcome:
         """Count an evaluation of the pending candidate with swarm fitness ``fitness``."""

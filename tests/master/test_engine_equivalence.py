@@ -1,0 +1,67 @@
+"""The engine and the real agents over TCP give the same run for the same seed, bit for bit:
+every row of evaluations.csv (but the time it took) and every post-evaluation trace."""
+
+from __future__ import annotations
+
+import asyncio
+from pathlib import Path
+
+import msgspec
+import numpy as np
+import pytest
+
+from master_service.engine_run import FastRun
+from master_service.rundir import RunDir
+from master_service.simulate import SimulatedSwarm, simulation_experiment
+
+TRACE_ARRAYS = ("sensors", "predictions", "actions", "commands", "safety", "poses")
+
+
+def experiment(tmp_path: Path, scenario: str, **overrides):
+    lines = [f"scenario: {scenario}", "setting: paper", "seed: 4"]
+    lines += [f"{key}: {value}" for key, value in overrides.items()]
+    path = tmp_path / f"{scenario}.yaml"
+    path.write_text("\n".join(lines) + "\n")
+    return simulation_experiment(config_file=path)
+
+
+def rows(run: Path) -> list[dict[str, str]]:
+    return [{k: v for k, v in row.items() if k != "duration_s"} for row in RunDir(run).read_rows()]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    ("scenario", "overrides"),
+    [
+        ("basic", {"robots": 4, "evaluation_steps": 40, "post_evaluation_steps": 60}),
+        ("boxes", {"robots": 2, "evaluation_steps": 60, "post_evaluation_steps": 80}),
+    ],
+)
+def test_engine_and_agents_give_the_same_run(tmp_path: Path, scenario: str, overrides):
+    config = experiment(tmp_path, scenario, **overrides)
+    config = msgspec.structs.replace(
+        config, evolution=msgspec.structs.replace(config.evolution, evaluations=12)
+    )
+    fast = tmp_path / "fast"
+    agents = tmp_path / "agents"
+    FastRun(config).run(fast)
+    asyncio.run(SimulatedSwarm(config).run(agents))
+
+    fast_rows, agent_rows = rows(fast), rows(agents)
+    assert len(fast_rows) == 12
+    assert fast_rows == agent_rows
+    for robot in [f"sim-{i}" for i in range(config.robots)]:
+        a = np.load(fast / "traces" / f"{robot}.npz")
+        b = np.load(agents / "traces" / f"{robot}.npz")
+        for name in TRACE_ARRAYS:
+            assert np.array_equal(a[name], b[name]), (robot, name)
+    post_fast = RunDir(fast).read_json("post_evaluation.json")
+    post_agents = RunDir(agents).read_json("post_evaluation.json")
+    assert post_fast["swarm_fitness"] == post_agents["swarm_fitness"]
+    for robot, entry in post_fast["robots"].items():
+        assert entry["fitness"] == post_agents["robots"][robot]["fitness"]
+        other = post_agents["robots"][robot]
+        assert entry["stats"]["interventions"] == other["stats"]["interventions"]
+    sim_fast = RunDir(fast).read_json("simulation.json")
+    sim_agents = RunDir(agents).read_json("simulation.json")
+    assert sim_fast.get("post_evaluation_boxes") == sim_agents.get("post_evaluation_boxes")
