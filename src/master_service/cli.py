@@ -296,7 +296,7 @@ def _baseline(args: argparse.Namespace) -> int:
         f"evaluating {args.random} random pairs in the {experiment.scenario} arena "
         f"({experiment.robots} robots, {steps} steps each)"
     )
-    data = asyncio.run(run_baseline(experiment, args.random, out))
+    data = run_baseline(experiment, args.random, out)
     print(
         f"wrote {Path(out) / 'baseline.json'}: median fitness of {args.random} random pairs "
         f"{data['median_fitness']:.4f}"

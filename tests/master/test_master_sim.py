@@ -125,8 +125,8 @@ def test_bad_experiment_names_file_and_key(tmp_path, text, key):
 def test_baseline_is_reproducible_and_report_compares(basic_run, tmp_path):
     run, _ = basic_run
     experiment = small()
-    first = asyncio.run(run_baseline(experiment, 3, tmp_path / "base"))
-    again = asyncio.run(run_baseline(experiment, 3, tmp_path / "again"))
+    first = run_baseline(experiment, 3, tmp_path / "base")
+    again = run_baseline(experiment, 3, tmp_path / "again")
     assert [p["fitness"] for p in first["pairs"]] == [p["fitness"] for p in again["pairs"]]
     assert all(0.0 < p["fitness"] < 1.0 for p in first["pairs"])
     assert main(["report", str(run), "--baseline", str(tmp_path / "base")]) == 0
@@ -138,7 +138,7 @@ def test_baseline_is_reproducible_and_report_compares(basic_run, tmp_path):
 
 def test_report_refuses_a_baseline_of_another_scenario(basic_run, tmp_path):
     run, _ = basic_run
-    asyncio.run(run_baseline(small("boxes"), 1, tmp_path / "base"))
+    run_baseline(small("boxes"), 1, tmp_path / "base")
     assert main(["report", str(run), "--baseline", str(tmp_path / "base")]) == 2
 
 

@@ -1,0 +1,92 @@
+"""Speed of the engine: a whole paper-setting run (networks, safety, world, evolution), per
+robot-step, against Enki's bare world in the same run.
+
+One run: the ``paper`` setting's ``basic`` experiment (10 robots, 1000-step evaluations of 10 ms
+steps) evolved for ``--evaluations`` evaluations with :class:`master_service.engine_run.FastRun`'s
+loop (ask, evaluate on the engine, tell), no files written. Many runs: ``--runs`` independent
+swarms (seeds 1..runs) in one process, each evaluation round evaluating every run's candidate.
+Enki: its bare world (no networks, no evolution) stepping 10 Thymio II in the same arena at the same
+10 ms step, measured by ``benchmarks/sim.py``'s Enki probe in the system python. CPU time of
+this process pinned to one core. Prints ``name: value unit`` lines. Run:
+``python benchmarks/engine.py [--evaluations 50] [--runs 4] [--repeats 3]``
+
+Target (issue 11): a whole paper-setting run at least as fast per robot-step as Enki's bare world,
+i.e. the paper's 10-million-robot-step experiment in about a minute on one core.
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import statistics  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+from master_service.simulate import simulated_safety, simulation_experiment, world_config  # noqa: E402
+from sim_stub.engine import Swarm  # noqa: E402
+from surprise.evolution import OnePlusOne  # noqa: E402
+from surprise.fitness import swarm_fitness  # noqa: E402
+from surprise.network import GenomeLayout, spec_from_config  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from sim import enki_python, measure_enki, pin_to_one_core  # noqa: E402
+
+
+def run_many(runs: int, evaluations: int) -> float:
+    """CPU seconds for ``evaluations`` evaluations of each of ``runs`` runs in this process."""
+    swarms, optimizers = [], []
+    for seed in range(1, runs + 1):
+        experiment = simulation_experiment("basic", setting="paper", seed=seed)
+        spec = spec_from_config(experiment)
+        swarms.append(Swarm(world_config(experiment), simulated_safety(experiment), spec, seed))
+        optimizers.append(
+            OnePlusOne(experiment.evolution, GenomeLayout(spec).size, experiment.seed)
+        )
+    steps = experiment.evaluation_steps
+    swarms[0].evaluate(optimizers[0].ask().genome, 10)  # compiled before the clock starts
+    cpu = time.process_time()
+    for _ in range(evaluations):
+        for swarm, opt in zip(swarms, optimizers, strict=True):
+            record = swarm.evaluate(opt.ask().genome, steps)
+            opt.tell(swarm_fitness([float(f) for f in record.fitness]))
+    return time.process_time() - cpu
+
+
+def main() -> None:
+    """Measure and print the figures."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--evaluations", type=int, default=50)
+    parser.add_argument("--runs", type=int, default=4)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--enki-python", default="/usr/bin/python3")
+    args = parser.parse_args()
+    pin_to_one_core()
+    per_step = 10 * 1000  # robot-steps per evaluation: 10 robots, 1000 steps
+    one = [run_many(1, args.evaluations) for _ in range(args.repeats)]
+    one_rate = per_step * args.evaluations / min(one)
+    print(f"engine_one_run_robot_steps_per_s: {one_rate:.0f} robot-steps/s")
+    print(
+        "engine_one_run_robot_steps_per_s_median: "
+        f"{per_step * args.evaluations / statistics.median(one):.0f} robot-steps/s"
+    )
+    print(f"engine_paper_basic_run_estimate: {10_100_000 / one_rate:.1f} s")
+    many = min(run_many(args.runs, args.evaluations // 2 or 1) for _ in range(args.repeats))
+    many_rate = per_step * args.runs * (args.evaluations // 2 or 1) / many
+    print(f"engine_{args.runs}_runs_robot_steps_per_s: {many_rate:.0f} robot-steps/s")
+    python = enki_python(args.enki_python)
+    if python is None:
+        print("(Enki's python bindings not found: no Enki figures)", file=sys.stderr)
+        return
+    enki = measure_enki(python, 2000, 1, args.repeats, 0.01)
+    enki_rate = enki["robots"] / enki["cpu_per_step"]
+    print(f"enki_bare_world_robot_steps_per_s: {enki_rate:.0f} robot-steps/s")
+    print(f"engine_run_vs_enki_bare_world: {one_rate / enki_rate:.2f} x")
+
+
+if __name__ == "__main__":
+    main()
