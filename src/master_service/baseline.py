@@ -34,7 +34,12 @@ BASELINE_FILE = "baseline.json"
 
 
 def _pair_entry(
-    index: int, seed: int, record: EvaluationRecord, evaluation_steps: int, boxes: dict[str, Any]
+    index: int,
+    seed: int,
+    record: EvaluationRecord,
+    evaluation_steps: int,
+    boxes: dict[str, Any],
+    dt: float,
 ) -> dict[str, Any]:
     assert record.sensors is not None and record.predictions is not None
     assert record.poses is not None
@@ -43,7 +48,13 @@ def _pair_entry(
         surprise_fitness(record.predictions[:steps, i], record.sensors[:steps, i])
         for i in range(record.sensors.shape[1])
     ]
-    behaviour = sim_metrics.behaviour_metrics(record.poses, boxes.get("start"), boxes.get("end"))
+    behaviour = sim_metrics.behaviour_metrics(
+        record.poses, boxes.get("start"), boxes.get("end"), dt=dt
+    )
+    # Mean over robots and the scored steps of each sensor and of its prediction (made a step
+    # before), as the report shows them for an evolved genome.
+    mean_sensors = record.sensors[1:steps].mean(axis=(0, 1))
+    mean_predictions = record.predictions[: steps - 1].mean(axis=(0, 1))
     return {
         "pair": index,
         "arena_seed": seed,
@@ -51,6 +62,8 @@ def _pair_entry(
         "post_fitness": swarm_fitness([float(f) for f in record.fitness]),
         "robot_fitness": fitnesses,
         "behaviour": msgspec.to_builtins(behaviour),
+        "mean_sensors": mean_sensors.tolist(),
+        "mean_predictions": mean_predictions.tolist(),
     }
 
 
@@ -76,7 +89,9 @@ def run_baseline(experiment: ExperimentConfig, pairs: int, out: str | Path) -> d
         start = world.box_positions.copy()
         record = swarm.evaluate(genome, steps, record=True)
         boxes = {"start": start, "end": world.box_positions.copy()} if len(start) else {}
-        entries.append(_pair_entry(k, seed, record, experiment.evaluation_steps, boxes))
+        entries.append(
+            _pair_entry(k, seed, record, experiment.evaluation_steps, boxes, experiment.step_period)
+        )
     data = {
         "scenario": experiment.scenario,
         "setting": experiment.setting,

@@ -74,8 +74,9 @@ class FastRun:
         )
         self._boxes_before: list[list[float]] | None = None
 
-    def run(self, run_dir: str | Path) -> SimulatedRun:
-        """Evolve, post-evaluate and report into ``run_dir`` (created; must be new or empty)."""
+    def run(self, run_dir: str | Path, *, plots: bool = True) -> SimulatedRun:
+        """Evolve, post-evaluate and report into ``run_dir`` (created; must be new or empty);
+        without ``plots`` the report writes its metrics but draws nothing."""
         from master_service.report import write_report  # matplotlib: only when reporting
 
         directory = RunDir(run_dir)
@@ -106,7 +107,7 @@ class FastRun:
             failed_attempts=0,
             post_evaluation_fitness=post,
         )
-        return SimulatedRun(summary, write_report(directory.path))
+        return SimulatedRun(summary, write_report(directory.path, plots=plots))
 
     # -- the phases ------------------------------------------------------------------------------
 

@@ -85,6 +85,7 @@ def _post_metrics(
     traces: dict[str, dict[str, np.ndarray]],
     sensors: list[str],
     simulation: dict[str, Any] | None,
+    dt: float,
 ) -> dict[str, Any]:
     robots: dict[str, Any] = {}
     predicted: list[np.ndarray] = []
@@ -105,7 +106,7 @@ def _post_metrics(
                 poses[robot] = trace["poses"]
                 one = trace["poses"][:, None, :]  # the metrics take (T, N, 3)
                 info["path_length"] = sim_metrics.distance_covered(one)
-                info["rotation"] = sim_metrics.rotation(one, sim_metrics.default_window(one))
+                info["rotation"] = sim_metrics.rotation(one, sim_metrics.default_window(one, dt))
         robots[robot] = info
     metrics: dict[str, Any] = {
         "steps": post.get("steps"),
@@ -129,7 +130,9 @@ def _post_metrics(
         steps = min(len(p) for p in poses.values())
         stacked = np.stack([p[:steps] for p in poses.values()], axis=1)
         boxes = (simulation or {}).get("post_evaluation_boxes") or {}
-        behaviour = sim_metrics.behaviour_metrics(stacked, boxes.get("start"), boxes.get("end"))
+        behaviour = sim_metrics.behaviour_metrics(
+            stacked, boxes.get("start"), boxes.get("end"), dt=dt
+        )
         metrics["behaviour"] = msgspec.to_builtins(behaviour)
     return metrics
 
@@ -199,7 +202,13 @@ def _metrics(data: _Run) -> dict[str, Any]:
     metrics["post_evaluation"] = (
         None
         if data.post is None
-        else _post_metrics(data.post, data.traces, list(data.experiment.sensors), data.simulation)
+        else _post_metrics(
+            data.post,
+            data.traces,
+            list(data.experiment.sensors),
+            data.simulation,
+            data.experiment.step_period,
+        )
     )
     return metrics
 
@@ -220,8 +229,11 @@ def _baseline_metrics(metrics: dict[str, Any], baseline: dict[str, Any]) -> dict
     }
 
 
-def write_report(path: str | Path, *, baseline: str | Path | None = None) -> dict[str, Any]:
-    """Write ``metrics.json`` and the plots of the run in ``path``; return the metrics.
+def write_report(
+    path: str | Path, *, baseline: str | Path | None = None, plots: bool = True
+) -> dict[str, Any]:
+    """Write ``metrics.json`` and (with ``plots``) the plots of the run in ``path``; return the
+    metrics.
 
     ``baseline`` names a ``surprise-master baseline`` directory: the metrics then compare the
     evolved best fitness with the random pairs' fitness (``baseline`` key), with a plot.
@@ -244,7 +256,8 @@ def write_report(path: str | Path, *, baseline: str | Path | None = None) -> dic
             )
         metrics["baseline"] = _baseline_metrics(metrics, loaded)
     write_atomic(data.run.file(METRICS), json.dumps(metrics, indent=2).encode("utf-8"))
-    _plot(data, metrics)
+    if plots:
+        _plot(data, metrics)
     return metrics
 
 

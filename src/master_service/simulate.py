@@ -72,15 +72,19 @@ def simulation_experiment(
     robots: int | None = None,
     evaluations: int | None = None,
     seed: int | None = None,
+    data: dict[str, Any] | None = None,
 ) -> ExperimentConfig:
     """The experiment of a simulated run.
 
     Layers, each overriding the one before: the setting's defaults (``paper`` unless the file or
     ``setting`` names another; see ``sim_stub.settings``), the scenario's robots and sensors, the
-    experiment file ``config_file``, then the arguments given (``arena``: the carpet's side in
-    metres). A bad file or value raises :class:`ConfigError` naming the file and key.
+    experiment file ``config_file`` (or the experiment ``data`` given), then the arguments given
+    (``arena``: the carpet's side in metres). A bad file or value raises :class:`ConfigError`
+    naming the file and key.
     """
-    data: dict[str, Any] = {} if config_file is None else read_yaml(config_file)
+    if data is None:
+        data = {} if config_file is None else read_yaml(config_file)
+    data = dict(data)
     if scenario is not None:
         data["scenario"] = scenario
     if setting is not None:

@@ -35,7 +35,9 @@ STOPPED_BELOW = 5.0
 CIRCLING_ABOVE = 55.0
 GROUPED_ABOVE = 1.43
 PUSHING_ABOVE = 0.1
-#: 50 s at 10 Hz: the length of the paper's analysis window.
+#: The length of the paper's analysis window in seconds: the last 5000 of 10,000 steps of 10 ms.
+WINDOW_SECONDS = 50.0
+#: That window in steps at the real robots' 10 Hz.
 DEFAULT_WINDOW = 500
 
 
@@ -68,11 +70,13 @@ def _window(poses: np.ndarray, window: int | None) -> np.ndarray:
     return poses[max(len(poses) - 1 - window, 0) :]
 
 
-def default_window(poses: np.ndarray) -> int:
-    """The paper's 50 s window (500 steps) if the recording holds twice that, else its second
-    half: the first half gives the robots time to settle into their behaviour."""
+def default_window(poses: np.ndarray, dt: float = 0.1) -> int:
+    """The paper's 50 s window (500 steps of 0.1 s, 5000 of 10 ms) if the recording of steps of
+    ``dt`` seconds holds twice that, else its second half: the first half gives the robots time
+    to settle into their behaviour."""
     steps = len(poses) - 1
-    return DEFAULT_WINDOW if steps >= 2 * DEFAULT_WINDOW else steps - steps // 2
+    window = round(WINDOW_SECONDS / dt)
+    return window if steps >= 2 * window else steps - steps // 2
 
 
 def distance_covered(poses: np.ndarray, window: int | None = None) -> float:
@@ -142,13 +146,14 @@ def behaviour_metrics(
     *,
     window: int | None = None,
     cluster_distance: float = CLUSTER_DISTANCE,
+    dt: float = 0.1,
 ) -> BehaviourMetrics:
     """Every metric and its class. d_R and d_B cover the whole recording (the paper's Eq. for
     d_R sums over the run); c_o and the cluster size the last ``window`` steps (default:
-    :func:`default_window`). Boxes are optional."""
+    :func:`default_window` for steps of ``dt`` seconds). Boxes are optional."""
     poses = _check(poses)
     if window is None:
-        window = default_window(poses)
+        window = default_window(poses, dt)
     c_o = rotation(poses, window)
     size = mean_cluster_size(poses, window, cluster_distance)
     d_b = None if box_start is None or box_end is None else box_displacement(box_start, box_end)

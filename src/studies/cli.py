@@ -1,0 +1,143 @@
+"""``surprise-study``: many runs from one file, on this machine or a Dask cluster.
+
+::
+
+    surprise-study run STUDY.yaml --out DIR [--workers N | --scheduler ADDRESS]
+    surprise-study report DIR
+    surprise-study status DIR
+    surprise-study list
+
+``run`` runs every run of the study that has not finished yet (a killed study run again goes
+on where it stopped), on local worker processes (one per core, or ``--workers``) or on the Dask
+cluster whose scheduler is at ``ADDRESS`` (``tcp://host:8786``; see the README for starting
+``dask scheduler`` and ``dask worker`` on lab machines, or a Slurm cluster). ``report`` writes the
+tables, statistics and figures (docs/studies.md). ``status`` tells where a study stands.
+
+Exit codes: 0 done, 1 some runs failed (recorded; run again to retry them), 2 bad input.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+from surprise.errors import ConfigError
+
+__all__ = ["main"]
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="surprise-study", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    run = sub.add_parser("run", help="run (or go on with) a study")
+    run.add_argument("study", help="the study file (YAML), or a shipped study's name (see `list`)")
+    run.add_argument("--out", type=Path, required=True, help="the study's directory")
+    where = run.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=int, help="local worker processes (default: one per core)")
+    where.add_argument(
+        "--scheduler", metavar="ADDRESS", help="a Dask scheduler's address, e.g. tcp://host:8786"
+    )
+    where.add_argument(
+        "--local-cluster",
+        action="store_true",
+        help="a Dask LocalCluster on this machine (one worker process per core)",
+    )
+    run.set_defaults(handler=_run)
+    report = sub.add_parser("report", help="tables, statistics and figures of a study")
+    report.add_argument("dir", type=Path)
+    report.set_defaults(handler=_report)
+    shipped = sub.add_parser("list", help="the study files that come with the project")
+    shipped.set_defaults(handler=_list)
+    status = sub.add_parser("status", help="where a study stands")
+    status.add_argument("dir", type=Path)
+    status.set_defaults(handler=_status)
+    return parser
+
+
+def _executor(args: argparse.Namespace):
+    from studies.executors import DaskCluster, LocalPool
+
+    if args.workers is not None and args.workers < 1:
+        raise ConfigError(f"expected a positive number, got {args.workers}", key="--workers")
+    if args.scheduler:
+        return DaskCluster(args.scheduler)
+    if args.local_cluster:
+        return DaskCluster(None, workers=args.workers)
+    return LocalPool(args.workers)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from studies.progress import StudyProgress
+    from studies.runner import prepare, run_study
+
+    tasks = prepare(args.study, args.out)  # a bad study fails before any worker starts
+    executor = _executor(args)
+    print(f"study {args.out}: {len(tasks)} runs on {executor.workers} workers")
+    started = time.monotonic()
+    try:
+        with StudyProgress() as progress:
+            counts = run_study(args.study, args.out, executor, on_update=progress.update)
+    except KeyboardInterrupt:
+        print(f"stopped: run `surprise-study run {args.study} --out {args.out}` to go on")
+        return 130
+    finally:
+        executor.close()
+    print(
+        f"study {args.out}: {counts.done}/{counts.total} runs done ({counts.skipped} from before), "
+        f"{counts.failed} failed, {time.monotonic() - started:.0f} s; "
+        f"see `surprise-study report {args.out}`"
+    )
+    for failure in counts.failures[:10]:
+        print(f"  failed: {failure.get('run')}: {failure.get('error')}")
+    return 1 if counts.failed else 0
+
+
+def _report(args: argparse.Namespace) -> int:
+    from studies.report import write_study_report
+
+    result = write_study_report(args.dir)
+    print(
+        f"wrote {result['report']}: {result['done']} of {result['runs']} runs, "
+        f"{result['groups']} groups, {result['tests']} tests, {len(result['figures'])} figure files"
+    )
+    return 0
+
+
+def _list(args: argparse.Namespace) -> int:
+    from studies.runner import shipped_studies
+    from studies.spec import load_study
+
+    for name, path in shipped_studies().items():
+        print(f"{name}: {load_study(path).description} ({path})")
+    return 0
+
+
+def _status(args: argparse.Namespace) -> int:
+    from studies.runner import study_status
+
+    status = study_status(args.dir)
+    print(f"{args.dir}: {status['done']}/{status['runs']} runs done, {status['failed']} failed")
+    for name, group in status["groups"].items():
+        left = group["runs"] - group["done"] - group["failed"]
+        print(
+            f"  {name} ({group['kind']}): {group['done']}/{group['runs']} done, "
+            f"{group['failed']} failed, {left} not run"
+        )
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``surprise-study``; returns the exit code."""
+    args = _parser().parse_args(argv)
+    try:
+        return args.handler(args)
+    except (ConfigError, OSError) as exc:
+        print(f"surprise-study: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

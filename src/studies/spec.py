@@ -1,0 +1,172 @@
+"""A study file: named groups of runs, each a kind of run with its settings, seeds and sweeps.
+
+::
+
+    name: paper-sec5
+    description: The paper's Sec. V simulation results
+    defaults:                     # merged under every group's params
+      setting: paper
+    groups:
+      - name: basic
+        kind: evolved             # evolved | random | grid-evolved | grid-random | ...
+        params: {scenario: basic}
+        seeds: {from: 1, to: 20}  # or a list [1, 2, 3], or a count: 20 (seeds 1..20)
+        sweep:                    # every combination of the values (dotted keys go deep)
+          simulation.arena_side: [0.7, 0.8, 0.9, 1.0, 1.5]
+
+``params`` is the run kind's own configuration: for the Thymio kinds (``evolved``, ``random``) an
+experiment file's content (docs/simulation.md), for the grid kinds the grid world's
+(docs/gridworld.md). :func:`expand` turns a study into its tasks, one per run: plain data, so any
+executor can run them and a task names its own run directory.
+"""
+
+from __future__ import annotations
+
+import itertools
+import re
+from pathlib import Path
+from typing import Annotated, Any
+
+import msgspec
+
+from surprise.config import Strict, decode, read_yaml
+from surprise.errors import ConfigError
+
+__all__ = ["THYMIO_KINDS", "Group", "SeedRange", "Study", "expand", "load_study", "run_name"]
+
+#: Run kinds of the Thymio simulation (the grid world adds its own, see studies.tasks).
+THYMIO_KINDS = ("evolved", "random")
+
+_NAME = Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")]
+Seed = Annotated[int, msgspec.Meta(ge=0)]
+
+
+class SeedRange(Strict):
+    """Seeds ``from`` .. ``to``, both included."""
+
+    from_: Seed = msgspec.field(name="from")
+    to: Seed
+
+    def __post_init__(self) -> None:
+        if self.to < self.from_:
+            raise ValueError("`to`: must be at least `from`")
+
+
+class Group(Strict):
+    """One group of runs: a kind, its parameters, its seeds, and an optional sweep."""
+
+    name: _NAME
+    kind: str
+    params: dict[str, Any] = msgspec.field(default_factory=dict)
+    #: a list of seeds, a range, or a count N (seeds 1..N)
+    seeds: list[Seed] | SeedRange | Annotated[int, msgspec.Meta(ge=1)] = 1
+    #: dotted parameter -> values; every combination of the values is run with every seed
+    sweep: dict[str, list[Any]] = msgspec.field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        for key, values in self.sweep.items():
+            if not values:
+                raise ValueError(f"`sweep.{key}`: give at least one value")
+        if isinstance(self.seeds, list) and len(set(self.seeds)) != len(self.seeds):
+            raise ValueError("`seeds`: a seed is listed twice")
+
+    def seed_list(self) -> list[int]:
+        """The seeds, in order."""
+        if isinstance(self.seeds, int):
+            return list(range(1, self.seeds + 1))
+        if isinstance(self.seeds, SeedRange):
+            return list(range(self.seeds.from_, self.seeds.to + 1))
+        return list(self.seeds)
+
+
+class Study(Strict):
+    """A study file (see the module docstring)."""
+
+    name: _NAME
+    groups: list[Group]
+    description: str = ""
+    #: parameters merged under every group's own (a group's win)
+    defaults: dict[str, Any] = msgspec.field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if not self.groups:
+            raise ValueError("`groups`: a study needs at least one group")
+        names = [g.name for g in self.groups]
+        for name in names:
+            if names.count(name) > 1:
+                raise ValueError(f"`groups`: the name {name!r} is used twice")
+
+
+def load_study(path: str | Path) -> Study:
+    """Load a study file; every error names the file and the key. The run kinds are checked
+    against those this installation knows (:data:`studies.tasks.KINDS`)."""
+    from studies.tasks import KINDS
+
+    study = decode(read_yaml(path), Study, file=path)
+    for index, group in enumerate(study.groups):
+        if group.kind not in KINDS:
+            raise ConfigError(
+                f"unknown run kind {group.kind!r}; expected one of: {', '.join(KINDS)}",
+                file=str(path),
+                key=f"groups[{index}].kind",
+            )
+    return study
+
+
+def _set_dotted(data: dict[str, Any], key: str, value: Any) -> None:
+    parts = key.split(".")
+    node = data
+    for part in parts[:-1]:
+        child = node.get(part)
+        if not isinstance(child, dict):
+            child = {}
+        node[part] = child = dict(child)
+        node = child
+    node[parts[-1]] = value
+
+
+def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for key, value in over.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def run_name(group: str, sweep: dict[str, Any], seed: int) -> str:
+    """A run's directory below the study's ``runs/``: ``group/key=value,.../seed-N``."""
+    parts = [group]
+    if sweep:
+        label = ",".join(f"{key.split('.')[-1]}={value}" for key, value in sweep.items())
+        parts.append(re.sub(r"[^A-Za-z0-9._=,-]", "_", label))
+    parts.append(f"seed-{seed}")
+    return "/".join(parts)
+
+
+def expand(study: Study) -> list[dict[str, Any]]:
+    """Every run of the study as a task: plain data naming the group, kind, seed, sweep values,
+    the merged parameters and the run's directory (relative to the study's ``runs/``)."""
+    tasks = []
+    for group in study.groups:
+        keys = list(group.sweep)
+        combos = itertools.product(*(group.sweep[k] for k in keys)) if keys else [()]
+        for combo in combos:
+            sweep = dict(zip(keys, combo, strict=True))
+            params = _merge(study.defaults, group.params)
+            for key, value in sweep.items():
+                _set_dotted(params, key, value)
+            for seed in group.seed_list():
+                tasks.append(
+                    {
+                        "study": study.name,
+                        "group": group.name,
+                        "kind": group.kind,
+                        "seed": seed,
+                        "sweep": sweep,
+                        "params": params,
+                        "run": run_name(group.name, sweep, seed),
+                    }
+                )
+    return tasks
