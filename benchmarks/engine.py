@@ -27,7 +27,11 @@ import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-from master_service.simulate import simulated_safety, simulation_experiment, world_config  # noqa: E402
+from master_service.simulation_setup import (  # noqa: E402
+    simulated_safety,
+    simulation_experiment,
+    world_config,
+)
 from sim_stub.engine import Swarm  # noqa: E402
 from surprise.evolution import OnePlusOne  # noqa: E402
 from surprise.fitness import swarm_fitness  # noqa: E402

@@ -166,7 +166,7 @@ async def _master_main(queue: Any, stop: Any, kind: str, max_pending: int | None
 
 def _robots_process(port: int, count: int) -> None:
     async def main() -> None:
-        from master_service.scripted import ScriptedRobot
+        from sim_stub.scripted_robots import ScriptedRobot
 
         robots = [ScriptedRobot(f"r{i}", SECRET, port, index=i, delay=0.01) for i in range(count)]
         await asyncio.gather(*(r.connect() for r in robots))

@@ -27,7 +27,7 @@ from pathlib import Path
 from master_service import Master, MasterConfig
 from master_service.config import DEFAULT_MAX_PENDING_CONNECTIONS
 from master_service.rundir import RunDir, format_row
-from master_service.scripted import ScriptedRobot
+from sim_stub.scripted_robots import ScriptedRobot
 from surprise.config import EvolutionConfig, ExperimentConfig
 
 SECRET = b"benchmark-secret"

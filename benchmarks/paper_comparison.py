@@ -24,7 +24,7 @@ from pathlib import Path
 
 from master_service.baseline import run_baseline
 from master_service.engine_run import FastRun
-from master_service.simulate import simulation_experiment
+from master_service.simulation_setup import simulation_experiment
 
 
 def compare(

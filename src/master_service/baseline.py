@@ -19,7 +19,7 @@ import msgspec
 import numpy as np
 
 from master_service.rundir import write_atomic
-from master_service.simulate import simulated_safety, world_config
+from master_service.simulation_setup import simulated_safety, world_config
 from sim_stub import metrics as sim_metrics
 from sim_stub.engine import EvaluationRecord, Swarm
 from surprise.config import ExperimentConfig

@@ -230,7 +230,7 @@ async def _serve_async(master: Master) -> int:
 
 
 def _sim_experiment(args: argparse.Namespace, evaluations: int | None = None):
-    from master_service.simulate import simulation_experiment
+    from master_service.simulation_setup import simulation_experiment
 
     for name in ("robots", "evaluations", "random"):
         value = getattr(args, name, None)

@@ -26,16 +26,16 @@ import numpy as np
 
 from master_service.config import MasterConfig
 from master_service.master import Progress, RunSummary
-from master_service.report import SIMULATION_FILE
 from master_service.rundir import (
     EVALUATION_COLUMNS,
     LOG,
+    SIMULATION_FILE,
     RunDir,
     RunState,
     format_row,
     write_atomic,
 )
-from master_service.simulate import SimulatedRun, simulated_safety, world_config
+from master_service.simulation_setup import SimulatedRun, simulated_safety, world_config
 from sim_stub.engine import EvaluationRecord, Swarm
 from surprise.config import ExperimentConfig
 from surprise.evolution import OnePlusOne

@@ -29,6 +29,7 @@ from master_service.rundir import (
     METRICS,
     PLOTS,
     POST_EVALUATION,
+    SIMULATION_FILE,
     RunDir,
     write_atomic,
 )
@@ -36,10 +37,8 @@ from sim_stub import metrics as sim_metrics
 from surprise.config import ExperimentConfig
 from surprise.errors import ConfigError
 
-__all__ = ["SIMULATION_FILE", "compute_metrics", "status_text", "write_report"]
+__all__ = ["compute_metrics", "status_text", "write_report"]
 
-#: Written by ``surprise-master sim``: the boxes before and after the post-evaluation.
-SIMULATION_FILE: Final = "simulation.json"
 
 #: A live.json older than this many refresh periods means the master is gone.
 _STALE_PERIODS: Final = 5

@@ -60,6 +60,7 @@ __all__ = [
     "METRICS",
     "PLOTS",
     "POST_EVALUATION",
+    "SIMULATION_FILE",
     "TRACES",
     "Phase",
     "RunDir",
@@ -76,6 +77,9 @@ LIVE: Final = "live.json"
 POST_EVALUATION: Final = "post_evaluation.json"
 TRACES: Final = "traces"
 METRICS: Final = "metrics.json"
+#: Written by ``surprise-master sim``: how the run is simulated (scenario, setting, engine) and
+#: the boxes before and after the post-evaluation.
+SIMULATION_FILE: Final = "simulation.json"
 PLOTS: Final = "plots"
 
 #: The fixed columns of ``evaluations.csv``; one ``fitness_<robot id>`` column per robot follows.

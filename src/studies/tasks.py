@@ -93,7 +93,7 @@ def run_task(task: dict[str, Any], root: str) -> dict[str, Any]:
 
 
 def _experiment(task: dict[str, Any]):
-    from master_service.simulate import simulation_experiment
+    from master_service.simulation_setup import simulation_experiment
 
     params = dict(task["params"])
     params.pop("plots", None)

@@ -16,7 +16,7 @@ from typing import Any
 
 from master_service import Master, MasterConfig, Progress
 from master_service.rundir import format_row
-from master_service.scripted import ScriptedRobot, deterministic_fitness
+from sim_stub.scripted_robots import ScriptedRobot, deterministic_fitness
 from surprise.config import EvolutionConfig, ExperimentConfig
 from surprise.evolution import OnePlusOne
 from surprise.fitness import swarm_fitness

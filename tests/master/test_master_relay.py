@@ -17,8 +17,8 @@ from master_helpers import (
 )
 
 from master_service import Master
-from master_service.scripted import ScriptedRobot
 from relay import Relay, tagged_message
+from sim_stub.scripted_robots import ScriptedRobot
 from surprise.wire import (
     Evaluate,
     EvaluationStats,

@@ -27,7 +27,7 @@ from master_helpers import (
 )
 
 from master_service import Master
-from master_service.scripted import (
+from sim_stub.scripted_robots import (
     DISCONNECT,
     DUPLICATE,
     FAIL,

@@ -18,7 +18,7 @@ import pytest
 from master_helpers import SECRET, master_config
 
 from master_service import Master
-from master_service.scripted import RobotRefusedError, ScriptedRobot
+from sim_stub.scripted_robots import RobotRefusedError, ScriptedRobot
 from surprise.sensors import ALL_SENSORS, IR_SENSORS
 from surprise.session import FrameAuth, master_proof, new_nonce, proof_matches, robot_proof
 from surprise.wire import (

@@ -1,4 +1,7 @@
-"""A scripted robot that speaks the protocol, for the master's tests and benchmarks.
+"""A test double: a scripted robot that speaks the protocol, for the master's tests and benchmarks.
+
+It lives with the simulator's other doubles (the fake asebamedulla, the emulated I2C chips) and
+is never part of a lab run: no network, no body, no safety layer, just the conversation.
 
 It answers every Evaluate with a fitness computed from the genome alone
 (:func:`deterministic_fitness`), so two runs with the same seed give the same ``evaluations.csv``

@@ -1,0 +1,137 @@
+"""How a simulated experiment is set up: the experiment, the world, the simulated robots' safety.
+
+Shared by ``surprise-master sim`` with either engine (:mod:`master_service.simulate`,
+:mod:`master_service.engine_run`), ``baseline`` and the studies; it knows nothing of how the
+robots are run.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from master_service.master import RunSummary
+from sim_stub.engine import robot_ids
+from sim_stub.scenarios import SCENARIOS, WorldConfig, scenario_config
+from sim_stub.settings import SETTINGS, safety_config, world_overrides
+from surprise.config import ExperimentConfig, decode_experiment, read_yaml
+from surprise.errors import ConfigError
+from surprise.safety import SafetyConfig
+
+__all__ = [
+    "SimulatedRun",
+    "robot_ids",
+    "simulated_safety",
+    "simulation_experiment",
+    "world_config",
+]
+
+
+@dataclass(frozen=True)
+class SimulatedRun:
+    """What a simulated run leaves: the master's summary and the report's metrics."""
+
+    summary: RunSummary
+    metrics: dict[str, Any]
+
+
+def simulation_experiment(
+    scenario: str | None = None,
+    *,
+    setting: str | None = None,
+    arena: float | None = None,
+    config_file: str | Path | None = None,
+    robots: int | None = None,
+    evaluations: int | None = None,
+    seed: int | None = None,
+    data: dict[str, Any] | None = None,
+) -> ExperimentConfig:
+    """The experiment of a simulated run.
+
+    Layers, each overriding the one before: the setting's defaults (``paper`` unless the file or
+    ``setting`` names another; see ``sim_stub.settings``), the scenario's robots and sensors, the
+    experiment file ``config_file`` (or the experiment ``data`` given), then the arguments given
+    (``arena``: the carpet's side in metres). A bad file or value raises :class:`ConfigError`
+    naming the file and key.
+    """
+    if data is None:
+        data = {} if config_file is None else read_yaml(config_file)
+    data = dict(data)
+    if scenario is not None:
+        data["scenario"] = scenario
+    if setting is not None:
+        data["setting"] = setting
+    data.setdefault("setting", "paper")
+    if arena is not None:
+        if not arena > 0:
+            raise ConfigError(f"expected a positive side in metres, got {arena}", key="--arena")
+        data["simulation"] = {**(data.get("simulation") or {}), "arena_side": arena}
+    name = data.get("scenario", "basic")
+    world = _world(data.get("setting"), name, data.get("simulation"), config_file)
+    data.setdefault("robots", world.robots)
+    data.setdefault("sensors", list(world.sensors))
+    for key, value in (("robots", robots), ("seed", seed)):
+        if value is not None:
+            data[key] = value
+    if evaluations is not None:
+        data["evolution"] = {**(data.get("evolution") or {}), "evaluations": evaluations}
+    experiment = decode_experiment(data, file=config_file)
+    missing = [s for s in experiment.sensors if s not in world.sensors]
+    if missing:
+        raise ConfigError(
+            f"the {name} scenario's robots do not carry {', '.join(missing)} "
+            f"(they carry {', '.join(world.sensors)})",
+            file=str(config_file) if config_file else None,
+            key="sensors",
+        )
+    simulated_safety(experiment, file=config_file)  # a bad safety key fails now, by name
+    world_config(experiment, file=config_file)
+    return experiment
+
+
+def _world(setting: Any, scenario: str, overrides: Any, file: str | Path | None) -> WorldConfig:
+    if setting not in SETTINGS:
+        raise ConfigError(
+            f"unknown setting {setting!r}; expected one of: {', '.join(SETTINGS)}",
+            file=str(file) if file else None,
+            key="setting",
+        )
+    if overrides is not None and not isinstance(overrides, dict):
+        raise ConfigError(
+            "expected a mapping of world parameters",
+            file=str(file) if file else None,
+            key="simulation",
+        )
+    if scenario not in SCENARIOS:
+        return scenario_config(scenario, file=file)  # raises, naming the scenario
+    return scenario_config(
+        scenario, {**world_overrides(setting, scenario), **(overrides or {})}, file=file
+    )
+
+
+def world_config(experiment: ExperimentConfig, *, file: str | Path | None = None) -> WorldConfig:
+    """The world an experiment runs in: its scenario in its setting with its ``simulation``
+    overrides, stepping at the experiment's step period (one world step per control step)."""
+    given = experiment.simulation.get("dt")
+    if given is not None and given != experiment.step_period:
+        raise ConfigError(
+            f"the world steps once per control step: simulation.dt ({given}) must equal "
+            f"step_period ({experiment.step_period}), or be left out",
+            file=str(file) if file else None,
+            key="simulation.dt",
+        )
+    overrides = {
+        **experiment.simulation,
+        "robots": experiment.robots,
+        "dt": experiment.step_period,
+    }
+    return _world(experiment.setting, experiment.scenario, overrides, file)
+
+
+def simulated_safety(
+    experiment: ExperimentConfig, *, file: str | Path | None = None
+) -> SafetyConfig:
+    """The simulated robots' safety layer: the setting's for the scenario, with the experiment's
+    ``safety`` overrides."""
+    return safety_config(experiment.setting, experiment.scenario, experiment.safety, file=file)
