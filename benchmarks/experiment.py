@@ -26,9 +26,8 @@ def main() -> None:
     args = parser.parse_args()
     if args.cpu is not None:
         os.sched_setaffinity(0, {args.cpu})
-    quiet_agents()
     experiment = simulation_experiment(args.scenario, evaluations=args.evaluations, seed=args.seed)
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as tmp, quiet_agents():
         started = time.perf_counter()
         cpu_started = time.process_time()
         result = asyncio.run(SimulatedSwarm(experiment).run(f"{tmp}/run"))
@@ -36,7 +35,7 @@ def main() -> None:
         cpu = time.process_time() - cpu_started
     steps = experiment.evaluation_steps * experiment.evolution.evaluations
     steps += experiment.post_evaluation_steps
-    simulated = steps * 0.1
+    simulated = steps * experiment.step_period
     name = f"experiment_{args.scenario}"
     print(f"{name}_wall_time: {wall:.1f} s")
     print(f"{name}_cpu_time: {cpu:.1f} s")

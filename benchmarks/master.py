@@ -91,7 +91,7 @@ def _commit_time(repeats: int = 200) -> float:
         header = ["evaluation", *(f"fitness_r{i}" for i in range(100))]
         times = []
         for i in range(repeats):
-            row = format_row(i + 1, "offspring", 0.5, 0.5, True, 1, 10.0, [0.5] * 100)
+            row = format_row(i + 1, "offspring", 0.5, 0.5, True, 1, 10.0, 0.0, [0.5] * 100)
             start = time.perf_counter()
             run.commit(state.to_json(), row, header)
             times.append(time.perf_counter() - start)

@@ -24,22 +24,31 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import logging
 import signal
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Awaitable, Iterator, Sequence
 from pathlib import Path
+from typing import Final, TypeVar
 
 from master_service.config import MasterConfig, load_master_config, load_secret
 from master_service.master import Master
 from master_service.progress import ProgressDisplay
 from master_service.rundir import RunDir, RunDirError
+from surprise.config import ExperimentConfig
 from surprise.errors import ConfigError
+from surprise.text import plural
 
 __all__ = ["main"]
 
 _log = logging.getLogger("master_service.cli")
+
+#: The signals that stop a run cleanly (it can be resumed).
+_STOP_SIGNALS: Final = (signal.SIGINT, signal.SIGTERM)
+
+T = TypeVar("T")
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -139,6 +148,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (ConfigError, RunDirError) as exc:
         print(f"surprise-master: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:
+        # A directory that cannot be written, a full disk: one line, no traceback. A run that
+        # had started keeps its checkpoint and can be resumed.
+        print(f"surprise-master: {_os_error_text(exc)}", file=sys.stderr)
+        return 1
+
+
+def _os_error_text(exc: OSError) -> str:
+    if exc.filename is not None and exc.strerror:
+        return f"{exc.filename}: {exc.strerror}"
+    return str(exc)
 
 
 def _secret(config: MasterConfig, source: Path) -> bytes:
@@ -163,12 +183,26 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def _resume(args: argparse.Namespace) -> int:
+    from master_service.simulation_setup import read_simulation_file
+
     run = RunDir(args.dir)
     config = run.load_config()
     checkpoint = run.read_checkpoint_data()
     if checkpoint is not None and checkpoint.get("phase") == "done":
         print(f"run {args.dir} is complete; nothing to resume")
         return 0
+    simulation = read_simulation_file(args.dir)
+    if simulation is not None:
+        # A simulated run restarts its own simulated robots: no secret, no lab.
+        assert config.experiment is not None
+        return _simulate(
+            config.experiment,
+            args.dir,
+            simulation.get("engine", "agents"),
+            bool(simulation.get("realtime", False)),
+            args.verbose,
+            resume=True,
+        )
     secret = _secret(config, run.file("config.yaml"))
     return _serve(Master(config, args.dir, secret=secret, resume=True), args)
 
@@ -199,7 +233,7 @@ async def _serve_async(master: Master) -> int:
             received.append(signum)
             task.cancel()
 
-    for signum in (signal.SIGINT, signal.SIGTERM):
+    for signum in _STOP_SIGNALS:
         loop.add_signal_handler(signum, stop, signum)
     summary = None
     try:
@@ -217,13 +251,14 @@ async def _serve_async(master: Master) -> int:
                     master.run_dir.path,
                 )
     finally:
-        for signum in (signal.SIGINT, signal.SIGTERM):
+        for signum in _STOP_SIGNALS:
             loop.remove_signal_handler(signum)
     if summary is None:
         return 128 + received[0]
     best = "-" if summary.best_fitness is None else f"{summary.best_fitness:.4f}"
     print(
-        f"run {summary.run_dir} done: {summary.evaluations} evaluations, best fitness {best}; "
+        f"run {summary.run_dir} done: {plural(summary.evaluations, 'evaluation')}, best fitness "
+        f"{best}; "
         f"see `surprise-master report {summary.run_dir}`"
     )
     return 0
@@ -252,38 +287,110 @@ def _default_out(kind: str, scenario: str) -> Path:
 
 
 def _sim(args: argparse.Namespace) -> int:
-    from master_service.simulate import SimulatedSwarm, quiet_agents, summary_text
-
     experiment = _sim_experiment(args, args.evaluations)
     if args.realtime and args.engine != "agents":
         raise ConfigError("real time needs the agents: add --engine agents", key="--realtime")
     out = args.out or _default_out("sim", experiment.scenario)
     RunDir(out).check_new()
-    quiet_agents()
-    display = ProgressDisplay(level=logging.DEBUG if args.verbose else logging.INFO)
-    if display.live and not args.verbose:
+    return _simulate(experiment, out, args.engine, args.realtime, args.verbose, resume=False)
+
+
+def _simulate(
+    experiment: ExperimentConfig,
+    out: Path,
+    engine: str,
+    realtime: bool,
+    verbose: bool,
+    *,
+    resume: bool,
+) -> int:
+    """Run (or resume) a simulated experiment with its progress display; on SIGINT or SIGTERM
+    stop at the next commit and say in one line where the run stands and how to go on."""
+    from master_service.simulate import SimulatedSwarm, quiet_agents, summary_text
+
+    display = ProgressDisplay(level=logging.DEBUG if verbose else logging.INFO)
+    if display.live and not verbose:
         # A simulated run counts dozens of evaluations a second: the panel shows the progress,
         # master.log keeps every line, the console only what needs a look.
         display.level = logging.WARNING
-    mode = "real time" if args.realtime else "lockstep"
-    with display:
+    mode = "real time" if realtime else "lockstep"
+    received: list[int] = []
+    with display, quiet_agents():
         print(
-            f"simulating {experiment.scenario} ({experiment.setting} setting, "
-            f"{args.engine} engine): {experiment.robots} robots, "
-            f"{experiment.evolution.evaluations} evaluations of {experiment.evaluation_steps} "
-            f"steps of {experiment.step_period:g} s, seed {experiment.seed}"
-            + (f", {mode}" if args.engine == "agents" else "")
+            f"{'resuming' if resume else 'simulating'} {experiment.scenario} "
+            f"({experiment.setting} setting, {engine} engine): {experiment.robots} robots, "
+            f"{plural(experiment.evolution.evaluations, 'evaluation')} of "
+            f"{experiment.evaluation_steps} steps of {experiment.step_period:g} s, seed "
+            f"{experiment.seed}" + (f", {mode}" if engine == "agents" else "")
         )
         started = time.perf_counter()
-        if args.engine == "fast":
+        if engine == "fast":
             from master_service.engine_run import FastRun
 
-            result = FastRun(experiment, on_progress=display.update).run(out)
+            with _stop_flag(received):
+                result = FastRun(experiment, on_progress=display.update).run(
+                    out, resume=resume, should_stop=lambda: bool(received)
+                )
         else:
-            swarm = SimulatedSwarm(experiment, realtime=args.realtime, on_progress=display.update)
-            result = asyncio.run(swarm.run(out))
+            swarm = SimulatedSwarm(experiment, realtime=realtime, on_progress=display.update)
+            result = asyncio.run(_until_signal(swarm.run(out, resume=resume), received))
+    if result is None:
+        print(_stopped_text(out, experiment, received[0]), file=sys.stderr)
+        return 128 + received[0]
     print(summary_text(result.metrics, out, time.perf_counter() - started))
     return 0
+
+
+@contextlib.contextmanager
+def _stop_flag(received: list[int]) -> Iterator[None]:
+    """While inside, SIGINT and SIGTERM are noted in ``received`` (the run asks between
+    evaluations) instead of raising KeyboardInterrupt in the middle of a write."""
+
+    def note(signum: int, frame: object) -> None:
+        received.append(signum)
+
+    previous = {signum: signal.signal(signum, note) for signum in _STOP_SIGNALS}
+    try:
+        yield
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+
+
+async def _until_signal(work: Awaitable[T], received: list[int]) -> T | None:
+    """Await ``work``; on SIGINT or SIGTERM cancel it (its own clean-up runs) and return None."""
+    loop = asyncio.get_running_loop()
+    task = asyncio.ensure_future(work)
+
+    def stop(signum: int) -> None:
+        if not received:
+            received.append(signum)
+            task.cancel()
+
+    for signum in _STOP_SIGNALS:
+        loop.add_signal_handler(signum, stop, signum)
+    try:
+        return await task
+    except asyncio.CancelledError:
+        if not received:
+            raise
+        return None
+    finally:
+        for signum in _STOP_SIGNALS:
+            loop.remove_signal_handler(signum)
+
+
+def _stopped_text(out: Path, experiment: ExperimentConfig, signum: int) -> str:
+    run = RunDir(out)
+    state = run.read_state(run.load_config())
+    done = 0 if state is None else state.optimizer.evaluations
+    total = experiment.evolution.evaluations
+    where = (
+        f"stopped by {signal.Signals(signum).name} at evaluation {done}/{total}"
+        if state is None or state.phase == "evolution"
+        else f"stopped by {signal.Signals(signum).name} in the post-evaluation"
+    )
+    return f"{where}; continue with `surprise-master resume {out}`"
 
 
 def _baseline(args: argparse.Namespace) -> int:
@@ -311,7 +418,7 @@ def _report(args: argparse.Namespace) -> int:
     best = metrics.get("best_fitness")
     print(
         f"wrote {Path(args.dir) / 'metrics.json'} and plots in {Path(args.dir) / 'plots'}: "
-        f"{metrics['evaluations']} evaluations, best fitness "
+        f"{plural(metrics['evaluations'], 'evaluation')}, best fitness "
         + ("-" if best is None else f"{best:.4f}")
     )
     comparison = metrics.get("baseline")

@@ -15,12 +15,12 @@ that much work.
 
 from __future__ import annotations
 
-import json
+import collections
 import logging
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Final
+from typing import Final
 
 import numpy as np
 
@@ -29,18 +29,24 @@ from master_service.master import Progress, RunSummary
 from master_service.rundir import (
     EVALUATION_COLUMNS,
     LOG,
-    SIMULATION_FILE,
     RunDir,
     RunState,
     format_row,
-    write_atomic,
 )
-from master_service.simulation_setup import SimulatedRun, simulated_safety, world_config
+from master_service.simulation_setup import (
+    SimulatedRun,
+    simulated_safety,
+    world_config,
+    write_box_track,
+    write_simulation_file,
+)
 from sim_stub.engine import EvaluationRecord, Swarm
+from sim_stub.world import box_frame_steps
 from surprise.config import ExperimentConfig
 from surprise.evolution import OnePlusOne
 from surprise.fitness import swarm_fitness
 from surprise.network import GenomeLayout, spec_from_config
+from surprise.safety import dominance_warning
 from surprise.wire import EvaluationStats, Result, Trace
 
 __all__ = ["COMMIT_INTERVAL", "FastRun"]
@@ -74,24 +80,36 @@ class FastRun:
         )
         self._boxes_before: list[list[float]] | None = None
 
-    def run(self, run_dir: str | Path, *, plots: bool = True) -> SimulatedRun:
-        """Evolve, post-evaluate and report into ``run_dir`` (created; must be new or empty);
-        without ``plots`` the report writes its metrics but draws nothing."""
+    def run(
+        self,
+        run_dir: str | Path,
+        *,
+        plots: bool = True,
+        resume: bool = False,
+        should_stop: Callable[[], bool] | None = None,
+    ) -> SimulatedRun | None:
+        """Evolve, post-evaluate and report into ``run_dir``; the run and its metrics.
+
+        A new run needs ``run_dir`` new or empty; with ``resume`` it continues the run there from
+        its checkpoint (the simulated swarm as it was at that commit), to the result it would
+        have reached without the stop. ``should_stop`` is asked between evaluations: once it
+        answers true the run commits and returns None (resume it later). Without ``plots`` the
+        report writes its metrics but draws nothing.
+        """
         from master_service.report import write_report  # matplotlib: only when reporting
 
         directory = RunDir(run_dir)
-        directory.create(self.config)
+        state = self._open(directory, resume)
         log, handler = _run_log(directory)
+        stop = should_stop or (lambda: False)
         try:
-            state = RunState(
-                run_id=directory.path.resolve().name,
-                optimizer=OnePlusOne(
-                    self.experiment.evolution, self.genome_size, self.experiment.seed
-                ),
-                roster=self.ids,
-            )
-            started = time.monotonic()
-            self._evolve(directory, state, log, started)
+            if resume:
+                log.info("resumed: %d evaluations done", state.optimizer.evaluations)
+            started = time.monotonic() - state.elapsed_s
+            if state.phase == "evolution" and not self._evolve(
+                directory, state, log, started, stop
+            ):
+                return None
             post = self._post_evaluate(directory, state, log, started)
         finally:
             directory.close()
@@ -109,9 +127,37 @@ class FastRun:
         )
         return SimulatedRun(summary, write_report(directory.path, plots=plots))
 
+    def _open(self, directory: RunDir, resume: bool) -> RunState:
+        """The run's state: new (the directory created) or the checkpoint's (restored)."""
+        experiment = self.experiment
+        state = None
+        if resume:
+            directory.check_experiment(experiment)
+            state = directory.read_state(self.config)
+        else:
+            directory.create(self.config)
+            self._write_simulation_file(directory.path)
+        if state is None:  # new, or stopped before its first commit
+            optimizer = OnePlusOne(experiment.evolution, self.genome_size, experiment.seed)
+            return RunState(
+                run_id=directory.path.resolve().name, optimizer=optimizer, roster=self.ids
+            )
+        directory.prepare_resume(state)
+        if state.simulation is not None:
+            self.swarm.restore(state.simulation)
+        return state
+
     # -- the phases ------------------------------------------------------------------------------
 
-    def _evolve(self, directory: RunDir, state: RunState, log: logging.Logger, started: float):
+    def _evolve(
+        self,
+        directory: RunDir,
+        state: RunState,
+        log: logging.Logger,
+        started: float,
+        stop: Callable[[], bool],
+    ) -> bool:
+        """Count evaluations until done (True) or told to stop (False, committed)."""
         experiment = self.experiment
         opt = state.optimizer
         total = experiment.evolution.evaluations
@@ -120,6 +166,10 @@ class FastRun:
         best_changed = False
         last_commit = time.monotonic()
         while not opt.done:
+            if stop():
+                self._commit(directory, state, rows, header, best_changed, started)
+                log.info("stopped after %d evaluations", opt.evaluations)
+                return False
             candidate = opt.ask()
             state.next_evaluation_id += 1
             state.attempts += 1
@@ -128,6 +178,7 @@ class FastRun:
             fitnesses = [float(f) for f in record.fitness]
             outcome = opt.tell(swarm_fitness(fitnesses))
             duration = time.monotonic() - began
+            share = record.safety_share(experiment.evaluation_steps)
             rows.append(
                 format_row(
                     outcome.evaluation,
@@ -137,26 +188,29 @@ class FastRun:
                     outcome.accepted,
                     state.attempts,
                     duration,
+                    share,
                     fitnesses,
                 )
             )
             state.attempts = 0
             best_changed |= outcome.accepted
             log.info(
-                "evaluation %d/%d %s: fitness %.4f, best %.4f%s",
+                "evaluation %d/%d %s: fitness %.4f, best %.4f%s, safety %.0f %%",
                 outcome.evaluation,
                 total,
                 outcome.kind,
                 outcome.fitness,
                 outcome.best_fitness,
                 ", accepted" if outcome.accepted and outcome.kind == "offspring" else "",
+                100 * share,
             )
             if opt.done:
                 state.phase = "post-evaluation" if experiment.post_evaluation_steps else "done"
             if opt.done or time.monotonic() - last_commit >= COMMIT_INTERVAL:
                 self._commit(directory, state, rows, header, best_changed, started)
                 rows, best_changed, last_commit = [], False, time.monotonic()
-            self._emit(state, outcome.fitness, started)
+            self._emit(state, outcome.fitness, started, share)
+        return True
 
     def _post_evaluate(
         self, directory: RunDir, state: RunState, log: logging.Logger, started: float
@@ -179,11 +233,24 @@ class FastRun:
             for index, robot in enumerate(self.ids)
         }
         directory.write_post_evaluation(evaluation_id, opt.best_fitness, steps, results)
+        assert record.boxes is not None
+        write_box_track(directory.path, record.boxes, box_frame_steps(world.config.dt))
         fitness = swarm_fitness([r.fitness for r in results.values()])
-        log.info("post-evaluation done: swarm fitness %.4f", fitness)
+        share = record.safety_share(steps)
+        log.info(
+            "post-evaluation done: swarm fitness %.4f, safety drove %.0f %% of the steps",
+            fitness,
+            100 * share,
+        )
+        reasons: collections.Counter[str] = collections.Counter()
+        for counts in record.interventions:
+            reasons.update(counts)
+        warning = dominance_warning(share, reasons)
+        if warning is not None:
+            log.warning("post-evaluation: %s", warning)
         state.phase = "done"
         self._commit(directory, state, [], [], False, started)
-        self._emit(state, None, started)
+        self._emit(state, None, started, None)
         return fitness
 
     # -- bookkeeping -----------------------------------------------------------------------------
@@ -199,12 +266,15 @@ class FastRun:
     ) -> None:
         state.csv_rows += len(rows)
         state.elapsed_s = time.monotonic() - started
+        state.simulation = self.swarm.snapshot()  # between evaluations: consistent
         directory.commit(state.to_json(), "".join(rows) or None, header)
         opt = state.optimizer
         if best_changed and opt.best is not None:
             directory.write_best(opt.best, opt.best_fitness, opt.evaluations, self.spec)
 
-    def _emit(self, state: RunState, last: float | None, started: float) -> None:
+    def _emit(
+        self, state: RunState, last: float | None, started: float, share: float | None
+    ) -> None:
         if self.on_progress is None:
             return
         opt = state.optimizer
@@ -229,27 +299,18 @@ class FastRun:
                 failed_attempts=0,
                 elapsed_s=elapsed,
                 time_left_s=0.0 if state.phase == "done" else left,
+                safety_share=share,
             )
         )
 
     def _write_simulation_file(self, run_dir: Path) -> None:
-        world = self.swarm.world
-        data: dict[str, Any] = {
-            "scenario": self.experiment.scenario,
-            "setting": self.experiment.setting,
-            "engine": "fast",
-            "world": {
-                "arena_side": world.config.arena_side,
-                "robots": world.config.robots,
-                "boxes": len(world.box_positions),
-            },
-        }
-        if self._boxes_before is not None and len(world.box_positions):
-            data["post_evaluation_boxes"] = {
-                "start": self._boxes_before,
-                "end": world.box_positions.tolist(),
-            }
-        write_atomic(run_dir / SIMULATION_FILE, json.dumps(data).encode("utf-8"))
+        write_simulation_file(
+            run_dir,
+            self.experiment,
+            self.swarm.world,
+            engine="fast",
+            boxes_before=self._boxes_before,
+        )
 
 
 def _result(evaluation_id: int, record: EvaluationRecord, robot: int, steps: int) -> Result:

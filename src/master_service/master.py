@@ -45,7 +45,6 @@ import numpy as np
 from master_service.config import MasterConfig, build_ssl_context
 from master_service.rounds import Attempt, RoundRunner
 from master_service.rundir import (
-    CONFIG_SNAPSHOT,
     EVALUATION_COLUMNS,
     LOG,
     POST_EVALUATION,
@@ -59,6 +58,7 @@ from surprise.errors import ConfigError
 from surprise.evolution import OnePlusOne
 from surprise.fitness import swarm_fitness
 from surprise.network import GenomeLayout, spec_from_config
+from surprise.safety import dominance_warning
 from surprise.session import TAG_SIZE
 from surprise.wire import REFUSED_UNKNOWN_ROBOT, Evaluate, Failed, Result, encode_payload
 from telemetry.config import require_client_library
@@ -103,6 +103,8 @@ class Progress:
     failed_attempts: int
     elapsed_s: float
     time_left_s: float | None
+    #: share of the last counted evaluation's steps in which the safety layer drove
+    safety_share: float | None = None
 
 
 @dataclass(frozen=True)
@@ -123,7 +125,8 @@ class Master:
     ``secret`` is the shared secret's bytes (see :func:`master_service.config.load_secret`).
     ``on_progress`` (also :meth:`add_progress_listener`) is called with a :class:`Progress` on
     every change. ``before_post_evaluation`` is awaited before each attempt of the
-    post-evaluation, while every robot is idle. Construction validates and touches no file;
+    post-evaluation, while every robot is idle; ``snapshot`` (a simulator's) returns its state at
+    every commit, kept in the checkpoint. Construction validates and touches no file;
     :meth:`start` (or ``async with``) binds the port and creates or opens the run directory;
     :meth:`run` evolves and post-evaluates; :meth:`close` says Bye to the robots and closes
     everything.
@@ -138,6 +141,7 @@ class Master:
         resume: bool = False,
         on_progress: Callable[[Progress], None] | None = None,
         before_post_evaluation: Callable[[], Awaitable[None]] | None = None,
+        snapshot: Callable[[], dict[str, Any]] | None = None,
     ) -> None:
         if config.experiment is None:
             raise ConfigError(
@@ -169,6 +173,7 @@ class Master:
         self.run_id = self.run_dir.path.resolve().name
         self.resume = resume
         self._before_post_evaluation = before_post_evaluation
+        self._snapshot = snapshot
         self._ssl = build_ssl_context(config.tls) if config.tls is not None else None
         self._listeners: list[Callable[[Progress], None]] = []
         if on_progress is not None:
@@ -212,6 +217,7 @@ class Master:
         self._last_counted_at: float | None = None
         self._intervals: collections.deque[float] = collections.deque(maxlen=ETA_WINDOW)
         self._last_fitness: float | None = None
+        self._last_safety_share: float | None = None
         self._write: asyncio.Future[None] | None = None
         self._live_task: asyncio.Task[None] | None = None
         self._started = False
@@ -225,13 +231,7 @@ class Master:
         self._started = True
         state = None
         if self.resume:
-            snapshot = self.run_dir.load_config()
-            if snapshot.experiment != self.experiment:
-                raise ConfigError(
-                    "the experiment differs from the one this run was started with",
-                    file=str(self.run_dir.file(CONFIG_SNAPSHOT)),
-                    key="experiment",
-                )
+            self.run_dir.check_experiment(self.experiment)
             state = self.run_dir.read_state(self.config)
             if state is not None:
                 # The attempt in flight when the master stopped may have used the checkpointed
@@ -410,6 +410,7 @@ class Master:
             fitness = swarm_fitness(fitnesses)
             outcome = opt.tell(fitness)
             duration = attempt.completed - attempt.started
+            share = attempt.safety_share()
             row = format_row(
                 outcome.evaluation,
                 outcome.kind,
@@ -418,12 +419,14 @@ class Master:
                 outcome.accepted,
                 state.attempts,
                 duration,
+                share,
                 fitnesses,
             )
             accepted = outcome.accepted
-            self._counted(outcome.fitness)
+            self._counted(outcome.fitness, share)
             self.log.info(
-                "evaluation %d/%d %s: fitness %.4f, best %.4f%s (attempt %d, %.1f s)%s",
+                "evaluation %d/%d %s: fitness %.4f, best %.4f%s (attempt %d, %.1f s, safety "
+                "%.0f %%)%s",
                 outcome.evaluation,
                 total,
                 outcome.kind,
@@ -432,6 +435,7 @@ class Master:
                 ", accepted" if outcome.accepted and outcome.kind == "offspring" else "",
                 state.attempts,
                 duration,
+                100 * share,
                 self._status_suffix(),
             )
             state.attempts = 0
@@ -473,11 +477,19 @@ class Master:
         await asyncio.to_thread(
             self.run_dir.write_post_evaluation, evaluation_id, opt.best_fitness, steps, results
         )
+        share = attempt.safety_share()
         self.log.info(
-            "post-evaluation done: swarm fitness %.4f (%s)",
+            "post-evaluation done: swarm fitness %.4f (%s), safety drove %.0f %% of the steps",
             swarm_fitness(attempt.fitnesses()),
             ", ".join(f"{r} {attempt.results[r].fitness:.4f}" for r in attempt.robots),
+            100 * share,
         )
+        reasons: collections.Counter[str] = collections.Counter()
+        for result in results.values():
+            reasons.update(result.stats.interventions)
+        warning = dominance_warning(share, reasons)
+        if warning is not None:
+            self.log.warning("post-evaluation: %s", warning)
         state.phase = "done"
         state.attempts = 0
         await self._commit(None)
@@ -523,6 +535,9 @@ class Master:
         if row is not None:
             state.csv_rows += 1
         state.elapsed_s = self.elapsed_s
+        if self._snapshot is not None:
+            # Between rounds every robot is idle: a simulator's state is consistent now.
+            state.simulation = self._snapshot()
         data = state.to_json()
         roster = state.roster or []
         header = [*EVALUATION_COLUMNS, *(f"fitness_{robot}" for robot in roster)]
@@ -629,6 +644,7 @@ class Master:
             failed_attempts=state.failed_attempts,
             elapsed_s=self.elapsed_s,
             time_left_s=self._time_left(),
+            safety_share=self._last_safety_share,
         )
 
     def _time_left(self) -> float | None:
@@ -645,12 +661,13 @@ class Master:
             per_step = self.experiment.step_period
         return (remaining * steps + self.experiment.post_evaluation_steps) * per_step
 
-    def _counted(self, fitness: float) -> None:
+    def _counted(self, fitness: float, share: float) -> None:
         now = time.monotonic()
         if self._last_counted_at is not None:
             self._intervals.append(now - self._last_counted_at)
         self._last_counted_at = now
         self._last_fitness = fitness
+        self._last_safety_share = share
 
     def _robots_text(self) -> str:
         connected = len(self.server.sessions)

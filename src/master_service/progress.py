@@ -12,6 +12,7 @@ import sys
 from typing import IO, Any
 
 from master_service.master import Progress, format_duration
+from surprise.safety import SAFETY_DOMINATES
 
 __all__ = ["ProgressDisplay", "describe"]
 
@@ -30,10 +31,11 @@ def describe(progress: Progress) -> str:
     else:
         state = progress.phase
     left = "-" if progress.time_left_s is None else format_duration(progress.time_left_s)
+    safety = "-" if progress.safety_share is None else f"{100 * progress.safety_share:.0f} %"
     return (
         f"{state} | evaluations {progress.evaluations}/{progress.total} | best {best} | "
         f"robots {progress.robots_connected}/{progress.robots_expected} | "
-        f"failed attempts {progress.failed_attempts} | elapsed "
+        f"safety drove {safety} | failed attempts {progress.failed_attempts} | elapsed "
         f"{format_duration(progress.elapsed_s)} | left ~{left}"
     )
 
@@ -115,6 +117,17 @@ class ProgressDisplay:
         best = "-" if progress.best_fitness is None else f"{progress.best_fitness:.4f}"
         last = "-" if progress.last_fitness is None else f"{progress.last_fitness:.4f}"
         grid.add_row("best fitness", best, f"last {last}")
+        if progress.safety_share is not None:
+            share = progress.safety_share
+            warning = (
+                "  the safety layer does most of the driving" if share > SAFETY_DOMINATES else ""
+            )
+            grid.add_row(
+                "safety drove",
+                f"{100 * share:.0f} % of steps",
+                warning,
+                style="" if not warning else "yellow",
+            )
         robots = f"{progress.robots_connected}/{progress.robots_expected}"
         grid.add_row("robots", robots, "waiting for robots" if progress.waiting else "")
         left = "-" if progress.time_left_s is None else format_duration(progress.time_left_s)

@@ -36,6 +36,7 @@ from master_service.rundir import (
 from sim_stub import metrics as sim_metrics
 from surprise.config import ExperimentConfig
 from surprise.errors import ConfigError
+from surprise.text import plural
 
 __all__ = ["compute_metrics", "status_text", "write_report"]
 
@@ -350,7 +351,8 @@ def status_text(path: str | Path) -> str:
         best = optimizer.get("best_fitness")
         lines.append(
             f"phase: {checkpoint['phase']}, {optimizer.get('evaluations', 0)}/{planned} "
-            f"evaluations counted, {checkpoint.get('failed_attempts', 0)} failed attempts"
+            f"evaluations counted, "
+            f"{plural(checkpoint.get('failed_attempts', 0), 'failed attempt')}"
         )
         lines.append("best fitness: " + ("-" if best is None else f"{best:.4f}"))
         rows = run.read_rows()[: checkpoint.get("csv_rows", 0)]

@@ -23,6 +23,7 @@ import numpy as np
 
 from master_service.server import RobotServer, Session
 from surprise.network import NetworkSpec
+from surprise.safety import intervention_share
 from surprise.wire import (
     Abort,
     Evaluate,
@@ -80,6 +81,11 @@ class Attempt:
         """The robots' fitnesses in the order of ``robots`` (a fixed order: a float mean then
         comes out the same bit for bit however the answers interleaved)."""
         return [self.results[r].fitness for r in self.robots]
+
+    def safety_share(self) -> float:
+        """The share of the robots' steps in which the safety layer changed the command."""
+        stats = [self.results[r].stats for r in self.robots]
+        return intervention_share((s.interventions for s in stats), sum(s.steps_run for s in stats))
 
 
 class RoundRunner:

@@ -19,9 +19,11 @@ between the two writes neither loses nor duplicates a row.
 
 The ``attempts`` column counts the attempts sent for that evaluation (an attempt in flight when the
 master stopped counts too), ``duration_s`` is the time from the counted attempt's Evaluate to its
-last Result, and ``fitness_<robot id>`` holds each robot's fitness, the swarm's ``fitness`` being
-their mean. The ``kind`` column holds ``initial`` for the first row (the random initial genome is
-neither an offspring nor a re-evaluation), then ``offspring`` or ``reevaluation``.
+last Result, ``safety_share`` the share of the robots' steps in which the safety layer changed the
+network's command, and ``fitness_<robot id>`` holds each robot's fitness, the swarm's
+``fitness`` being their mean. The ``kind`` column holds ``initial`` for the first row (the random
+initial genome is neither an offspring nor a re-evaluation), then ``offspring`` or
+``reevaluation``.
 """
 
 from __future__ import annotations
@@ -43,14 +45,15 @@ import numpy as np
 import yaml
 
 from master_service.config import MasterConfig
-from surprise.config import load_yaml
-from surprise.errors import SurpriseError
+from surprise.config import ExperimentConfig, load_yaml
+from surprise.errors import ConfigError, SurpriseError
 from surprise.evolution import EvolutionStateError, OnePlusOne
 from surprise.network import NetworkSpec
 from surprise.wire import Result
 
 __all__ = [
     "BEST_GENOME",
+    "BOX_TRACK",
     "CHECKPOINT",
     "CONFIG_SNAPSHOT",
     "EVALUATIONS",
@@ -80,6 +83,9 @@ METRICS: Final = "metrics.json"
 #: Written by ``surprise-master sim``: how the run is simulated (scenario, setting, engine) and
 #: the boxes before and after the post-evaluation.
 SIMULATION_FILE: Final = "simulation.json"
+#: Written by ``surprise-master sim`` in an arena with boxes: where the boxes were during the
+#: post-evaluation (``positions`` (frames, boxes, 2) in metres, a frame every ``every`` steps).
+BOX_TRACK: Final = "box_track.npz"
 PLOTS: Final = "plots"
 
 #: The fixed columns of ``evaluations.csv``; one ``fitness_<robot id>`` column per robot follows.
@@ -91,6 +97,7 @@ EVALUATION_COLUMNS: Final = (
     "accepted",
     "attempts",
     "duration_s",
+    "safety_share",
 )
 
 #: Version of checkpoint.json's shape; bump when it changes.
@@ -125,6 +132,8 @@ class RunState:
     csv_rows: int = 0
     roster: list[str] | None = None
     elapsed_s: float = 0.0
+    #: a simulated run's world and robots at this commit, so that it resumes exactly
+    simulation: dict[str, Any] | None = None
 
     def to_json(self) -> dict[str, Any]:
         """The checkpoint's plain data."""
@@ -140,6 +149,7 @@ class RunState:
             "elapsed_s": self.elapsed_s,
             "written_at": time.time(),
             "optimizer": self.optimizer.state(),
+            "simulation": self.simulation,
         }
 
     @classmethod
@@ -162,6 +172,7 @@ class RunState:
                 csv_rows=int(data["csv_rows"]),
                 roster=None if data["roster"] is None else [str(r) for r in data["roster"]],
                 elapsed_s=float(data.get("elapsed_s", 0.0)),
+                simulation=data.get("simulation"),
             )
         except (KeyError, TypeError, ValueError, EvolutionStateError) as exc:
             raise RunDirError(f"the checkpoint cannot be read: {exc}") from None
@@ -206,6 +217,7 @@ def format_row(
     accepted: bool,
     attempts: int,
     duration_s: float,
+    safety_share: float,
     robot_fitness: Iterable[float],
 ) -> str:
     """One line of ``evaluations.csv``; floats in repr form so they read back bit for bit."""
@@ -217,6 +229,7 @@ def format_row(
         "true" if accepted else "false",
         str(attempts),
         f"{duration_s:.3f}",
+        f"{safety_share:.4f}",
         *(repr(float(f)) for f in robot_fitness),
     ]
     return ",".join(fields) + "\n"
@@ -256,6 +269,16 @@ class RunDir:
         if not path.is_file():
             raise RunDirError(f"{self.path} is not a run directory: {CONFIG_SNAPSHOT} is missing")
         return load_yaml(path, MasterConfig)
+
+    def check_experiment(self, experiment: ExperimentConfig | None) -> None:
+        """Raise ConfigError unless ``experiment`` is the one this run was started with (a
+        resumed run must go on with the same experiment, or its rows would not belong together)."""
+        if self.load_config().experiment != experiment:
+            raise ConfigError(
+                "the experiment differs from the one this run was started with",
+                file=str(self.file(CONFIG_SNAPSHOT)),
+                key="experiment",
+            )
 
     def read_checkpoint_data(self) -> dict[str, Any] | None:
         """The checkpoint's plain data, or None before the first commit."""

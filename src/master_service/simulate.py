@@ -15,32 +15,36 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 import logging
 import random
 import secrets
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from master_service.config import MasterConfig
 from master_service.master import Master, Progress
-from master_service.rundir import SIMULATION_FILE, write_atomic
+from master_service.rundir import SIMULATION_FILE, RunDir
 from master_service.simulation_setup import (
     SimulatedRun,
     robot_ids,
     simulated_safety,
     simulation_experiment,
     world_config,
+    write_box_track,
+    write_simulation_file,
 )
 from robot_agent.agent import Agent
 from robot_agent.config import AgentConfig, LoopConfig
 from robot_agent.config import MasterConfig as AgentMasterConfig
 from sim_stub.body import SimSwarm
 from sim_stub.scenarios import SCENARIOS
-from sim_stub.world import World
+from sim_stub.world import World, box_frame_steps
 from surprise.backoff import BackoffConfig
 from surprise.config import ExperimentConfig
+from surprise.safety import SafetyState
 
 __all__ = [
     "SCENARIOS",
@@ -82,6 +86,7 @@ class SimulatedSwarm:
         # Nobody outside this process talks to this master: a fresh random secret per run.
         self._secret = secrets.token_bytes(32)
         self._boxes_before: list[list[float]] | None = None
+        self._agents: list[Agent] = []
 
     def master_config(self) -> MasterConfig:
         """The master's configuration: loopback, any free port, only the simulated robots."""
@@ -110,25 +115,53 @@ class SimulatedSwarm:
         # Every robot is idle between two rounds, so nobody is inside a step of the world.
         self.world.reset(seed=self.experiment.seed + 1)
         self._boxes_before = self.world.box_positions.tolist()
+        self.world.start_recording()  # the boxes' track, for the report's animation
 
-    async def run(self, run_dir: str | Path) -> SimulatedRun:
-        """Run the experiment into ``run_dir`` (created; must not hold another run)."""
+    def _snapshot(self) -> dict[str, Any]:
+        # The master commits between rounds, while every robot is idle: a consistent state.
+        # Same shape as the engine's (sim_stub.engine.Swarm.snapshot).
+        return {
+            "world": self.world.snapshot(),
+            "safety": [agent.runner.safety_state.to_array().tolist() for agent in self._agents],
+        }
+
+    def _restore(self, snapshot: dict[str, Any]) -> None:
+        self.world.restore(snapshot["world"])
+        for agent, state in zip(self._agents, snapshot["safety"], strict=True):
+            agent.runner.safety_state = SafetyState.from_array(np.array(state, dtype=np.int64))
+
+    async def run(self, run_dir: str | Path, *, resume: bool = False) -> SimulatedRun:
+        """Run the experiment into ``run_dir`` and report; the run and its metrics.
+
+        A new run needs ``run_dir`` new or empty. With ``resume`` it continues the run there
+        from its checkpoint, the world and the robots' safety layers as they were at that
+        commit, to the result it would have reached without the stop. Cancelled (Ctrl-C), the
+        run stops with its checkpoint current and the robots' motors stopped.
+        """
         from master_service.report import write_report  # matplotlib: only when reporting
 
         run_dir = Path(run_dir)
+        checkpoint = None
+        if resume:
+            directory = RunDir(run_dir)
+            checkpoint = directory.read_state(directory.load_config())
         swarm = SimSwarm(self.world, realtime=self.realtime, attach_all=True)
         master = Master(
             self.master_config(),
             run_dir,
             secret=self._secret,
+            resume=resume,
             on_progress=self.on_progress,
             before_post_evaluation=self._reset_arena,
+            snapshot=self._snapshot,
         )
+        self._agents = []
         async with contextlib.AsyncExitStack() as stack:
             await stack.enter_async_context(master)
+            if not resume:
+                self._write_simulation_file(run_dir)
             if self.realtime:
                 await stack.enter_async_context(swarm)
-            agents = []
             for index, robot_id in enumerate(self.ids):
                 body = await stack.enter_async_context(swarm.body(index))
                 agent = Agent(
@@ -138,8 +171,12 @@ class SimulatedSwarm:
                     self._secret,
                     rng=random.Random(self.experiment.seed * 1000 + index),
                 )
-                agents.append(await stack.enter_async_context(agent))
-            tasks = [asyncio.create_task(a.run(), name=f"agent-{i}") for i, a in enumerate(agents)]
+                self._agents.append(await stack.enter_async_context(agent))
+            if checkpoint is not None and checkpoint.simulation is not None:
+                self._restore(checkpoint.simulation)
+            tasks = [
+                asyncio.create_task(a.run(), name=f"agent-{i}") for i, a in enumerate(self._agents)
+            ]
             try:
                 summary = await master.run()
             finally:
@@ -147,24 +184,24 @@ class SimulatedSwarm:
                     task.cancel()
                 await asyncio.gather(*tasks, return_exceptions=True)
         self._write_simulation_file(run_dir)
+        if self._boxes_before is not None:
+            steps = self.experiment.post_evaluation_steps
+            write_box_track(
+                run_dir, self.world.recorded_boxes(steps), box_frame_steps(self.world.config.dt)
+            )
+            self.world.stop_recording()
         metrics = await asyncio.to_thread(write_report, run_dir)
         return SimulatedRun(summary, metrics)
 
     def _write_simulation_file(self, run_dir: Path) -> None:
-        data: dict[str, Any] = {
-            "scenario": self.experiment.scenario,
-            "world": {
-                "arena_side": self.world.config.arena_side,
-                "robots": self.world.config.robots,
-                "boxes": len(self.world.box_positions),
-            },
-        }
-        if self._boxes_before is not None and len(self.world.box_positions):
-            data["post_evaluation_boxes"] = {
-                "start": self._boxes_before,
-                "end": self.world.box_positions.tolist(),
-            }
-        write_atomic(run_dir / SIMULATION_FILE, json.dumps(data).encode("utf-8"))
+        write_simulation_file(
+            run_dir,
+            self.experiment,
+            self.world,
+            engine="agents",
+            realtime=self.realtime,
+            boxes_before=self._boxes_before,
+        )
 
 
 def simulated_loop(experiment: ExperimentConfig) -> LoopConfig:
@@ -205,6 +242,14 @@ def summary_text(metrics: dict[str, Any], out: Path, seconds: float) -> str:
     return "\n".join(lines)
 
 
-def quiet_agents() -> None:
-    """In-process agents log their connections at INFO: keep them out of the progress display."""
-    logging.getLogger("robot_agent").setLevel(logging.WARNING)
+@contextlib.contextmanager
+def quiet_agents() -> Iterator[None]:
+    """While inside, the in-process agents log only warnings: their connections, at INFO, stay
+    out of the progress display (the level is put back afterwards)."""
+    logger = logging.getLogger("robot_agent")
+    level = logger.level
+    logger.setLevel(logging.WARNING)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)

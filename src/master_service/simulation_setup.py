@@ -7,25 +7,38 @@ robots are run.
 
 from __future__ import annotations
 
+import io
+import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Final
+
+import numpy as np
 
 from master_service.master import RunSummary
+from master_service.rundir import BOX_TRACK, SIMULATION_FILE, RunDirError, write_atomic
 from sim_stub.engine import robot_ids
 from sim_stub.scenarios import SCENARIOS, WorldConfig, scenario_config
 from sim_stub.settings import SETTINGS, safety_config, world_overrides
+from sim_stub.world import World
 from surprise.config import ExperimentConfig, decode_experiment, read_yaml
 from surprise.errors import ConfigError
 from surprise.safety import SafetyConfig
 
 __all__ = [
+    "ENGINES",
     "SimulatedRun",
+    "read_simulation_file",
     "robot_ids",
     "simulated_safety",
     "simulation_experiment",
     "world_config",
+    "write_box_track",
+    "write_simulation_file",
 ]
+
+#: The two ways of running a simulated swarm: the compiled engine, or real agents over TCP.
+ENGINES: Final = ("fast", "agents")
 
 
 @dataclass(frozen=True)
@@ -135,3 +148,61 @@ def simulated_safety(
     """The simulated robots' safety layer: the setting's for the scenario, with the experiment's
     ``safety`` overrides."""
     return safety_config(experiment.setting, experiment.scenario, experiment.safety, file=file)
+
+
+def write_simulation_file(
+    run_dir: str | Path,
+    experiment: ExperimentConfig,
+    world: World,
+    *,
+    engine: str,
+    realtime: bool = False,
+    boxes_before: list[list[float]] | None = None,
+) -> None:
+    """Write ``simulation.json``: the run is simulated, on which engine, in which world; with
+    ``boxes_before`` (the boxes when the post-evaluation began) also where the boxes went.
+
+    Written when the run starts, so that ``surprise-master resume`` knows to restart the
+    simulated robots, and again at its end, for the report's box displacement.
+    """
+    data: dict[str, Any] = {
+        "scenario": experiment.scenario,
+        "setting": experiment.setting,
+        "engine": engine,
+        "realtime": realtime,
+        "world": {
+            "arena_side": world.config.arena_side,
+            "robots": world.config.robots,
+            "boxes": len(world.box_positions),
+        },
+    }
+    if boxes_before is not None and len(world.box_positions):
+        data["post_evaluation_boxes"] = {
+            "start": boxes_before,
+            "end": world.box_positions.tolist(),
+        }
+    write_atomic(Path(run_dir) / SIMULATION_FILE, json.dumps(data).encode("utf-8"))
+
+
+def read_simulation_file(run_dir: str | Path) -> dict[str, Any] | None:
+    """``simulation.json`` of ``run_dir``, or None for a run of real robots."""
+    path = Path(run_dir) / SIMULATION_FILE
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        return None
+    except ValueError as exc:
+        raise RunDirError(f"{path} is not valid JSON: {exc}") from None
+    if not isinstance(data, dict) or data.get("engine", "agents") not in ENGINES:
+        raise RunDirError(f"{path}: 'engine' must be one of {', '.join(ENGINES)}")
+    return data
+
+
+def write_box_track(run_dir: str | Path, positions: np.ndarray, every: int) -> None:
+    """Write ``box_track.npz``: the boxes' positions during the post-evaluation, a frame every
+    ``every`` steps (nothing when the arena has no boxes)."""
+    if positions.size == 0:
+        return
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, positions=positions.astype(np.float32), every=np.int64(every))
+    write_atomic(Path(run_dir) / BOX_TRACK, buffer.getvalue())

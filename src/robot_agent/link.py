@@ -224,7 +224,11 @@ class Link:
             raise
         finally:
             self.connected.clear()
-            await self._cancel_evaluation("session ended", link_lost=True)
+            # An orderly stop (we are cancelled) stops the motors through the evaluation's own
+            # clean-up; only a session that ended under us is a lost link for the watchdog.
+            await self._cancel_evaluation(
+                "agent stopping" if bye is not None else "session ended", link_lost=bye is None
+            )
             if bye is not None:
                 # Best effort and without waiting: we are being cancelled.
                 with contextlib.suppress(OSError, RuntimeError, ProtocolError):

@@ -29,11 +29,18 @@ import numpy as np
 from sim_stub import physics
 from sim_stub.physics import Geometry, Sensing
 from sim_stub.scenarios import WorldConfig
-from sim_stub.world import World
+from sim_stub.world import World, box_frame_steps, box_frames
 from surprise.fitness import step_score
 from surprise.jit import kernel
 from surprise.network import GenomeLayout, NetworkSpec, network_step, network_weights
-from surprise.safety import REASON_OF_CODE, SafetyConfig, SafetyLayer, SafetyParams, safety_step
+from surprise.safety import (
+    REASON_OF_CODE,
+    SafetyConfig,
+    SafetyLayer,
+    SafetyParams,
+    intervention_share,
+    safety_step,
+)
 
 __all__ = ["EvaluationRecord", "Swarm", "evaluate", "robot_ids", "safety_seed"]
 
@@ -84,13 +91,16 @@ def evaluate(
     rec_commands: np.ndarray,
     rec_reasons: np.ndarray,
     rec_poses: np.ndarray,
+    box_every: int,
+    rec_boxes: np.ndarray,
 ) -> int:
     """One evaluation of one genome on every robot of one arena; returns the world's new step
     count. ``columns`` picks the network's sensors from the world's; ``safety`` (N, 5) holds
     each robot's safety state (reset here for the new genome, its generator kept);
     ``fitness`` (N) receives each robot's fitness and ``interventions`` (N, reasons + 1) the
     count of each safety reason code. With ``record`` the ``rec_*`` arrays (steps, N, ...)
-    receive the trace the agents send with a recorded result."""
+    receive the trace the agents send with a recorded result, and ``rec_boxes`` the boxes'
+    positions every ``box_every`` steps (frames, boxes, 2)."""
     n = pose.shape[0]
     r = columns.shape[0]
     values = np.empty((n, sn.columns.shape[0]))
@@ -111,6 +121,8 @@ def evaluate(
     total = np.zeros(n)
     interventions[:, :] = 0
     for t in range(steps):
+        if record and boxes.shape[0] and t % box_every == 0:
+            rec_boxes[t // box_every, :, :] = boxes
         physics.sense(sn, pose, force, world_step, values, full)
         for i in range(n):
             for k in range(r):
@@ -164,6 +176,14 @@ class EvaluationRecord:
     commands: np.ndarray | None = None
     reasons: np.ndarray | None = None
     poses: np.ndarray | None = None
+    #: the boxes' positions every :func:`~sim_stub.world.box_frame_steps` steps, (frames, boxes,
+    #: 2)
+    boxes: np.ndarray | None = None
+
+    def safety_share(self, steps: int) -> float:
+        """The share of the robots' ``steps`` steps in which the safety layer changed the
+        command (as the master computes it from the agents' counts)."""
+        return intervention_share(self.interventions, steps * len(self.interventions))
 
     def safety_reasons(self, robot: int) -> list[str]:
         """Robot ``robot``'s safety reason of every recorded step ("" when none)."""
@@ -199,6 +219,15 @@ class Swarm:
         )
         self._reasons = len(REASON_OF_CODE)
 
+    def snapshot(self) -> dict[str, object]:
+        """The swarm's state (world and safety layers) as plain data; see :meth:`restore`."""
+        return {"world": self.world.snapshot(), "safety": self.safety.tolist()}
+
+    def restore(self, snapshot: dict[str, object]) -> None:
+        """Return to the state of :meth:`snapshot`."""
+        self.world.restore(snapshot["world"])  # type: ignore[arg-type]
+        self.safety[:] = np.array(snapshot["safety"], dtype=np.int64)
+
     def evaluate(self, genome: np.ndarray, steps: int, *, record: bool = False) -> EvaluationRecord:
         """Run ``genome`` on every robot for ``steps`` steps from where the swarm stands."""
         world = self.world
@@ -216,11 +245,14 @@ class Swarm:
             np.empty(shape, dtype=np.int64),
             np.empty((*shape, 3)),
         )
+        every = box_frame_steps(world.config.dt)
+        frames = box_frames(steps, every) if record else 0
+        boxes = np.empty((frames, len(world.box_positions), 2))
         geometry, sensing = world.kernel_constants
         steps_after = evaluate(
             geometry, sensing, self.layer.params, *self._groups, *weights,
             self.spec.initial_action, self._columns, *world.kernel_state, world.steps, steps,
-            self.safety, fitness, counts, record, *rec,
+            self.safety, fitness, counts, record, *rec, every, boxes,
         )  # fmt: skip
         world.advance_to(steps_after)
         interventions = [
@@ -229,4 +261,4 @@ class Swarm:
         ]
         if not record:
             return EvaluationRecord(fitness, interventions)
-        return EvaluationRecord(fitness, interventions, *rec)
+        return EvaluationRecord(fitness, interventions, *rec, boxes=boxes)

@@ -47,7 +47,7 @@ is simply off (see :attr:`SafetyLayer.active_rules`).
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from functools import lru_cache
 from typing import Annotated, Literal, NamedTuple
 
@@ -594,3 +594,50 @@ def apply_safety(
     The control loop should hold a :class:`SafetyLayer` instead.
     """
     return _layer(tuple(sensors), config).step(state, values, command, fresh=fresh, age=age)
+
+
+# --- how much of a run the layer drove --------------------------------------------------------
+
+#: Above this share of steps in which the layer changed the command, what a run shows is mostly
+#: the safety layer's behaviour, not the networks': the progress, the log and the report say so.
+SAFETY_DOMINATES = 0.5
+
+#: What to look at when one reason dominates, per reason.
+_DOMINANT_HINTS: dict[str, str] = {
+    REASON_GROUND: "the ground rule tripped: check safety.ground_threshold and "
+    "safety.ground_boundary against this floor (on a floor as light as the edge marking every "
+    "step looks like the edge)",
+    REASON_FRONT: "front obstacles: a crowded arena, or safety.stop_ir_threshold / "
+    "escape_front_threshold too low for these sensors",
+    REASON_REAR: "rear obstacles: robots reversing into walls or each other and being stopped",
+    REASON_ESCAPE: "escape manoeuvres: robots keep running into obstacles or the boundary",
+    REASON_FORCE: "the pushing force rule: safety.force_threshold below what the boxes need",
+    REASON_STALE: "stale sensor readings: the sensors do not keep up with the step period",
+    REASON_SENSOR: "sensor values that are not numbers: a sensor is failing",
+    REASON_BACKWARD_LIMIT: "the backward limit: networks that reverse for long stretches",
+}
+
+
+def intervention_share(counts: Iterable[Mapping[str, int]], steps: int) -> float:
+    """The share of ``steps`` (all robots' steps together) in which the layer changed the
+    command, from each robot's counts of interventions per reason."""
+    if steps <= 0:
+        return 0.0
+    return min(1.0, sum(sum(c.values()) for c in counts) / steps)
+
+
+def dominance_warning(share: float, reasons: Mapping[str, int]) -> str | None:
+    """One sentence when the layer drove more than :data:`SAFETY_DOMINATES` of the steps, naming
+    the commonest reason and what to check; None otherwise."""
+    if share <= SAFETY_DOMINATES:
+        return None
+    text = (
+        f"the safety layer overrode {100 * share:.0f} % of the steps: the behaviour is mostly "
+        "the safety layer's, not the networks'"
+    )
+    if reasons:
+        reason = max(reasons, key=lambda r: reasons[r])
+        hint = _DOMINANT_HINTS.get(reason)
+        if hint:
+            text += f"; mostly {hint}"
+    return text

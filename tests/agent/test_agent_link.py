@@ -334,7 +334,7 @@ async def test_bye_from_the_master_ends_the_session_and_the_robot_comes_back(mas
         await connect(master)
 
 
-async def test_stopping_the_agent_stops_the_motors_and_says_bye(master):
+async def test_stopping_the_agent_stops_the_motors_and_says_bye(master, caplog):
     agent, body = make_agent(master.port)
     async with running(agent) as task:
         stream, _ = await connect(master)
@@ -344,6 +344,9 @@ async def test_stopping_the_agent_stops_the_motors_and_says_bye(master):
         with contextlib.suppress(asyncio.CancelledError):
             await task
         assert body.motors == (0.0, 0.0)
+        # An orderly stop is not a lost link: the watchdog stays quiet.
+        assert agent.watchdog.tripped_reason is None
+        assert "link lost" not in caplog.text
         assert await receive(stream) == Bye(reason="agent stopping")
         with pytest.raises(ConnectionClosedError):
             await receive(stream)

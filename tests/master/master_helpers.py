@@ -88,15 +88,22 @@ def reference_rows(exp: ExperimentConfig, robots: list[str]) -> list[dict[str, s
     ``attempts`` and ``duration_s``)."""
     size = GenomeLayout(spec_from_config(exp)).size
     optimizer = OnePlusOne(exp.evolution, size, exp.seed)
-    header = [*COMPARED, "attempts", "duration_s", *(f"fitness_{r}" for r in robots)]
+    header = [
+        *COMPARED,
+        "attempts",
+        "duration_s",
+        "safety_share",
+        *(f"fitness_{r}" for r in robots),
+    ]
     rows = []
     while not optimizer.done:
         genome = optimizer.ask().genome
         fitnesses = [deterministic_fitness(genome, i) for i in range(len(robots))]
         out = optimizer.tell(swarm_fitness(fitnesses))
         line = format_row(
-            out.evaluation, out.kind, out.fitness, out.best_fitness, out.accepted, 1, 0.0, fitnesses
-        )
+            out.evaluation, out.kind, out.fitness, out.best_fitness, out.accepted, 1, 0.0, 0.0,
+            fitnesses,
+        )  # fmt: skip
         row = dict(zip(header, line.rstrip("\n").split(","), strict=True))
         rows.append(comparable(row))
     return rows

@@ -65,3 +65,12 @@ def test_engine_and_agents_give_the_same_run(tmp_path: Path, scenario: str, over
     sim_fast = RunDir(fast).read_json("simulation.json")
     sim_agents = RunDir(agents).read_json("simulation.json")
     assert sim_fast.get("post_evaluation_boxes") == sim_agents.get("post_evaluation_boxes")
+    if scenario == "boxes":
+        # The boxes' track, which the report's animation draws, is the same too.
+        with np.load(fast / "box_track.npz") as a, np.load(agents / "box_track.npz") as b:
+            boxes = len(sim_fast["post_evaluation_boxes"]["start"])
+            # 80 steps of 0.01 s: a frame every 10 steps (0.1 s) from the first.
+            assert a["positions"].shape == (8, boxes, 2)
+            assert np.allclose(a["positions"][0], sim_fast["post_evaluation_boxes"]["start"])
+            assert np.array_equal(a["positions"], b["positions"])
+            assert int(a["every"]) == int(b["every"]) == 10
