@@ -1,4 +1,4 @@
-"""The blade's force sensor read through an ADS1115 ADC over I2C (REFERENCE 6).
+"""The blade's force sensor read through an ADS1115 ADC over I2C (docs/sensors.md).
 
 Each reading is one single-shot conversion: write the config register with the OS bit set, wait
 the conversion time, poll the OS bit (bounded), read the conversion register. The ADS1115 sends

@@ -1,4 +1,4 @@
-"""TSL45315 ambient light sensor over I2C (REFERENCE 6).
+"""TSL45315 ambient light sensor over I2C (docs/sensors.md).
 
 Every register access carries the command bit (register ``0x80 | reg``). ``open()`` checks the
 part number in the ID register, powers the sensor on in continuous mode and sets the integration

@@ -96,19 +96,36 @@ class MasterConfig(Strict):
     (optional) publishes the run's status over MQTT (``docs/telemetry.md``).
     """
 
+    #: the experiment, inline (give exactly one of ``experiment`` and ``experiment_file``)
     experiment: ExperimentConfig | None = None
+    #: the experiment's file (give exactly one of ``experiment`` and ``experiment_file``)
     experiment_file: str | None = None
+    #: the address the master listens on (``0.0.0.0``: every interface, e.g. the lab network)
     host: str = "127.0.0.1"
+    #: the TCP port the master listens on (0: any free port)
     port: Annotated[int, msgspec.Meta(ge=0, le=65535)] = DEFAULT_PORT
+    #: the file holding the shared secret (surrounding whitespace is ignored); every robot has
+    #: a copy
     secret_file: str | None = None
+    #: the robot ids that may join; empty: any robot that proves the secret
     allowed_robots: list[_RobotId] = msgspec.field(default_factory=list)
+    #: how many robots form the swarm; a round starts only when that many are connected
+    #: (``null``: the experiment's ``robots``)
     expected_robots: Annotated[int, msgspec.Meta(ge=1)] | None = None
+    #: TLS for the robots' connections (optional; the secret's proofs and the message tags work
+    #: with or without it)
     tls: ServerTlsConfig | None = None
+    #: seconds added to ``steps * step_period`` for a round's deadline
     round_margin: _PositiveSeconds = DEFAULT_ROUND_MARGIN
+    #: seconds between the master's pings; a link is dead after three silent intervals
     heartbeat_interval: _HeartbeatInterval = DEFAULT_HEARTBEAT_INTERVAL
+    #: seconds a whole handshake (TLS included) may take
     handshake_timeout: _PositiveSeconds = DEFAULT_HANDSHAKE_TIMEOUT
+    #: handshakes that may run at once; a connection beyond them is closed at once
     max_pending_connections: Annotated[int, msgspec.Meta(ge=1)] = DEFAULT_MAX_PENDING_CONNECTIONS
+    #: the largest incoming message, in bytes
     max_frame_size: Annotated[int, msgspec.Meta(ge=1024)] = MAX_FRAME_SIZE
+    #: live telemetry of the run's status over MQTT (docs/telemetry.md)
     telemetry: TelemetryConfig | None = None
 
     def __post_init__(self) -> None:

@@ -6,9 +6,10 @@ post-evaluation: mean predicted against mean real value per sensor) and, when th
 (simulation), ``trajectories.png``.
 
 Behaviour metrics from the post-evaluation traces, when they hold poses (simulation): the paper's
-d_R, c_o, mean cluster size and their classes, computed by :mod:`sim_stub.metrics` (REFERENCE
-section 7), with the box displacement d_B when the run directory holds ``simulation.json`` (written
-by ``surprise-master sim``). Per robot: its path length and its rotation.
+d_R, c_o, mean cluster size and their classes, computed by :mod:`sim_stub.metrics`
+(docs/method.md, "Behaviour metrics and classes"), with the box displacement d_B when the run
+directory holds ``simulation.json`` (written by ``surprise-master sim``). Per robot: its path
+length and its rotation.
 """
 
 from __future__ import annotations

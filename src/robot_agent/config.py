@@ -69,10 +69,14 @@ MAX_PERIOD = WATCHDOG_TIMEOUT - STEP_MARGIN
 class MasterConfig(Strict):
     """Where the master listens and how the robot proves who it is."""
 
+    #: the master's host name or address
     host: str
     #: file holding the shared secret (surrounding whitespace, e.g. a final newline, is ignored)
     secret_file: str
+    #: the master's TCP port
     port: Port = DEFAULT_PORT
+    #: TLS for the link (optional; plain TCP without it). Both sides prove the shared secret and
+    #: authenticate every message either way (docs/protocol.md)
     tls: ClientTlsConfig | None = None
 
     def __post_init__(self) -> None:
@@ -125,11 +129,18 @@ class LoopConfig(Strict):
 class AgentConfig(Strict):
     """Everything one robot's agent needs; see the module docstring for an example file."""
 
+    #: this robot's id: 1 to 64 letters, digits, ``.``, ``_`` or ``-``, starting with a letter or
+    #: digit; it names the robot's column and trace on the master
     robot_id: str
+    #: where the master listens and how the robot proves who it is
     master: MasterConfig
+    #: the robot's parts: the Thymio base and the extra sensors on its Raspberry Pi
     body: BodyConfig = msgspec.field(default_factory=BodyConfig)
+    #: the safety layer between the networks and the motors (docs/safety.md)
     safety: SafetyConfig = msgspec.field(default_factory=SafetyConfig)
+    #: the control loop's limits
     loop: LoopConfig = msgspec.field(default_factory=LoopConfig)
+    #: delays between attempts to reach the master
     reconnect: BackoffConfig = msgspec.field(default_factory=BackoffConfig)
     #: MQTT telemetry (telemetry.config.TelemetryConfig); absent or without a broker: off
     telemetry: TelemetryConfig | None = None

@@ -209,7 +209,7 @@ class FakeI2C:
 
 
 class FakeTSL45315:
-    """A TSL45315 light sensor (REFERENCE 6): command bit, power state, integration time.
+    """A TSL45315 light sensor (docs/sensors.md): command bit, power state, integration time.
 
     ``lux`` is a number or a callable read at every conversion. The 16-bit count is
     ``lux / multiplier`` (multiplier 1/2/4 for 400/200/100 ms) while powered on; when powered down

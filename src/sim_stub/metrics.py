@@ -1,4 +1,4 @@
-"""The paper's behaviour metrics (Sec. V, REFERENCE section 7), computed from recorded poses.
+"""The paper's behaviour metrics (Sec. V; docs/method.md), computed from recorded poses.
 
 ``poses`` is an array of shape (T + 1, N, 3): the ``x, y, theta`` of N robots at T + 1 instants
 (as :meth:`sim_stub.world.World.recorded_poses` returns), in metres and radians.

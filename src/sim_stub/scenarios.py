@@ -7,7 +7,9 @@ in degrees, times in seconds, sensor values normalised to [0, 1] as the real dri
 
 Coordinates: the origin is the centre of the carpet, x to the right, y up; the carpet covers
 ``[-arena_side / 2, arena_side / 2]`` on both axes and the walls stand ``wall_margin`` further out.
-A robot's pose is the point between its wheels and its heading (REFERENCE section 5).
+A robot's pose is the point between its wheels and its heading (the Thymio II's geometry: wheels
+9.4 cm apart, the body's front arc 8 cm ahead of the wheel axis and its flat rear 3 cm behind it;
+see :class:`WorldConfig`).
 """
 
 from __future__ import annotations
@@ -52,18 +54,21 @@ class WorldConfig(Strict):
     #: whether the horizontal IR sensors see the walls (the paper's basic arenas: low walls, no)
     walls_visible_to_ir: bool = False
     # --- robots ------------------------------------------------------------------------------
+    #: number of robots (in an experiment the experiment's ``robots`` replaces it)
     robots: Annotated[int, msgspec.Meta(ge=1)] = 10
     #: wheel speed for a normalised command of 1 (paper: 12.6 cm/s in simulation)
     max_speed: Positive = 0.126
     #: distance between the wheels (Thymio II: 9.4 cm)
     wheel_base: Positive = 0.094
-    #: length of one step
+    #: length of one step (in an experiment its ``step_period``: the world steps once per control
+    #: step; a value given here must equal it)
     dt: Positive = 0.1
     #: "random": seeded, non-overlapping poses on the carpet; "centre": fixed ring at the centre
     start: Literal["random", "centre"] = "random"
     #: "centre" start: distance of the wheel axes from the centre (``None``: neighbours just
-    #: apart), and the direction of the first robot in degrees; every robot faces outwards
+    #: apart); every robot faces outwards
     start_ring: NonNegative | None = None
+    #: "centre" start: the direction of the first robot from the centre, in degrees
     start_ring_phase: float = 45.0
     #: free space kept between robots (and between boxes and robots) when placing them
     start_clearance: NonNegative = 0.02
@@ -71,10 +76,11 @@ class WorldConfig(Strict):
     robot_radius: Positive = 0.058
     #: how far ahead of the wheel axis that circle's centre lies (front arc 8 cm, rear 3 cm)
     body_offset: float = 0.025
-    #: the blade (robots with a force sensor): its centre line ahead of the wheel axis, its width
-    #: across the robot and its thickness
+    #: the blade (robots with a force sensor): its centre line ahead of the wheel axis
     blade_x: Positive = 0.09
+    #: the blade's width across the robot
     blade_width: Positive = 0.12
+    #: the blade's thickness
     blade_thickness: Positive = 0.01
     #: what the robots carry, in the order :meth:`World.sensor_values` returns them
     sensors: tuple[str, ...] = IR_SENSORS + GROUND_SENSORS
@@ -94,9 +100,10 @@ class WorldConfig(Strict):
     ir_table: tuple[tuple[float, float], ...] = ((0.0, 1.0), (0.14, 0.0))
     #: the ray model's Gaussian noise, as a fraction of the value (0 when nothing is seen)
     ir_noise: NonNegative = 0.0
-    #: the ray model: how well robots and walls reflect the IR (Webots: a distance d reads as
+    #: the ray model: how well robots reflect the IR (Webots: a distance d reads as
     #: d / reflectance; a white body about 0.96)
     ir_robot_reflectance: Annotated[float, msgspec.Meta(gt=0.0, le=1.0)] = 1.0
+    #: the ray model: how well the walls reflect the IR (as ``ir_robot_reflectance``)
     ir_wall_reflectance: Annotated[float, msgspec.Meta(gt=0.0, le=1.0)] = 1.0
     #: ground sensors over the carpet (Thymio ``prox.ground.reflected`` / 1023 on dark carpet)
     ground_carpet: Unit = 0.4
@@ -107,15 +114,19 @@ class WorldConfig(Strict):
     #: force value per pushed box (paper: about 0.25 for 10 boxes); the value saturates at 1
     force_per_box: NonNegative = 0.025
     # --- boxes -------------------------------------------------------------------------------
+    #: whether the carpet holds boxes to push
     boxes: bool = False
     #: fraction of the carpet covered by boxes (paper: about 14 %, 220 boxes per square metre)
     box_coverage: Annotated[float, msgspec.Meta(ge=0.0, le=0.4)] = 0.14
+    #: side of a (cubic) box
     box_size: Positive = 0.025
     #: "random": uniformly scattered to ``box_coverage``; "grid": the authors' Webots layout,
     #: rows ``box_grid_pitch`` apart, each box ``box_grid_pitch`` to ``+ box_grid_jitter`` after
     #: the last and up to ``box_grid_jitter`` off its row, all on a 1 cm raster
     box_layout: Literal["random", "grid"] = "random"
+    #: "grid" layout: distance between rows, and the least distance between neighbours in a row
     box_grid_pitch: Positive = 0.054
+    #: "grid" layout: the most a box lies beyond ``box_grid_pitch`` from the last and off its row
     box_grid_jitter: NonNegative = 0.018
     #: side of a square around the centre kept free of boxes at the start (the authors: 0.5 m)
     box_clear_centre: NonNegative = 0.0
@@ -124,11 +135,13 @@ class WorldConfig(Strict):
     # --- light -------------------------------------------------------------------------------
     #: a light above the centre (gradient arena); otherwise the light is uniform
     light: bool = False
-    #: light value under the lamp and at the carpet's corners: ``centre * (h^2 / (h^2 +
+    #: light value under the lamp: the value is ``light_centre * (h^2 / (h^2 +
     #: r^2))^light_exponent`` at a distance r from the point under the lamp, h fixed by the corner
-    #: value (exponent 1: inverse square; 1.5: inverse square on a sensor facing up)
+    #: value
     light_centre: Unit = 1.0
+    #: light value at the carpet's corners
     light_corner: Unit = 0.1
+    #: how the light falls off (1: inverse square; 1.5: inverse square on a sensor facing up)
     light_exponent: Annotated[float, msgspec.Meta(gt=0.0, le=3.0)] = 1.0
     #: light value everywhere when ``light`` is false
     light_uniform: Unit = 0.5

@@ -21,7 +21,9 @@ started (exit code 0). With ``--poses`` the poses of every step are written to
 ``DIR/poses.npy`` (shape: steps + 1, robots, 3 for x, y, theta) on exit.
 
 Exit codes: 0 stopped by a signal; 1 could not start (no dbus-daemon, DIR not writable, another
-server on DIR); 2 bad arguments (argparse's usage error).
+server on DIR); 2 bad arguments (argparse's usage error), or the ``robot`` extra (``dbus-fast``)
+is not installed: the D-Bus modules are imported only once the arguments are parsed, so ``--help``
+works without it.
 
 Without ``--secret-file``, ``DIR/secret.key`` is used and created with a random secret if
 absent; the master's ``secret_file`` must name the same file. Only scenarios whose robots carry
@@ -41,20 +43,19 @@ import signal
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import yaml
 
 from drivers.config import SPEED_SCALE
-from sim_stub.body import SimSwarm
-from sim_stub.fake_medulla import private_bus
-from sim_stub.medulla_model import SignallingWorld, SimThymio, serve_sim_thymio
 from sim_stub.scenarios import SCENARIOS, scenario_config
-from sim_stub.warmup import warm_up
 from surprise.errors import ConfigError
 from surprise.sensors import GROUND_SENSORS, IR_SENSORS
 from surprise.wire import DEFAULT_PORT
+
+if TYPE_CHECKING:
+    from sim_stub.medulla_model import SignallingWorld
 
 __all__ = ["EXIT_FAILURE", "EXIT_OK", "EXIT_USAGE", "main", "serve"]
 
@@ -80,6 +81,8 @@ RECONNECT_MAX = 30.0
 RECONNECT_JITTER = 0.25
 
 _SIGNALS = (signal.SIGTERM, signal.SIGINT)
+#: What to install when the D-Bus modules are missing.
+ROBOT_EXTRA = "pip install -e '.[robot]'"
 _THYMIO_SENSORS = frozenset(IR_SENSORS + GROUND_SENSORS)
 
 
@@ -268,8 +271,15 @@ def _announce(args: argparse.Namespace, robots: list[dict[str, Any]], scenario: 
 async def serve(args: argparse.Namespace) -> int:
     """Serve the robots until SIGTERM or SIGINT; returns the exit code.
 
-    Must run in the main thread (signal handlers can only be set there).
+    Must run in the main thread (signal handlers can only be set there). Needs ``dbus-fast``
+    (the ``robot`` extra).
     """
+    # Imported here, not at the top: they need dbus-fast, which --help must do without.
+    from sim_stub.body import SimSwarm
+    from sim_stub.fake_medulla import private_bus
+    from sim_stub.medulla_model import SignallingWorld, SimThymio, serve_sim_thymio
+    from sim_stub.warmup import warm_up
+
     overrides = {} if args.robots is None else {"robots": args.robots}
     try:
         config = scenario_config(args.scenario, overrides)
@@ -368,6 +378,15 @@ def _save_poses(path: Path, world: SignallingWorld) -> None:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``surprise-sim-robots``; returns the exit code."""
     args = _parser().parse_args(argv)
+    try:
+        import dbus_fast  # noqa: F401  # the D-Bus services need it; --help does not
+    except ImportError:
+        print(
+            "surprise-sim-robots: serving robots over D-Bus needs dbus-fast, the robot extra: "
+            f"{ROBOT_EXTRA}",
+            file=sys.stderr,
+        )
+        return EXIT_USAGE
     # Logs go to stderr: stdout carries the announcement, which scripts may read.
     logging.basicConfig(
         stream=sys.stderr,

@@ -44,7 +44,9 @@ Seed = Annotated[int, msgspec.Meta(ge=0)]
 class SeedRange(Strict):
     """Seeds ``from`` .. ``to``, both included."""
 
+    #: the first seed
     from_: Seed = msgspec.field(name="from")
+    #: the last seed (included)
     to: Seed
 
     def __post_init__(self) -> None:
@@ -55,8 +57,13 @@ class SeedRange(Strict):
 class Group(Strict):
     """One group of runs: a kind, its parameters, its seeds, and an optional sweep."""
 
+    #: the group's name (1 to 64 letters, digits, ``.``, ``_``, ``-``): its runs' directory
     name: _NAME
+    #: the run kind: ``evolved`` (an evolved run on the engine), ``random`` (one random network
+    #: pair), or a kind another installed package adds
     kind: str
+    #: the run kind's configuration (for ``evolved`` and ``random``: an experiment file's
+    #: content), merged over the study's ``defaults``
     params: dict[str, Any] = msgspec.field(default_factory=dict)
     #: a list of seeds, a range, or a count N (seeds 1..N)
     seeds: list[Seed] | SeedRange | Annotated[int, msgspec.Meta(ge=1)] = 1
@@ -82,8 +89,11 @@ class Group(Strict):
 class Study(Strict):
     """A study file (see the module docstring)."""
 
+    #: the study's name (1 to 64 letters, digits, ``.``, ``_``, ``-``)
     name: _NAME
+    #: the groups of runs (at least one; names unique)
     groups: list[Group]
+    #: what the study is for
     description: str = ""
     #: parameters merged under every group's own (a group's win)
     defaults: dict[str, Any] = msgspec.field(default_factory=dict)

@@ -23,8 +23,11 @@ class BackoffConfig(Strict):
     (seconds), each shortened by a random fraction of up to ``jitter``, so that a swarm whose
     server comes back does not reconnect in one burst."""
 
+    #: seconds before the first new attempt; the delay doubles after every failed attempt
     initial: _Seconds = 0.5
+    #: the longest delay, in seconds
     max: _Seconds = 30.0
+    #: each delay is shortened by a random fraction of up to this much of itself
     jitter: Probability = 0.25
 
     def __post_init__(self) -> None:

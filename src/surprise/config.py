@@ -109,18 +109,24 @@ class NetworkConfig(Strict):
     a(-1), the previous action fed to the actor at the first step of an evaluation.
     """
 
+    #: hidden neurons of the actor (the paper setting: 7 for 9 or 10 sensors, 8 for 12)
     actor_hidden: PositiveInt = 8
+    #: hidden neurons of the predictor; ``null``: the number of sensors + 1
     predictor_hidden: PositiveInt | None = None
+    #: a(-1): the previous action (both wheels) the actor sees at the first step of an evaluation
     initial_action: Annotated[float, msgspec.Meta(ge=-1.0, le=1.0)] = 0.0
 
 
 class EvolutionConfig(Strict):
     """(1+1) online evolution with re-evaluation (paper Sec. V-A)."""
 
+    #: counted evaluations of a run before the post-evaluation (failed rounds do not count)
     evaluations: PositiveInt = 1000
+    #: probability that a round evaluates the current best again instead of an offspring
     reevaluation_probability: Probability = 0.2
     #: weight of the new fitness in F = w f + (1 - w) F when the best is re-evaluated
     reevaluation_weight: Probability = 0.2
+    #: probability that a gene of an offspring is mutated
     mutation_probability: Probability = 0.1
     #: a mutated gene gets uniform [-mutation_range, mutation_range] added
     mutation_range: NonNegativeFloat = 0.4
@@ -142,24 +148,44 @@ class ExperimentConfig(Strict):
     safety layer is in each robot's own configuration).
     """
 
+    #: the bundle of defaults the experiment starts from: ``paper`` (the authors' Webots
+    #: simulation) or ``lab`` (the real robots); see docs/simulation.md. A simulated run
+    #: (``surprise-master sim``, a study) starts from ``paper`` when the file names none
     setting: Literal["paper", "lab"] = "lab"
 
+    #: the sensors the networks see, by name, in this order (``ir.f0`` .. ``ir.f4``, ``ir.b0``,
+    #: ``ir.b1``, ``ground.0``, ``ground.1``, ``force``, ``light.0``, ``light.1``); every robot
+    #: must have them. A simulated run defaults to what its scenario's robots carry
     sensors: list[str] = msgspec.field(
         default_factory=lambda: [
             "ir.f0", "ir.f1", "ir.f2", "ir.f3", "ir.f4", "ir.b0", "ir.b1", "ground.0", "ground.1",
         ]
     )  # fmt: skip
+    #: the actor-predictor network pair
     network: NetworkConfig = msgspec.field(default_factory=NetworkConfig)
+    #: the (1+1) online evolution
     evolution: EvolutionConfig = msgspec.field(default_factory=EvolutionConfig)
+    #: sensor name -> fixed prediction in [0, 1] (paper Sec. IV-F); the predictor predicts only
+    #: the others, and is left out when every sensor is fixed
     predefined: dict[str, float] = msgspec.field(default_factory=dict)
+    #: control steps of one evaluation
     evaluation_steps: PositiveInt = 100
+    #: control steps of the post-evaluation of the best genome (0: none)
     post_evaluation_steps: Annotated[int, msgspec.Meta(ge=0, le=MAX_RECORDED_STEPS)] = 1000
-    #: seconds per control step on every robot (the paper: 10 Hz); sent with every evaluation
+    #: seconds per control step on every robot (the real robots: 0.1 s, their sensors' 10 Hz;
+    #: the paper's Webots simulation: 0.01 s); sent with every evaluation
     step_period: Annotated[float, msgspec.Meta(gt=0.0, le=MAX_STEP_PERIOD)] = 0.1
+    #: the simulated arena: ``basic``, ``boxes`` or ``gradient`` (docs/simulation.md)
     scenario: str = "basic"
+    #: robots in the swarm, all evaluating the same genome at once (a simulated run defaults to
+    #: its scenario's number)
     robots: PositiveInt = 10
+    #: seed of the evolution's random numbers (and of the simulated world)
     seed: Annotated[int, msgspec.Meta(ge=0)] = 0
+    #: overrides of the simulated world's parameters; real robots ignore it
     simulation: dict[str, Any] = msgspec.field(default_factory=dict)
+    #: overrides of the simulated robots' safety layer; real robots ignore it (theirs is in each
+    #: robot's agent file)
     safety: dict[str, Any] = msgspec.field(default_factory=dict)
 
     def __post_init__(self) -> None:

@@ -1,4 +1,4 @@
-"""(1+1) online evolution with re-evaluation, as ask/tell (paper Sec. V-A, REFERENCE section 2).
+"""(1+1) online evolution with re-evaluation, as ask/tell (paper Sec. V-A; docs/method.md).
 
 The first candidate is the initial genome. After it, with probability ``reevaluation_probability``
 the current best is evaluated again and its fitness becomes ``F = w f + (1 - w) F`` (it stays the
@@ -59,7 +59,7 @@ def random_genome(rng: np.random.Generator, size: int, half_range: float) -> np.
 
 
 class OnePlusOne:
-    """The (1+1) online evolution of REFERENCE section 2.
+    """The (1+1) online evolution of paper Sec. V-A (docs/method.md, "Online (1+1) evolution").
 
     ``genome_size`` is the length of a genome; ``seed`` seeds the only random generator used.
     ``initial`` replaces the random initial genome (e.g. to continue from a known genome).

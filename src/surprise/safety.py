@@ -153,9 +153,10 @@ class SafetyConfig(Strict):
     escape_drive_steps: Annotated[int, msgspec.Meta(ge=0)] = 30
     #: wheel speed of the straight part of an escape (the authors' code: full speed)
     escape_speed: Speed = 1.0
-    #: the turn on the spot lasts a uniformly drawn number of steps in [min, max] (the authors'
-    #: code: 25 to 44)
+    #: the fewest steps of a turn on the spot: its length is drawn uniformly from
+    #: [turn_steps_min, turn_steps_max] (the authors' code: 25 to 44)
     turn_steps_min: PositiveInt = 25
+    #: the most steps of a turn on the spot
     turn_steps_max: PositiveInt = 44
     #: wheel speed of the turn on the spot (the sources give none; full speed, like the reverse)
     turn_speed: Speed = 1.0

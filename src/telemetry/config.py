@@ -109,12 +109,22 @@ class TelemetryConfig(Strict):
     the broker (default: ``surprise-<robot_id>`` for a robot, a random one for the master).
     """
 
+    #: the MQTT broker, ``mqtt://host[:port]`` (port 1883 by default); ``null``: telemetry off
     broker: str | None = None
+    #: the first topic level(s), e.g. ``lab-a/run-3``; separates labs or concurrent runs
     prefix: str = DEFAULT_PREFIX
+    #: a robot's step samples per second (0: none), rounded to a whole number of control steps
     rate_hz: Annotated[float, msgspec.Meta(ge=0.0, le=100.0)] = 2.0
+    #: messages kept while the broker is slow or away; when full, the oldest is dropped and
+    #: counted
     queue_size: Annotated[int, msgspec.Meta(ge=1, le=1_000_000)] = 256
+    #: the client id, unique on the broker (``null``: ``surprise-<robot_id>`` on a robot, a
+    #: random one on the master)
     client_id: Annotated[str, msgspec.Meta(min_length=1, max_length=128)] | None = None
+    #: MQTT keep-alive in seconds; the broker declares a silent client gone (and publishes its
+    #: last will) after 1.5 times this
     keepalive: Annotated[int, msgspec.Meta(ge=1, le=65535)] = 10
+    #: delays between attempts to reach the broker
     reconnect: BackoffConfig = msgspec.field(default_factory=lambda: BackoffConfig(initial=1.0))
 
     def __post_init__(self) -> None:

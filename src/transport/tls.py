@@ -22,8 +22,12 @@ class ServerTlsConfig(Strict):
     With ``ca_file`` the robots must present a client certificate signed by that CA (mutual TLS).
     """
 
+    #: the master's certificate (chain), PEM
     cert_file: str
+    #: the private key of that certificate, PEM
     key_file: str
+    #: CA certificates, PEM; with it every robot must present a client certificate it signed
+    #: (mutual TLS)
     ca_file: str | None = None
 
 
@@ -32,9 +36,13 @@ class ClientTlsConfig(Strict):
     ``cert_file`` (with ``key_file`` if the key is separate) is the robot's client certificate;
     ``server_hostname`` overrides the name checked in the master's certificate (default: host)."""
 
+    #: CA certificates that verify the master's certificate, PEM (``null``: the system's)
     ca_file: str | None = None
+    #: the robot's client certificate, PEM (for a master that requires one)
     cert_file: str | None = None
+    #: the private key of ``cert_file``, if not in that file
     key_file: str | None = None
+    #: the name checked in the master's certificate (``null``: ``master.host``)
     server_hostname: str | None = None
 
     def __post_init__(self) -> None:
