@@ -12,7 +12,7 @@ One YAML file per robot::
         cert_file: robot.pem
         key_file: robot.key
         server_hostname: master.lab
-    body: {thymio: {speed_scale: 315, failsafe: true}}   # drivers.config.BodyConfig
+    body: {thymio: {speed_scale: 265, failsafe: true}}   # drivers.config.BodyConfig
     safety: {profile: stop}                              # surprise.safety.SafetyConfig
     loop: {min_period: 0.1, max_steps: 36000, read_timeout: 0.15, max_read_failures: 3}
     reconnect: {initial: 0.5, max: 30, jitter: 0.25}

@@ -56,8 +56,9 @@ class WorldConfig(Strict):
     # --- robots ------------------------------------------------------------------------------
     #: number of robots (in an experiment the experiment's ``robots`` replaces it)
     robots: Annotated[int, msgspec.Meta(ge=1)] = 10
-    #: wheel speed for a normalised command of 1 (paper: 12.6 cm/s in simulation)
-    max_speed: Positive = 0.126
+    #: wheel speed for a normalised command of 1: the real robots' 10.6 cm/s (the drivers' speed
+    #: scale of 265 motor units); the paper setting's Webots robots drive 12.6 cm/s
+    max_speed: Positive = 0.106
     #: distance between the wheels (Thymio II: 9.4 cm)
     wheel_base: Positive = 0.094
     #: length of one step (in an experiment its ``step_period``: the world steps once per control

@@ -122,7 +122,7 @@ async def test_a_robot_sleeping_on_its_own_clock_keeps_its_command():
     await bounded(idle(), agent(b, 10))
     assert s.world.steps == 10
     moved = np.hypot(*(s.world.poses[0, :2] - start[:2]))
-    assert moved == pytest.approx(0.126, abs=1e-9)  # 1 s at full speed
+    assert moved == pytest.approx(0.106, abs=1e-9)  # 1 s at full speed
 
 
 async def test_on_the_shared_clock_the_world_waits_for_every_participant():
@@ -267,7 +267,7 @@ async def test_robots_sleeping_on_their_own_clocks_wake_in_turn():
     assert woke == pytest.approx({"a": 0.5, "b": 0.3})
     assert s.world.time == pytest.approx(1.0)
     travelled = np.hypot(*(s.world.poses[1, :2] - start[:2]))
-    assert travelled == pytest.approx(0.7 * 0.126, abs=1e-9)
+    assert travelled == pytest.approx(0.7 * 0.106, abs=1e-9)
 
 
 async def test_a_long_sleep_alone_leaves_the_event_loop_responsive():

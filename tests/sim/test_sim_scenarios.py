@@ -19,7 +19,7 @@ def test_basic_is_ten_robots_on_a_metre_with_ir_and_ground():
     assert (cfg.robots, cfg.arena_side, cfg.start) == (10, 1.0, "random")
     assert cfg.sensors == IR_SENSORS + GROUND_SENSORS
     assert not cfg.boxes and not cfg.light and not cfg.walls_visible_to_ir
-    assert cfg.max_speed == pytest.approx(0.126) and cfg.dt == pytest.approx(0.1)
+    assert cfg.max_speed == pytest.approx(0.106) and cfg.dt == pytest.approx(0.1)
 
 
 def test_boxes_is_four_robots_from_the_centre_with_force():

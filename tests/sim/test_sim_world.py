@@ -36,7 +36,7 @@ def test_full_speed_straight_covers_max_speed_times_time():
     for _ in range(10):
         world.step()
     x, y, th = world.poses[0]
-    assert x == pytest.approx(0.126, abs=1e-12)
+    assert x == pytest.approx(0.106, abs=1e-12)  # the real robots' 10.6 cm/s
     assert y == 0.0 and th == 0.0
     assert world.time == pytest.approx(1.0) and world.steps == 10
 
@@ -46,7 +46,7 @@ def test_half_speed_is_half_as_far_and_backwards_goes_back():
     world.set_command(0, 0.5, 0.5)
     for _ in range(10):
         world.step()
-    assert world.poses[0, 0] == pytest.approx(0.063, abs=1e-12)
+    assert world.poses[0, 0] == pytest.approx(0.053, abs=1e-12)
     world.set_command(0, -1.0, -1.0)
     for _ in range(5):
         world.step()
@@ -56,7 +56,7 @@ def test_half_speed_is_half_as_far_and_backwards_goes_back():
 def test_turning_on_the_spot_keeps_the_position():
     world = lone_robot(0.1, -0.2, 0.3)
     world.set_command(0, -1.0, 1.0)
-    rate = 2 * 0.126 / 0.094  # rad/s with the Thymio's 9.4 cm wheel base
+    rate = 2 * 0.106 / 0.094  # rad/s with the Thymio's 9.4 cm wheel base
     for k in range(1, 60):
         world.step()
         x, y, th = world.poses[0]
@@ -68,7 +68,7 @@ def test_turning_on_the_spot_keeps_the_position():
 def test_an_arc_follows_the_exact_circle():
     world = lone_robot()
     world.set_command(0, 0.5, 1.0)
-    v, w = 0.75 * 0.126, 0.5 * 0.126 / 0.094
+    v, w = 0.75 * 0.106, 0.5 * 0.106 / 0.094
     for _ in range(20):
         world.step()
     t = 2.0
