@@ -6,11 +6,13 @@ freshly reset arena for the post-evaluation length, on the engine (``sim_stub.en
 network, safety and scoring kernels the agents run, shown equal to them in the tests). Its
 ``fitness`` is the swarm fitness over the first ``evaluation_steps`` steps, which is what an
 evolved genome's fitness measures; the behaviour metrics cover the whole run, like the
-post-evaluation of an evolved genome. ``baseline.json`` holds one entry per pair and the median.
+post-evaluation of an evolved genome. ``baseline.json`` holds one entry per pair, the median and
+best fitness, and how many pairs showed each behaviour class.
 """
 
 from __future__ import annotations
 
+import collections
 import json
 from pathlib import Path
 from typing import Any
@@ -100,6 +102,12 @@ def run_baseline(experiment: ExperimentConfig, pairs: int, out: str | Path) -> d
         "evaluation_steps": experiment.evaluation_steps,
         "experiment": msgspec.to_builtins(experiment),
         "median_fitness": float(np.median([e["fitness"] for e in entries])),
+        "best_fitness": float(np.max([e["fitness"] for e in entries])),
+        # How many pairs showed each behaviour class (docs/method.md), per kind of class.
+        "behaviour_counts": {
+            key: dict(collections.Counter(e["behaviour"][key] for e in entries).most_common())
+            for key in ("motion", "grouping")
+        },
         "pairs": entries,
     }
     write_atomic(out / BASELINE_FILE, json.dumps(data, indent=1).encode("utf-8"))

@@ -78,6 +78,11 @@ def _parser() -> argparse.ArgumentParser:
         metavar="BASE",
         help="a `surprise-master baseline` directory: compare evolved against random pairs",
     )
+    report.add_argument(
+        "--animate",
+        action="store_true",
+        help="also animate the post-evaluation of a simulated run (plots/post_evaluation.gif)",
+    )
 
     sim = sub.add_parser("sim", help="run an experiment on a simulated swarm (no robots needed)")
     _experiment_options(sim)
@@ -400,37 +405,48 @@ def _baseline(args: argparse.Namespace) -> int:
     out = args.out or _default_out("baseline", experiment.scenario)
     steps = max(experiment.post_evaluation_steps, experiment.evaluation_steps)
     print(
-        f"evaluating {args.random} random pairs in the {experiment.scenario} arena "
-        f"({experiment.robots} robots, {steps} steps each)"
+        f"evaluating {plural(args.random, 'random pair')} in the {experiment.scenario} arena "
+        f"({experiment.setting} setting, {experiment.robots} robots, {steps} steps each)"
     )
     data = run_baseline(experiment, args.random, out)
+    counts = data["behaviour_counts"]
     print(
-        f"wrote {Path(out) / 'baseline.json'}: median fitness of {args.random} random pairs "
+        f"fitness of the random pairs: best {data['best_fitness']:.4f}, median "
         f"{data['median_fitness']:.4f}"
     )
+    print(
+        "behaviour counts: "
+        + "; ".join(
+            f"{key} " + ", ".join(f"{n} {name}" for name, n in counts[key].items())
+            for key in counts
+        )
+    )
+    print(f"wrote {Path(out) / 'baseline.json'}")
+    print(f"next: compare an evolved run with `surprise-master report RUN_DIR --baseline {out}`")
     return 0
 
 
 def _report(args: argparse.Namespace) -> int:
-    from master_service.report import write_report
+    from master_service.report import baseline_text, safety_lines, write_report
 
-    metrics = write_report(args.dir, baseline=args.baseline)
+    metrics = write_report(args.dir, baseline=args.baseline, animate=args.animate)
     best = metrics.get("best_fitness")
+    post = (metrics.get("post_evaluation") or {}).get("swarm_fitness")
+    drawn = metrics.get("pictures", [])
     print(
-        f"wrote {Path(args.dir) / 'metrics.json'} and plots in {Path(args.dir) / 'plots'}: "
-        f"{plural(metrics['evaluations'], 'evaluation')}, best fitness "
+        f"wrote {Path(args.dir) / 'metrics.json'} and {plural(len(drawn), 'picture')} in "
+        f"{Path(args.dir) / 'plots'}: {plural(metrics['evaluations'], 'evaluation')}, best "
+        "fitness "
         + ("-" if best is None else f"{best:.4f}")
+        + ("" if post is None else f", post-evaluation fitness {post:.4f}")
     )
+    for line in safety_lines(metrics):
+        print(line)
     comparison = metrics.get("baseline")
     if comparison:
-        evolved, random_median = (
-            comparison["evolved_best_fitness"],
-            comparison["random_median_fitness"],
-        )
-        print(
-            f"evolved best fitness {evolved:.4f} against the median {random_median:.4f} "
-            f"of {comparison['random_pairs']} random pairs"
-        )
+        print(baseline_text(comparison))
+    if args.animate:
+        print(f"animation: {Path(args.dir) / 'plots' / 'post_evaluation.gif'}")
     return 0
 
 

@@ -1,19 +1,21 @@
-"""What a run amounts to: ``metrics.json``, plots, and the one-screen status.
+"""What a run amounts to: ``metrics.json``, pictures, and the one-screen status.
 
-Plots (``plots/``): ``best_fitness.png`` (best and swarm fitness over evaluations),
-``robot_fitness.png`` (each robot's fitness over evaluations), ``predictions.png`` (from the
-post-evaluation: mean predicted against mean real value per sensor) and, when the traces hold poses
-(simulation), ``trajectories.png``.
+Metrics: the evolution's (best, mean, offspring accepted, attempts), the share of steps in which
+the safety layer changed the networks' commands (per evaluation in ``evaluations.csv``; here its
+mean over the run, over its last tenth and over the post-evaluation, with a warning when it
+dominates), and from the post-evaluation traces each sensor's mean prediction and reading; when
+the traces hold poses (simulation) the behaviour metrics of docs/method.md (d_R, c_o, mean
+cluster size and their classes, the box displacement d_B from ``simulation.json``) and per robot
+its path length and rotation.
 
-Behaviour metrics from the post-evaluation traces, when they hold poses (simulation): the paper's
-d_R, c_o, mean cluster size and their classes, computed by :mod:`sim_stub.metrics`
-(docs/method.md, "Behaviour metrics and classes"), with the box displacement d_B when the run
-directory holds ``simulation.json`` (written by ``surprise-master sim``). Per robot: its path
-length and its rotation.
+Pictures (``plots/``, each as PNG and PDF; :mod:`master_service.pictures`): ``fitness``,
+``robot_fitness``, ``predictions``, in simulation ``trajectories`` on the arena, with a baseline
+``evolved_vs_random``; with ``animate`` also ``post_evaluation.gif``.
 """
 
 from __future__ import annotations
 
+import collections
 import json
 import os
 import time
@@ -24,22 +26,26 @@ from typing import Any, Final
 import msgspec
 import numpy as np
 
+from master_service import pictures
 from master_service.master import LIVE_INTERVAL, format_duration
 from master_service.rundir import (
+    BOX_TRACK,
     LIVE,
     METRICS,
     PLOTS,
     POST_EVALUATION,
     SIMULATION_FILE,
     RunDir,
+    RunDirError,
     write_atomic,
 )
 from sim_stub import metrics as sim_metrics
 from surprise.config import ExperimentConfig
 from surprise.errors import ConfigError
+from surprise.safety import dominance_warning, intervention_share
 from surprise.text import plural
 
-__all__ = ["compute_metrics", "status_text", "write_report"]
+__all__ = ["baseline_text", "compute_metrics", "safety_lines", "status_text", "write_report"]
 
 
 #: A live.json older than this many refresh periods means the master is gone.
@@ -64,6 +70,12 @@ def _rows(run: RunDir, limit: int | None) -> tuple[list[dict[str, Any]], list[st
                 "accepted": row["accepted"] == "true",
                 "attempts": int(row["attempts"]),
                 "duration_s": float(row["duration_s"]),
+                # Runs written before the column existed have none.
+                "safety_share": (
+                    float(row["safety_share"])
+                    if row.get("safety_share") not in (None, "")
+                    else None
+                ),
                 "robots": {robot: float(row[f"fitness_{robot}"]) for robot in robots},
             }
         )
@@ -138,6 +150,47 @@ def _post_metrics(
     return metrics
 
 
+def _safety_metrics(
+    rows: list[dict[str, Any]], post: dict[str, Any] | None
+) -> dict[str, Any] | None:
+    """How much the safety layer drove: over the run, its last tenth and the post-evaluation."""
+    metrics: dict[str, Any] = {}
+    shares = [r["safety_share"] for r in rows if r["safety_share"] is not None]
+    if shares:
+        tail = shares[-max(1, len(shares) // 10) :]
+        metrics["evolution_mean_share"] = float(np.mean(shares))
+        metrics["last_tenth_share"] = float(np.mean(tail))
+    reasons: collections.Counter[str] = collections.Counter()
+    if post is not None and post.get("robots"):
+        stats = {robot: entry["stats"] for robot, entry in post["robots"].items()}
+        for entry in stats.values():
+            reasons.update(entry["interventions"])
+        metrics["post_evaluation_share"] = intervention_share(
+            [e["interventions"] for e in stats.values()],
+            sum(e["steps_run"] for e in stats.values()),
+        )
+        metrics["post_evaluation_reasons"] = dict(reasons.most_common())
+        metrics["post_evaluation_robots"] = {
+            robot: intervention_share([e["interventions"]], e["steps_run"])
+            for robot, e in stats.items()
+        }
+    if not metrics:
+        return None
+    # The post-evaluation is what the behaviour is judged on, the end of the evolution what the
+    # best genome was selected on: either dominated by the safety layer needs a look.
+    warnings = []
+    if "post_evaluation_share" in metrics:
+        warning = dominance_warning(metrics["post_evaluation_share"], reasons)
+        if warning:
+            warnings.append(f"in the post-evaluation {warning}")
+    if "last_tenth_share" in metrics:
+        warning = dominance_warning(metrics["last_tenth_share"], {})
+        if warning:
+            warnings.append(f"in the last tenth of the evolution {warning}")
+    metrics["warnings"] = warnings
+    return metrics
+
+
 @dataclass
 class _Run:
     """Everything a report reads from a run directory, read once."""
@@ -200,6 +253,8 @@ def _metrics(data: _Run) -> dict[str, Any]:
                 for robot in robots
             },
         )
+    metrics["safety"] = _safety_metrics(rows, data.post)
+    metrics["warnings"] = list((metrics["safety"] or {}).get("warnings", []))
     metrics["post_evaluation"] = (
         None
         if data.post is None
@@ -215,29 +270,45 @@ def _metrics(data: _Run) -> dict[str, Any]:
 
 
 def _baseline_metrics(metrics: dict[str, Any], baseline: dict[str, Any]) -> dict[str, Any]:
-    random_fitness = [pair["fitness"] for pair in baseline["pairs"]]
+    pairs = baseline["pairs"]
+    random_fitness = [pair["fitness"] for pair in pairs]
+    evolved = metrics.get("best_fitness")
+    post = (metrics.get("post_evaluation") or {}).get("swarm_fitness")
     return {
         "scenario": baseline["scenario"],
         "random_pairs": len(random_fitness),
         "random_fitness": random_fitness,
         "random_median_fitness": float(np.median(random_fitness)),
-        "random_max_fitness": float(np.max(random_fitness)),
-        "evolved_best_fitness": metrics.get("best_fitness"),
-        "random_behaviour": {
-            key: sum(pair["behaviour"][key] == value for pair in baseline["pairs"])
-            for key, value in (("motion", "stopped"), ("grouping", "grouped"))
+        "random_best_fitness": float(np.max(random_fitness)),
+        # The random pairs' fitness over the whole post-evaluation length, beside the evolved
+        # genome's post-evaluation.
+        "random_best_post_fitness": max(pair["post_fitness"] for pair in pairs),
+        # Best of a run against best of the random pairs: both are a maximum over many tries.
+        "evolved_best_fitness": evolved,
+        "evolved_post_fitness": post,
+        "random_pairs_below_evolved_best": (
+            None if evolved is None else sum(f < evolved for f in random_fitness)
+        ),
+        "random_behaviour_counts": {
+            key: dict(collections.Counter(pair["behaviour"][key] for pair in pairs).most_common())
+            for key in ("motion", "grouping")
         },
     }
 
 
 def write_report(
-    path: str | Path, *, baseline: str | Path | None = None, plots: bool = True
+    path: str | Path,
+    *,
+    baseline: str | Path | None = None,
+    plots: bool = True,
+    animate: bool = False,
 ) -> dict[str, Any]:
-    """Write ``metrics.json`` and (with ``plots``) the plots of the run in ``path``; return the
-    metrics.
+    """Write ``metrics.json`` and (with ``plots``) the pictures of the run in ``path``; return
+    the metrics (``pictures``: the files drawn, relative to ``path``).
 
     ``baseline`` names a ``surprise-master baseline`` directory: the metrics then compare the
-    evolved best fitness with the random pairs' fitness (``baseline`` key), with a plot.
+    evolved best fitness with the random pairs' (``baseline`` key), with a picture. ``animate``
+    also writes an animation of a simulated post-evaluation (``plots/post_evaluation.gif``).
     """
     data = _load(path)
     metrics = _metrics(data)
@@ -256,75 +327,123 @@ def write_report(
                 key="scenario",
             )
         metrics["baseline"] = _baseline_metrics(metrics, loaded)
+    if plots or animate:
+        drawn = _draw(data, metrics, plots=plots, animate=animate)
+        metrics["pictures"] = [str(p.relative_to(data.run.path)) for p in drawn]
     write_atomic(data.run.file(METRICS), json.dumps(metrics, indent=2).encode("utf-8"))
-    if plots:
-        _plot(data, metrics)
     return metrics
 
 
-def _plot(data: _Run, metrics: dict[str, Any]) -> None:
-    # The object-oriented API only: no pyplot, no global backend switch in the caller's process.
-    from matplotlib.figure import Figure
+def safety_lines(metrics: dict[str, Any]) -> list[str]:
+    """How much the safety layer drove, in a line, and its warning if it dominated."""
+    safety = metrics.get("safety")
+    if not safety:
+        return []
+    parts = []
+    if safety.get("post_evaluation_share") is not None:
+        parts.append(f"{100 * safety['post_evaluation_share']:.0f} % of the post-evaluation steps")
+    if safety.get("evolution_mean_share") is not None:
+        parts.append(
+            f"{100 * safety['evolution_mean_share']:.0f} % of the evolution's "
+            f"({100 * safety['last_tenth_share']:.0f} % in its last tenth)"
+        )
+    lines = [f"safety layer drove: {'; '.join(parts)}"] if parts else []
+    lines += [f"warning: {warning}" for warning in safety.get("warnings", [])]
+    return lines
 
-    rows, robots = data.rows, data.robots
-    plots = data.run.file(PLOTS)
-    plots.mkdir(exist_ok=True)
-    if rows:
-        x = [r["evaluation"] for r in rows]
-        fig = Figure(figsize=(8, 4.5))
-        ax = fig.add_subplot()
-        for kind, marker in (("initial", "s"), ("offspring", "."), ("reevaluation", "x")):
-            pts = [(r["evaluation"], r["fitness"]) for r in rows if r["kind"] == kind]
-            if pts:
-                ax.scatter(*zip(*pts, strict=True), s=12, marker=marker, label=f"{kind} fitness")
-        ax.plot(x, [r["best_fitness"] for r in rows], color="black", label="best fitness")
-        ax.set(xlabel="evaluation", ylabel="fitness", title="Fitness over evaluations")
-        ax.legend(loc="lower right")
-        fig.savefig(plots / "best_fitness.png", dpi=100)
 
-        fig = Figure(figsize=(8, 4.5))
-        ax = fig.add_subplot()
-        for robot in robots:
-            ax.plot(x, [r["robots"][robot] for r in rows], linewidth=0.8, label=robot)
-        ax.set(xlabel="evaluation", ylabel="fitness", title="Fitness of each robot")
-        ax.legend(loc="lower right", fontsize="small")
-        fig.savefig(plots / "robot_fitness.png", dpi=100)
+def baseline_text(comparison: dict[str, Any]) -> str:
+    """The evolved run against the random pairs, best of each, in a line."""
+    pairs = comparison["random_pairs"]
+    evolved = comparison["evolved_best_fitness"]
+    text = (
+        f"best random pair {comparison['random_best_fitness']:.4f} (median "
+        f"{comparison['random_median_fitness']:.4f}, {pairs} pairs)"
+    )
+    if evolved is None:
+        return f"no evolved fitness yet; {text}"
+    below = comparison["random_pairs_below_evolved_best"]
+    return (
+        f"evolved best fitness {evolved:.4f} against the {text}: above {below} of {pairs} "
+        "random pairs"
+    )
 
+
+def _title(data: _Run, metrics: dict[str, Any]) -> str:
+    experiment = data.experiment
+    where = f"{experiment.setting} setting" if data.simulation is not None else "robots"
+    return f"{experiment.scenario} ({where}), run {metrics['run_id']}"
+
+
+def _arena(data: _Run) -> pictures.Arena | None:
+    """The simulated world of the run, as the pictures draw it (None for real robots)."""
+    if data.simulation is None:
+        return None
+    from master_service.simulation_setup import world_config
+
+    config = world_config(data.experiment)
+    boxes = data.simulation.get("post_evaluation_boxes") or {}
+    track, every = None, 1
+    path = data.run.file(BOX_TRACK)
+    if path.is_file():
+        with np.load(path) as stored:
+            track, every = stored["positions"], int(stored["every"])
+    return pictures.Arena(
+        config,
+        boxes_start=np.asarray(boxes["start"]) if boxes.get("start") else None,
+        boxes_end=np.asarray(boxes["end"]) if boxes.get("end") else None,
+        box_track=track,
+        box_every=every,
+    )
+
+
+def _draw(data: _Run, metrics: dict[str, Any], *, plots: bool, animate: bool) -> list[Path]:
+    """Draw the run's pictures into ``plots/``; the paths written."""
+    directory = data.run.file(PLOTS)
+    directory.mkdir(exist_ok=True)
+    title = _title(data, metrics)
     post = metrics.get("post_evaluation") or {}
-    sensors = post.get("sensors")
-    if sensors:
-        names = list(sensors)
-        idx = np.arange(len(names))
-        fig = Figure(figsize=(max(6, len(names) * 0.8), 4.5))
-        ax = fig.add_subplot()
-        ax.bar(idx - 0.2, [sensors[n]["mean_predicted"] for n in names], 0.4, label="predicted")
-        ax.bar(idx + 0.2, [sensors[n]["mean_real"] for n in names], 0.4, label="real")
-        ax.set_xticks(idx, names, rotation=45, ha="right")
-        ax.set(ylabel="mean value", title="Post-evaluation: mean predicted and real value")
-        ax.legend()
-        fig.tight_layout()
-        fig.savefig(plots / "predictions.png", dpi=100)
-
-    comparison = metrics.get("baseline")
-    if comparison and comparison["evolved_best_fitness"] is not None:
-        fig = Figure(figsize=(5, 4.5))
-        ax = fig.add_subplot()
-        ax.boxplot([comparison["random_fitness"]], positions=[0], widths=0.5)
-        ax.plot([1], [comparison["evolved_best_fitness"]], "o", color="black")
-        ax.set_xticks([0, 1], [f"{comparison['random_pairs']} random pairs", "evolved (best)"])
-        ax.set(ylabel="fitness", title="Evolved against random pairs", xlim=(-0.6, 1.6))
-        fig.savefig(plots / "evolved_vs_random.png", dpi=100)
-
     poses = {robot: t["poses"] for robot, t in data.traces.items() if "poses" in t}
-    if poses:
-        fig = Figure(figsize=(6, 6))
-        ax = fig.add_subplot()
-        for robot, pose in poses.items():
-            ax.plot(pose[:, 0], pose[:, 1], linewidth=0.8, label=robot)
-            ax.plot(pose[-1, 0], pose[-1, 1], "o", markersize=3, color="black")
-        ax.set(xlabel="x", ylabel="y", title="Post-evaluation trajectories", aspect="equal")
-        ax.legend(fontsize="small")
-        fig.savefig(plots / "trajectories.png", dpi=100)
+    arena = _arena(data) if poses else None
+    drawn: list[Path] = []
+    if plots:
+        if data.rows:
+            drawn += pictures.fitness_picture(
+                directory,
+                data.rows,
+                title,
+                post_fitness=post.get("swarm_fitness"),
+                post_steps=post.get("steps"),
+            )
+            drawn += pictures.robot_fitness_picture(directory, data.rows, data.robots, title)
+        if post.get("sensors"):
+            drawn += pictures.predictions_picture(directory, post["sensors"], title)
+        comparison = metrics.get("baseline")
+        if comparison:
+            drawn += pictures.baseline_picture(directory, comparison, title)
+        if poses:
+            seconds = min(len(p) for p in poses.values()) * data.experiment.step_period
+            drawn += pictures.trajectories_picture(
+                directory,
+                poses,
+                arena,
+                f"{title}\npost-evaluation of the best genome, {seconds:g} s",
+            )
+    if animate:
+        if arena is None:
+            raise RunDirError(
+                f"{data.run.path} holds no simulated post-evaluation with poses to animate"
+            )
+        drawn.append(
+            pictures.animate_post_evaluation(
+                directory / pictures.ANIMATION,
+                poses,
+                arena,
+                title,
+                data.experiment.step_period,
+            )
+        )
+    return drawn
 
 
 def _alive(pid: int) -> bool:

@@ -215,7 +215,10 @@ def simulated_loop(experiment: ExperimentConfig) -> LoopConfig:
 
 
 def summary_text(metrics: dict[str, Any], out: Path, seconds: float) -> str:
-    """What ``surprise-master sim`` prints at the end: where, how good, which behaviour."""
+    """What ``surprise-master sim`` prints at the end: where, how good, which behaviour, how much
+    of it the safety layer drove."""
+    from master_service.report import safety_lines
+
     best = metrics.get("best_fitness")
     lines = [
         f"run directory: {out}",
@@ -238,6 +241,7 @@ def summary_text(metrics: dict[str, Any], out: Path, seconds: float) -> str:
             kind += ", pushing" if b["pushing"] else ", not pushing"
             figures += f", box displacement d_B {b['box_displacement']:.3f} m"
         lines.append(f"behaviour: {kind} ({figures})")
+    lines += safety_lines(metrics)
     lines.append(f"plots: {out / 'plots'}")
     return "\n".join(lines)
 

@@ -12,11 +12,13 @@ from __future__ import annotations
 
 import argparse
 import math
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from sim_stub.scenarios import WorldConfig
 from sim_stub.world import World
 
 if TYPE_CHECKING:
@@ -27,6 +29,7 @@ _BEYOND = "#e6e6e6"
 _WALL = "#7f7f7f"
 _BOX = "#c8a165"
 _BOX_EDGE = "#7a5c2e"
+_BOX_OUTLINE = "#5a5a5a"
 
 
 def _matplotlib() -> Any:
@@ -44,27 +47,26 @@ def _matplotlib() -> Any:
     return Figure, FigureCanvasAgg, patches, PatchCollection
 
 
-def render_world(
-    world: World,
-    path: str | Path | None = None,
-    *,
-    trajectories: np.ndarray | None = None,
-    title: str | None = None,
-    size: float = 6.0,
-    dpi: int = 120,
-) -> Figure:
-    """Draw ``world`` as it is now and return the figure; write a PNG to ``path`` if given.
+def robot_colours(count: int) -> list[Any]:
+    """One colour per robot, all distinguishable: the ten of tab10, then tab20's, then hues."""
+    from matplotlib import colormaps
 
-    ``trajectories``: poses of shape (T + 1, N, 3) (e.g. :meth:`World.recorded_poses`) drawn as
-    one line per robot. The light gradient is drawn when the world has a lamp.
+    if count <= 10:
+        return [colormaps["tab10"](i) for i in range(count)]
+    if count <= 20:
+        return [colormaps["tab20"](i) for i in range(count)]
+    return [colormaps["hsv"](i / count) for i in range(count)]
+
+
+def draw_arena(ax: Any, config: WorldConfig, world: World | None = None) -> Any:
+    """Draw the arena of ``config`` on ``ax``: the floor beyond the carpet, the carpet (or, with a
+    lamp, its light, taken from ``world``), the carpet's edge, the walls; axes in metres.
+
+    Returns the light's image (for a colour bar) or None.
     """
-    figure_cls, canvas_cls, patches, collection_cls = _matplotlib()
-    cfg = world.config
-    half = cfg.arena_side / 2
-    wall = cfg.wall_half
-    fig = figure_cls(figsize=(size, size), dpi=dpi)
-    canvas_cls(fig)
-    ax = fig.add_subplot(1, 1, 1)
+    _, _, patches, _ = _matplotlib()
+    half = config.arena_side / 2
+    wall = config.wall_half
     ax.set_aspect("equal")
     lim = wall + 0.03
     ax.set_xlim(-lim, lim)
@@ -72,7 +74,10 @@ def render_world(
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.add_patch(patches.Rectangle((-wall, -wall), 2 * wall, 2 * wall, color=_BEYOND, zorder=0))
-    if cfg.light:
+    image = None
+    if config.light:
+        if world is None:
+            world = World(config)
         grid = np.linspace(-wall, wall, 200)
         gx, gy = np.meshgrid(grid, grid)
         image = ax.imshow(
@@ -85,7 +90,6 @@ def render_world(
             alpha=0.85,
             zorder=1,
         )
-        fig.colorbar(image, ax=ax, fraction=0.046, pad=0.04, label="light")
     else:
         ax.add_patch(patches.Rectangle((-half, -half), 2 * half, 2 * half, color=_CARPET, zorder=1))
     # The carpet's edge, which the ground sensors see, and the walls beyond it.
@@ -102,68 +106,129 @@ def render_world(
             fill=False,
             ec=_WALL,
             # Thick walls are the ones the IR sensors see.
-            lw=5 if cfg.walls_visible_to_ir else 2,
+            lw=5 if config.walls_visible_to_ir else 2,
             zorder=2,
         )
     )
-    boxes = world.box_positions
-    if len(boxes):
-        s = cfg.box_size
-        squares = [patches.Rectangle((bx - s / 2, by - s / 2), s, s) for bx, by in boxes]
-        ax.add_collection(
-            collection_cls(squares, facecolor=_BOX, edgecolor=_BOX_EDGE, lw=0.4, zorder=3)
-        )
-    colours = [f"C{i % 10}" for i in range(world.n_robots)]
-    if trajectories is not None and len(trajectories):
-        traj = np.asarray(trajectories)
-        for i in range(traj.shape[1]):
-            ax.plot(traj[:, i, 0], traj[:, i, 1], color=colours[i], lw=1.0, alpha=0.8, zorder=4)
-    _draw_robots(ax, world, patches, colours)
-    ax.set_title(title or f"{world.n_robots} robots, t = {world.time:.1f} s")
-    fig.tight_layout()
-    if path is not None:
-        fig.savefig(path, format="png")
-    return fig
+    return image
 
 
-def _draw_robots(ax: Any, world: World, patches: Any, colours: list[str]) -> None:
-    cfg = world.config
-    r = cfg.robot_radius
-    for i, (x, y, th) in enumerate(world.poses):
-        c, s = math.cos(th), math.sin(th)
-        cx, cy = x + cfg.body_offset * c, y + cfg.body_offset * s
+def draw_boxes(
+    ax: Any, positions: np.ndarray, size: float, *, filled: bool = True, zorder: float = 3
+) -> Any:
+    """Draw boxes of side ``size`` at ``positions`` (K, 2): filled, or as outlines (where the
+    boxes were). Returns the collection (remove it to redraw)."""
+    _, _, patches, collection_cls = _matplotlib()
+    squares = [patches.Rectangle((x - size / 2, y - size / 2), size, size) for x, y in positions]
+    if filled:
+        style = {"facecolor": _BOX, "edgecolor": _BOX_EDGE, "lw": 0.4}
+    else:
+        style = {"facecolor": "none", "edgecolor": _BOX_OUTLINE, "lw": 0.6}
+    return ax.add_collection(collection_cls(squares, zorder=zorder, **style))
+
+
+def draw_robot(
+    ax: Any,
+    config: WorldConfig,
+    pose: Sequence[float],
+    colour: Any,
+    *,
+    label: str | None = None,
+    zorder: float = 5,
+) -> list[Any]:
+    """Draw one robot to scale at ``pose`` (x, y, heading): its body, its blade if it has one,
+    an arrow for its heading and ``label`` on it. Returns the artists (remove them to redraw)."""
+    _, _, patches, _ = _matplotlib()
+    x, y, th = (float(v) for v in pose)
+    c, s = math.cos(th), math.sin(th)
+    cx, cy = x + config.body_offset * c, y + config.body_offset * s
+    artists = [
         ax.add_patch(
-            patches.Circle((cx, cy), r, fc=colours[i], ec="black", lw=0.8, alpha=0.9, zorder=5)
-        )
-        if cfg.has_blade:
-            hw = cfg.blade_width / 2
-            bx, by = x + cfg.blade_x * c, y + cfg.blade_x * s
-            ax.plot(
-                [bx - hw * s, bx + hw * s],
-                [by + hw * c, by - hw * c],
-                color="black",
-                lw=3,
-                solid_capstyle="round",
-                zorder=6,
+            patches.Circle(
+                (cx, cy),
+                config.robot_radius,
+                fc=colour,
+                ec="black",
+                lw=0.8,
+                alpha=0.9,
+                zorder=zorder,
             )
-        # Heading: an arrow from the wheel axis to the front of the body.
+        )
+    ]
+    if config.has_blade:
+        hw = config.blade_width / 2
+        bx, by = x + config.blade_x * c, y + config.blade_x * s
+        artists += ax.plot(
+            [bx - hw * s, bx + hw * s],
+            [by + hw * c, by - hw * c],
+            color="black",
+            lw=3,
+            solid_capstyle="round",
+            zorder=zorder + 1,
+        )
+    # Heading: an arrow from the wheel axis to the front of the body.
+    artists.append(
         ax.annotate(
             "",
             xy=(x + 0.075 * c, y + 0.075 * s),
             xytext=(x, y),
             arrowprops={"arrowstyle": "-|>", "color": "white", "lw": 1.5},
-            zorder=7,
+            zorder=zorder + 2,
         )
-        ax.text(
-            cx - 0.02 * c,
-            cy - 0.02 * s,
-            str(i),
-            fontsize=7,
-            ha="center",
-            va="center",
-            color="white",
-            zorder=8,
+    )
+    if label is not None:
+        artists.append(
+            ax.text(
+                # Behind the wheel axis, where the heading arrow does not cover it.
+                x - 0.017 * c,
+                y - 0.017 * s,
+                label,
+                fontsize=7,
+                ha="center",
+                va="center",
+                color="white",
+                zorder=zorder + 3,
+            )
         )
+    return artists
+
+
+def render_world(
+    world: World,
+    path: str | Path | None = None,
+    *,
+    trajectories: np.ndarray | None = None,
+    title: str | None = None,
+    size: float = 6.0,
+    dpi: int = 120,
+) -> Figure:
+    """Draw ``world`` as it is now and return the figure; write a PNG to ``path`` if given.
+
+    ``trajectories``: poses of shape (T + 1, N, 3) (e.g. :meth:`World.recorded_poses`) drawn as
+    one line per robot. The light gradient is drawn when the world has a lamp.
+    """
+    figure_cls, canvas_cls, _, _ = _matplotlib()
+    cfg = world.config
+    fig = figure_cls(figsize=(size, size), dpi=dpi)
+    canvas_cls(fig)
+    ax = fig.add_subplot(1, 1, 1)
+    image = draw_arena(ax, cfg, world)
+    if image is not None:
+        fig.colorbar(image, ax=ax, fraction=0.046, pad=0.04, label="light")
+    if len(world.box_positions):
+        draw_boxes(ax, world.box_positions, cfg.box_size)
+    colours = robot_colours(world.n_robots)
+    if trajectories is not None and len(trajectories):
+        traj = np.asarray(trajectories)
+        for i in range(traj.shape[1]):
+            ax.plot(traj[:, i, 0], traj[:, i, 1], color=colours[i], lw=1.0, alpha=0.8, zorder=4)
+    for i, pose in enumerate(world.poses):
+        draw_robot(ax, cfg, pose, colours[i], label=str(i))
+    ax.set_title(title or f"{world.n_robots} robots, t = {world.time:.1f} s")
+    fig.tight_layout()
+    if path is not None:
+        fig.savefig(path, format="png")
+    return fig
 
 
 def _random_walk(world: World, steps: int, seed: int) -> np.ndarray:

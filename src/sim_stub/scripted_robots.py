@@ -311,7 +311,10 @@ class ScriptedRobot:
         return Result(
             evaluation_id=msg.evaluation_id,
             fitness=self.fitness(genome, self.index),
-            stats=EvaluationStats(steps_run=msg.steps, overruns=0, interventions={}),
+            # Every fifth step a safety stop, as in the trace.
+            stats=EvaluationStats(
+                steps_run=msg.steps, overruns=0, interventions={"front": (msg.steps + 4) // 5}
+            ),
             trace=trace,
         )
 
@@ -330,7 +333,7 @@ class ScriptedRobot:
             predictions=np.full((steps, sensors), base),
             actions=np.full((steps, 2), 0.5),
             commands=np.full((steps, 2), 0.5),
-            safety=["" if k % 5 else "stop" for k in range(steps)],
+            safety=["" if k % 5 else "front" for k in range(steps)],
             poses=poses,
         )
 

@@ -96,12 +96,14 @@ def reference_rows(exp: ExperimentConfig, robots: list[str]) -> list[dict[str, s
         *(f"fitness_{r}" for r in robots),
     ]
     rows = []
+    # The scripted robots' safety stops every fifth step from the first.
+    share = ((exp.evaluation_steps + 4) // 5) / exp.evaluation_steps
     while not optimizer.done:
         genome = optimizer.ask().genome
         fitnesses = [deterministic_fitness(genome, i) for i in range(len(robots))]
         out = optimizer.tell(swarm_fitness(fitnesses))
         line = format_row(
-            out.evaluation, out.kind, out.fitness, out.best_fitness, out.accepted, 1, 0.0, 0.0,
+            out.evaluation, out.kind, out.fitness, out.best_fitness, out.accepted, 1, 0.0, share,
             fitnesses,
         )  # fmt: skip
         row = dict(zip(header, line.rstrip("\n").split(","), strict=True))

@@ -30,7 +30,10 @@ async def finished_run(tmp_path):
 
 def test_report_writes_metrics_and_plots(finished_run, capsys):
     assert main(["report", str(finished_run)]) == 0
-    assert "best fitness" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "8 evaluations, best fitness" in out and "8 pictures" in out
+    assert "safety layer drove: 25 % of the post-evaluation steps" in out
+    assert "warning: in the last tenth of the evolution the safety layer overrode 100 %" in out
     metrics = json.loads((finished_run / "metrics.json").read_text())
     assert metrics["evaluations"] == metrics["evaluations_planned"] == 8
     assert metrics["robots"] == ["r0", "r1", "r2"]
@@ -54,15 +57,22 @@ def test_report_writes_metrics_and_plots(finished_run, capsys):
     assert behaviour["rotation"] == pytest.approx(0.2)
     assert behaviour["motion"] == "stopped" and behaviour["grouping"] == "grouped"
     assert behaviour["box_displacement"] is None and post["robots"]["r0"]["path_length"] == 0.03
+    # The scripted robots' safety stops every fifth step from the first: one of the
+    # post-evaluation's 4 steps, and the whole of every 1-step evaluation, which is warned of.
+    safety = metrics["safety"]
+    assert safety["post_evaluation_share"] == pytest.approx(0.25)
+    assert safety["post_evaluation_reasons"] == {"front": 3}
+    assert safety["evolution_mean_share"] == safety["last_tenth_share"] == 1.0
+    assert metrics["warnings"] == safety["warnings"]
+    [warning] = safety["warnings"]
+    assert warning.startswith("in the last tenth of the evolution the safety layer overrode 100 %")
     plots = {p.name for p in (finished_run / "plots").iterdir()}
-    assert plots == {
-        "best_fitness.png",
-        "robot_fitness.png",
-        "predictions.png",
-        "trajectories.png",
-    }
+    names = ("fitness", "robot_fitness", "predictions", "trajectories")
+    assert plots == {f"{name}.{fmt}" for name in names for fmt in ("png", "pdf")}
+    assert sorted(metrics["pictures"]) == sorted(f"plots/{name}" for name in plots)
     for name in plots:
-        assert (finished_run / "plots" / name).read_bytes()[:4] == b"\x89PNG"
+        magic = b"\x89PNG" if name.endswith(".png") else b"%PDF"
+        assert (finished_run / "plots" / name).read_bytes()[:4] == magic
 
 
 def test_status_of_a_finished_run(finished_run, capsys):
@@ -118,7 +128,8 @@ def sample_progress(**overrides) -> Progress:
 
 
 def test_describe_has_every_figure():
-    text = describe(sample_progress(waiting=True))
+    text = describe(sample_progress(waiting=True, safety_share=0.62))
+    assert "safety drove 62 %" in text
     assert "waiting for robots" in text and "evaluations 12/350" in text
     assert "best 0.8765" in text and "robots 3/4" in text and "left ~58m00s" in text
 
@@ -142,6 +153,19 @@ def test_the_live_panel_renders():
         display.update(sample_progress())
         time.sleep(0)  # the panel refreshes on its own thread; stop() draws the last state
     assert "evaluations" in stream.getvalue() and "12/350" in stream.getvalue()
+
+
+def test_the_live_panel_says_when_the_safety_layer_does_the_driving():
+    stream = io.StringIO()
+    with ProgressDisplay(stream, live=True) as display:
+        display.update(sample_progress(safety_share=0.2))
+    assert "20 % of steps" in stream.getvalue()
+    assert "does most of the driving" not in stream.getvalue()
+    stream = io.StringIO()
+    with ProgressDisplay(stream, live=True) as display:
+        display.update(sample_progress(safety_share=0.97))
+    assert "97 % of steps" in stream.getvalue()
+    assert "the safety layer does most of the driving" in stream.getvalue()
 
 
 async def test_report_and_status_of_a_crashed_run_ignore_a_torn_last_row(tmp_path):

@@ -48,7 +48,8 @@ def test_a_lockstep_run_completes_with_a_complete_run_directory(basic_run):
         assert (run / name).is_file(), name
     assert sorted(p.name for p in (run / "traces").iterdir()) == [f"sim-{i}.npz" for i in range(4)]
     assert {p.name for p in (run / "plots").iterdir()} >= {
-        "best_fitness.png", "robot_fitness.png", "predictions.png", "trajectories.png",
+        f"{name}.{fmt}" for name in ("fitness", "robot_fitness", "predictions", "trajectories")
+        for fmt in ("png", "pdf")
     }  # fmt: skip
     post = result.metrics["post_evaluation"]
     assert post["steps"] == 60 and set(post["robots"]) == {f"sim-{i}" for i in range(4)}
@@ -122,18 +123,49 @@ def test_bad_experiment_names_file_and_key(tmp_path, text, key):
     assert info.value.key == key and info.value.file == str(path)
 
 
-def test_baseline_is_reproducible_and_report_compares(basic_run, tmp_path):
+def test_baseline_is_reproducible_and_report_compares(basic_run, tmp_path, capsys):
     run, _ = basic_run
     experiment = small()
     first = run_baseline(experiment, 3, tmp_path / "base")
     again = run_baseline(experiment, 3, tmp_path / "again")
     assert [p["fitness"] for p in first["pairs"]] == [p["fitness"] for p in again["pairs"]]
     assert all(0.0 < p["fitness"] < 1.0 for p in first["pairs"])
+    fitness = [p["fitness"] for p in first["pairs"]]
+    assert first["best_fitness"] == max(fitness)
+    motions = [p["behaviour"]["motion"] for p in first["pairs"]]
+    assert first["behaviour_counts"]["motion"] == {m: motions.count(m) for m in set(motions)}
     assert main(["report", str(run), "--baseline", str(tmp_path / "base")]) == 0
     metrics = json.loads((run / "metrics.json").read_text())
-    assert metrics["baseline"]["random_pairs"] == 3
-    assert metrics["baseline"]["random_median_fitness"] == pytest.approx(first["median_fitness"])
+    comparison = metrics["baseline"]
+    assert comparison["random_pairs"] == 3
+    assert comparison["random_median_fitness"] == pytest.approx(first["median_fitness"])
+    # Best of the run against best of the random pairs, both maxima over many tries.
+    assert comparison["random_best_fitness"] == max(fitness)
+    best = metrics["best_fitness"]
+    assert comparison["random_pairs_below_evolved_best"] == sum(f < best for f in fitness)
+    assert comparison["evolved_post_fitness"] == metrics["post_evaluation"]["swarm_fitness"]
+    out = capsys.readouterr().out
+    assert f"evolved best fitness {best:.4f} against the best random pair {max(fitness):.4f}" in out
     assert (run / "plots" / "evolved_vs_random.png").is_file()
+    assert (run / "plots" / "evolved_vs_random.pdf").is_file()
+
+
+def test_baseline_command_names_the_counts_and_the_next_command(tmp_path, capsys):
+    out = tmp_path / "base"
+    argv = ["baseline", "--scenario", "basic", "--robots", "3", "--random", "2", "--out", str(out)]
+    assert main(argv) == 0
+    lines = capsys.readouterr().out.splitlines()
+    data = json.loads((out / "baseline.json").read_text())
+    assert lines[0].startswith("evaluating 2 random pairs in the basic arena")
+    assert lines[1] == (
+        f"fitness of the random pairs: best {data['best_fitness']:.4f}, median "
+        f"{data['median_fitness']:.4f}"
+    )
+    assert lines[2].startswith("behaviour counts: motion ")
+    assert sum(data["behaviour_counts"]["motion"].values()) == 2
+    assert lines[-1] == (
+        f"next: compare an evolved run with `surprise-master report RUN_DIR --baseline {out}`"
+    )
 
 
 def test_report_refuses_a_baseline_of_another_scenario(basic_run, tmp_path):
@@ -149,6 +181,8 @@ def test_sim_command_prints_the_summary(tmp_path, capsys):
     text = capsys.readouterr().out
     assert f"run directory: {out}" in text and "best fitness: 0." in text
     assert "behaviour: " in text and (out / "metrics.json").is_file()
+    assert "safety layer drove: " in text
+    assert "simulating basic (paper setting, fast engine): 3 robots, 4 evaluations" in text
 
 
 @pytest.mark.parametrize(
