@@ -608,9 +608,11 @@ _DOMINANT_HINTS: dict[str, str] = {
     REASON_GROUND: "the ground rule tripped: check safety.ground_threshold and "
     "safety.ground_boundary against this floor (on a floor as light as the edge marking every "
     "step looks like the edge)",
-    REASON_FRONT: "front obstacles: a crowded arena, or safety.stop_ir_threshold / "
-    "escape_front_threshold too low for these sensors",
-    REASON_REAR: "rear obstacles: robots reversing into walls or each other and being stopped",
+    REASON_FRONT: "front obstacles: robots pressing ahead against a neighbour or a wall and held "
+    "there by the layer (the stop profile's aggregates look like this), or "
+    "safety.stop_ir_threshold / escape_front_threshold too low for these sensors",
+    REASON_REAR: "rear obstacles: robots reversing against a neighbour or a wall and held there "
+    "by the layer",
     REASON_ESCAPE: "escape manoeuvres: robots keep running into obstacles or the boundary",
     REASON_FORCE: "the pushing force rule: safety.force_threshold below what the boxes need",
     REASON_STALE: "stale sensor readings: the sensors do not keep up with the step period",
@@ -633,8 +635,8 @@ def dominance_warning(share: float, reasons: Mapping[str, int]) -> str | None:
     if share <= SAFETY_DOMINATES:
         return None
     text = (
-        f"the safety layer overrode {100 * share:.0f} % of the steps: the behaviour is mostly "
-        "the safety layer's, not the networks'"
+        f"the safety layer overrode {100 * share:.0f} % of the steps: what the robots did is "
+        "mostly the safety layer's doing, not the networks' commands"
     )
     if reasons:
         reason = max(reasons, key=lambda r: reasons[r])
