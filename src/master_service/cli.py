@@ -342,7 +342,7 @@ def _simulate(
     if result is None:
         print(_stopped_text(out, experiment, received[0]), file=sys.stderr)
         return 128 + received[0]
-    print(summary_text(result.metrics, out, time.perf_counter() - started))
+    print(summary_text(result.metrics, out, time.perf_counter() - started, resumed=resume))
     return 0
 
 

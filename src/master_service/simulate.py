@@ -214,7 +214,9 @@ def simulated_loop(experiment: ExperimentConfig) -> LoopConfig:
     )
 
 
-def summary_text(metrics: dict[str, Any], out: Path, seconds: float) -> str:
+def summary_text(
+    metrics: dict[str, Any], out: Path, seconds: float, *, resumed: bool = False
+) -> str:
     """What ``surprise-master sim`` prints at the end: where, how good, which behaviour, how much
     of it the safety layer drove."""
     from master_service.report import safety_lines
@@ -222,7 +224,8 @@ def summary_text(metrics: dict[str, Any], out: Path, seconds: float) -> str:
     best = metrics.get("best_fitness")
     lines = [
         f"run directory: {out}",
-        f"evaluations: {metrics['evaluations']} in {seconds:.1f} s",
+        f"evaluations: {metrics['evaluations']} "
+        + (f"(resumed; {seconds:.1f} s since)" if resumed else f"in {seconds:.1f} s"),
         f"best fitness: {'-' if best is None else f'{best:.4f}'}",
     ]
     post = metrics.get("post_evaluation") or {}

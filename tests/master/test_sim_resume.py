@@ -186,6 +186,7 @@ def test_sim_stops_quietly_on_a_signal_and_resume_finishes_the_run(
     out, err = process.communicate(timeout=300)
     assert process.returncode == 0, (out, err)
     assert f"run directory: {run}" in out
+    assert f"evaluations: {evaluations} (resumed; " in out
     assert len(RunDir(run).read_rows()) == evaluations
     assert RunDir(run).read_checkpoint_data()["phase"] == "done"
 
