@@ -13,11 +13,10 @@ bindings: 10 Thymio II robots in the basic arena (a 1 m carpet textured on the f
 beyond it, random non-overlapping start poses), random wheel speeds up to the world's top speed
 held for 10 steps, every robot's 7 IR and 2 ground values read after each step (Enki computes them
 inside its step). It runs in a subprocess of that python on the same core, timed there the same
-way. Enki is
-a rigid-body simulator (friction, inertia, impulse collisions) with ray-cast IR sensors, ours a
-kinematic one; Debian's Enki 1.6.99 also predates upstream's fix of its IR initialisation (rays
-that stop meeting anything keep their last value), which changes the values it reads but hardly
-what reading them costs.
+way. Enki is a rigid-body simulator (friction, inertia, impulse collisions) with ray-cast IR
+sensors, ours a kinematic one; Debian's Enki 1.6.99 also predates upstream's fix of its IR
+initialisation (rays that stop meeting anything keep their last value), which changes the values
+it reads but hardly what reading them costs.
 
 Targets (issue 3): at least 50,000 robot-steps/s for ``basic`` (10 robots) and at most 1 ms per
 step for ``gradient`` (4 robots, all 271 boxes); both at the default step.

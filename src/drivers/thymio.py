@@ -44,6 +44,7 @@ from drivers.body import clamp_unit
 from drivers.config import CALL_TIMEOUT, PROGRAM_NODE, ThymioConfig
 from drivers.parts import gather_all
 from surprise.errors import HardwareError, HardwareTimeoutError, RobotUnreachableError
+from surprise.files import write_atomic
 from surprise.sensors import GROUND_SENSORS, IR_SENSORS
 
 if TYPE_CHECKING:
@@ -512,10 +513,7 @@ def program_path(name: str, node: str, directory: str | None) -> str:
     target = folder / f"{Path(name).stem}-{re.sub(r'[^A-Za-z0-9._-]', '_', node)}.aesl"
     try:
         folder.mkdir(parents=True, exist_ok=True)
-        partial = target.with_suffix(".part")
-        partial.write_text(text, encoding="utf-8")
-        partial.chmod(0o644)
-        partial.replace(target)
+        write_atomic(target, text.encode("utf-8"), durable=False, mode=0o644)
     except OSError as exc:
         raise HardwareError(f"Thymio: cannot write the Aseba program {target}: {exc}") from exc
     return str(target)

@@ -10,12 +10,18 @@ Layout::
     live.json              while the master runs: pid, address, connected robots (refreshed)
     post_evaluation.json   the post-evaluation's per-robot fitness and statistics
     traces/<robot>.npz     the post-evaluation trace of each robot
-    metrics.json, plots/   written by ``surprise-master report``
+    metrics.json, plots/   written by ``surprise-master report`` (and at the end of ``sim``)
+    simulation.json        in simulation: the world, and the boxes before and after the
+                           post-evaluation
+    box_track.npz          in simulation with boxes: the boxes during the post-evaluation
 
 Exactly-once rows: a commit first appends the new row to ``evaluations.csv`` and fsyncs it, then
 replaces ``checkpoint.json`` (temp file, fsync, rename, fsync of the directory). The checkpoint
 records how many rows it accounts for; on resume the CSV is cut back to that many rows, so a crash
 between the two writes neither loses nor duplicates a row.
+
+The run holds no secret: every file gets the permissions ``open()`` gives (``0644`` under the
+usual umask), so that the lab's group can read a run as it reads ``evaluations.csv``.
 
 The ``attempts`` column counts the attempts sent for that evaluation (an attempt in flight when the
 master stopped counts too), ``duration_s`` is the time from the counted attempt's Evaluate to its
@@ -28,12 +34,10 @@ initial genome is neither an offspring nor a re-evaluation), then ``offspring`` 
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import io
 import json
 import os
-import tempfile
 import time
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -48,6 +52,7 @@ from master_service.config import MasterConfig
 from surprise.config import ExperimentConfig, load_yaml
 from surprise.errors import ConfigError, SurpriseError
 from surprise.evolution import EvolutionStateError, OnePlusOne
+from surprise.files import write_atomic
 from surprise.network import NetworkSpec
 from surprise.wire import Result
 
@@ -69,6 +74,8 @@ __all__ = [
     "RunDir",
     "RunDirError",
     "RunState",
+    # the run directory's writer, kept here for the modules that write files into a run
+    "write_atomic",
 ]
 
 CONFIG_SNAPSHOT: Final = "config.yaml"
@@ -176,37 +183,6 @@ class RunState:
             )
         except (KeyError, TypeError, ValueError, EvolutionStateError) as exc:
             raise RunDirError(f"the checkpoint cannot be read: {exc}") from None
-
-
-def _fsync_dir(path: Path) -> None:
-    # A rename is durable only once the directory entry is on disk.
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def write_atomic(path: Path, data: bytes, *, durable: bool = True) -> None:
-    """Replace ``path`` by ``data`` all at once: temp file, (fsync), rename, (fsync directory).
-
-    Readers see the old or the new content, never a mix. ``durable=False`` skips the fsyncs for
-    files that can be rebuilt from the checkpoint.
-    """
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as file:
-            file.write(data)
-            if durable:
-                file.flush()
-                os.fsync(file.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
-    if durable:
-        _fsync_dir(path.parent)
 
 
 def format_row(

@@ -16,13 +16,14 @@ from typing import Any, Final
 import numpy as np
 
 from master_service.master import RunSummary
-from master_service.rundir import BOX_TRACK, SIMULATION_FILE, RunDirError, write_atomic
+from master_service.rundir import BOX_TRACK, SIMULATION_FILE, RunDirError
 from sim_stub.engine import robot_ids
 from sim_stub.scenarios import SCENARIOS, WorldConfig, scenario_config
 from sim_stub.settings import SETTINGS, safety_config, world_overrides
-from sim_stub.world import World
+from sim_stub.world import TooManyRobotsError, World
 from surprise.config import ExperimentConfig, decode_experiment, read_yaml
 from surprise.errors import ConfigError
+from surprise.files import write_atomic
 from surprise.safety import SafetyConfig
 
 __all__ = [
@@ -82,6 +83,7 @@ def simulation_experiment(
         data["simulation"] = {**(data.get("simulation") or {}), "arena_side": arena}
     name = data.get("scenario", "basic")
     world = _world(data.get("setting"), name, data.get("simulation"), config_file)
+    robots_in_file = "robots" in data
     data.setdefault("robots", world.robots)
     data.setdefault("sensors", list(world.sensors))
     for key, value in (("robots", robots), ("seed", seed)):
@@ -99,8 +101,55 @@ def simulation_experiment(
             key="sensors",
         )
     simulated_safety(experiment, file=config_file)  # a bad safety key fails now, by name
-    world_config(experiment, file=config_file)
+    _check_robots_fit(
+        experiment,
+        world_config(experiment, file=config_file),
+        given="--robots" if robots is not None else "robots" if robots_in_file else None,
+        arena_given=arena is not None,
+        file=config_file,
+    )
     return experiment
+
+
+def _check_robots_fit(
+    experiment: ExperimentConfig,
+    world: WorldConfig,
+    *,
+    given: str | None,
+    arena_given: bool,
+    file: str | Path | None,
+) -> None:
+    """Raise :class:`ConfigError` naming the limit and the option or key to change unless the
+    robots fit at the start of the run and of its post-evaluation (each arena seeded apart)."""
+    short: list[TooManyRobotsError] = []
+    for seed in (experiment.seed, experiment.seed + 1):
+        try:
+            World(world, seed=seed)
+        except TooManyRobotsError as exc:
+            short.append(exc)
+    if not short:
+        return
+    # Fewer than the fewest either start placed fit both (see World._place_robots).
+    error = min(short, key=lambda exc: exc.fit)
+    if error.larger == "start_ring":
+        larger = "a wider start ring (simulation.start_ring)"
+    elif arena_given or given == "--robots":
+        larger = "a larger --arena"
+    else:
+        larger = "a larger carpet (simulation.arena_side)"
+    on_command_line = given == "--robots" or (given is None and arena_given)
+    fewer = "fewer with --robots" if on_command_line else "fewer robots"
+    if given is not None:
+        key = given
+    elif arena_given:
+        key = "--arena"
+    else:
+        key = f"simulation.{error.larger}"
+    raise ConfigError(
+        f"{error.reason}; ask for {fewer} or {larger}",
+        key=key,
+        file=str(file) if file and not key.startswith("--") else None,
+    ) from None
 
 
 def _world(setting: Any, scenario: str, overrides: Any, file: str | Path | None) -> WorldConfig:

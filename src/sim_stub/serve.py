@@ -51,6 +51,7 @@ import yaml
 from drivers.config import SPEED_SCALE
 from sim_stub.scenarios import SCENARIOS, scenario_config
 from surprise.errors import ConfigError
+from surprise.files import PRIVATE_MODE, write_atomic
 from surprise.sensors import GROUND_SENSORS, IR_SENSORS
 from surprise.wire import DEFAULT_PORT
 
@@ -201,13 +202,6 @@ def agent_config(
     }
 
 
-def _write_atomic(path: Path, text: str) -> None:
-    # Readers (the tests, a script waiting for robots.json) see the whole file or none.
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text, encoding="utf-8")
-    os.replace(tmp, path)
-
-
 def _secret_file(given: Path | None, directory: Path) -> Path:
     if given is not None:
         path = given.expanduser().resolve()
@@ -216,10 +210,10 @@ def _secret_file(given: Path | None, directory: Path) -> Path:
         return path
     path = directory / SECRET_FILE
     if not path.exists():
-        # Only the owner may read it, as an agent's secret on a robot.
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-        with os.fdopen(fd, "w", encoding="utf-8") as file:
-            file.write(secrets.token_hex(16) + "\n")
+        # Only the owner may read it, as an agent's secret on a robot; written whole, so that a
+        # stop half-way leaves no empty secret file for the next start to take.
+        text = secrets.token_hex(16) + "\n"
+        write_atomic(path, text.encode("utf-8"), mode=PRIVATE_MODE)
         log.info("wrote a new shared secret to %s", path)
     return path
 
@@ -326,7 +320,8 @@ async def serve(args: argparse.Namespace) -> int:
                     "# Valid while that process runs: the bus below is its private dbus-daemon.\n"
                 )
                 text = yaml.safe_dump(agent_config(args, index, bus, secret_file), sort_keys=False)
-                _write_atomic(path, header + text)
+                # Readers (the tests, a script waiting for robots.json) see the whole file or none.
+                write_atomic(path, (header + text).encode("utf-8"), durable=False)
                 robots.append(
                     {"robot_id": robot_id(index), "index": index, "bus": bus, "config": str(path)}
                 )
@@ -341,7 +336,8 @@ async def serve(args: argparse.Namespace) -> int:
                 "secret_file": str(secret_file),
                 "robots": robots,
             }
-            _write_atomic(directory / ROBOTS_FILE, json.dumps(info, indent=2) + "\n")
+            text = json.dumps(info, indent=2) + "\n"
+            write_atomic(directory / ROBOTS_FILE, text.encode("utf-8"), durable=False)
             announced = True
             _announce(args, robots, args.scenario)
             await asyncio.Event().wait()  # until a signal cancels this task

@@ -11,6 +11,7 @@ same trajectories bit for bit.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 
@@ -26,6 +27,7 @@ __all__ = [
     "GROUND_POSITIONS",
     "IR_HEADINGS",
     "IR_POSITIONS",
+    "TooManyRobotsError",
     "World",
     "box_frame_steps",
     "box_frames",
@@ -47,6 +49,25 @@ _MAX_TRIES = 4_096
 _PLACEMENT_RESTARTS = 20
 
 
+class TooManyRobotsError(ConfigError):
+    """More robots than fit at the start: ``robots`` were asked for, at most ``fit`` fit
+    ``where`` (e.g. "on a 1.0 m carpet"; ``approximate`` when the random start found that many,
+    not a formula); ``larger`` is the world parameter that makes room (``arena_side`` or
+    ``start_ring``)."""
+
+    def __init__(self, robots: int, fit: int, where: str, *, larger: str, approximate: bool):
+        self.robots = robots
+        self.fit = fit
+        self.where = where
+        self.larger = larger
+        self.approximate = approximate
+        about = "about " if approximate else ""
+        super().__init__(
+            f"at most {about}{fit} robots fit {where} ({robots} asked for)",
+            key="simulation.robots",
+        )
+
+
 def box_frame_steps(dt: float) -> int:
     """Steps between two recorded frames of the boxes for a step of ``dt`` seconds."""
     return max(1, round(BOX_FRAME_PERIOD / dt))
@@ -60,6 +81,21 @@ def box_frames(steps: int, every: int) -> int:
 def wrap_angle(theta: np.ndarray | float) -> np.ndarray | float:
     """Angles wrapped to [-pi, pi)."""
     return (theta + math.pi) % _TWO_PI - math.pi
+
+
+def _ring(gap: float, n: int) -> float:
+    # Radius of the ring on which n points stand gap apart from their neighbours.
+    return 0.0 if n == 1 else gap / (2 * math.sin(math.pi / n))
+
+
+def _chord(radius: float, n: int) -> float:
+    # Distance between neighbours of n points evenly spread on a ring of that radius.
+    return math.inf if n == 1 else 2 * radius * math.sin(math.pi / n)
+
+
+def _ring_capacity(n: int, fits: Callable[[int], bool]) -> int:
+    # The most robots, up to n, that a ring takes; fits(m) is monotone (m robots fit, fewer do).
+    return next((m for m in range(n, 0, -1) if fits(m)), 0)
 
 
 def body_reach(config: WorldConfig) -> float:
@@ -210,15 +246,34 @@ class World:
                     raise ConfigError(
                         "the start ring does not fit in the arena", key="simulation.start_ring"
                     )
+                # Bodies must not overlap; blades may reach past each other's circle, as in the
+                # authors' layout, since they point outwards.
+                body = cfg.robot_radius
+                fit = _ring_capacity(n, lambda m: _chord(axle + cfg.body_offset, m) >= 2 * body)
+                if fit < n:
+                    raise TooManyRobotsError(
+                        n,
+                        fit,
+                        f"on the start ring {axle} m around the centre",
+                        larger="start_ring",
+                        approximate=False,
+                    )
             else:
                 gap = 2 * rp + cfg.start_clearance
-                ring = 0.0 if n == 1 else gap / (2 * math.sin(math.pi / n))
-                if ring + rp > half:
+                fit = _ring_capacity(n, lambda m: _ring(gap, m) + rp <= half)
+                if fit == 0:
                     raise ConfigError(
-                        f"{n} robots do not fit around the centre of the arena",
-                        key="simulation.robots",
+                        "the arena is too small for a robot", key="simulation.arena_side"
                     )
-                axle = ring - cfg.body_offset
+                if fit < n:
+                    raise TooManyRobotsError(
+                        n,
+                        fit,
+                        f"around the centre of a {cfg.arena_side} m carpet",
+                        larger="arena_side",
+                        approximate=False,
+                    )
+                axle = _ring(gap, n) - cfg.body_offset
             self._pose[:, 0] = axle * np.cos(phi)
             self._pose[:, 1] = axle * np.sin(phi)
             self._pose[:, 2] = wrap_angle(phi)
@@ -229,14 +284,18 @@ class World:
         if lim <= 0:
             raise ConfigError("the arena is too small for a robot", key="simulation.arena_side")
         min_d2 = (2 * rp + cfg.start_clearance) ** 2
+        most = 0
         for _ in range(_PLACEMENT_RESTARTS):
-            centres = self._random_centres(rng, n, lim, min_d2)
-            if centres is not None:
+            centres, placed = self._random_centres(rng, n, lim, min_d2)
+            if placed == n:
                 break
+            most = max(most, placed)
         else:
-            raise ConfigError(
-                f"cannot place {n} robots apart on a {cfg.arena_side} m carpet",
-                key="simulation.robots",
+            # The most any start placed: with this seed that many would have been placed (a
+            # start draws the same candidates whatever the number asked for), with another
+            # seed about as many.
+            raise TooManyRobotsError(
+                n, most, f"on a {cfg.arena_side} m carpet", larger="arena_side", approximate=True
             )
         theta = rng.uniform(-math.pi, math.pi, size=n)
         self._pose[:, 0] = centres[:, 0] - cfg.body_offset * np.cos(theta)
@@ -246,8 +305,9 @@ class World:
     @staticmethod
     def _random_centres(
         rng: np.random.Generator, n: int, lim: float, min_d2: float
-    ) -> np.ndarray | None:
-        # Body centres in [-lim, lim]^2, pairwise at least sqrt(min_d2) apart, or None.
+    ) -> tuple[np.ndarray, int]:
+        # Body centres in [-lim, lim]^2, pairwise at least sqrt(min_d2) apart, and how many
+        # were placed before one found no room (n when all were).
         placed = np.empty((n, 2))
         for i in range(n):
             for _ in range(_MAX_TRIES // _BATCH):
@@ -258,8 +318,8 @@ class World:
                     placed[i] = cand[ok[0]]
                     break
             else:
-                return None
-        return placed
+                return placed, i
+        return placed, n
 
     def _place_boxes(self, rng: np.random.Generator) -> np.ndarray:
         cfg = self.config

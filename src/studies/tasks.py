@@ -30,6 +30,8 @@ import traceback
 from pathlib import Path
 from typing import Any
 
+from surprise.files import write_atomic
+
 __all__ = ["ERROR", "FAILED", "KINDS", "RUNS", "SUMMARY", "is_finished", "run_dir", "run_task"]
 
 #: The summary a finished run leaves in its directory.
@@ -169,6 +171,5 @@ def _quiet():
 
 
 def _write_json(path: Path, data: dict[str, Any]) -> None:
-    partial = path.with_suffix(".part")
-    partial.write_text(json.dumps(data, indent=1), encoding="utf-8")
-    partial.replace(path)
+    # The summary marks the run finished: durable, so that a power cut cannot leave an empty one.
+    write_atomic(path, json.dumps(data, indent=1).encode("utf-8"))

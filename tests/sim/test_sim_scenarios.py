@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from sim_stub.scenarios import SCENARIOS, WorldConfig, scenario_config
-from sim_stub.world import World
+from sim_stub.world import TooManyRobotsError, World
 from surprise.errors import ConfigError
 from surprise.sensors import FORCE_SENSORS, GROUND_SENSORS, IR_SENSORS, LIGHT_SENSORS
 
@@ -79,9 +79,23 @@ def test_overrides_must_be_a_mapping():
 
 
 def test_too_many_robots_for_the_arena_is_a_config_error():
-    with pytest.raises(ConfigError) as caught:
+    with pytest.raises(TooManyRobotsError) as caught:
         World(scenario_config("basic", {"robots": 60, "arena_side": 0.5}), seed=0)
     assert caught.value.key == "simulation.robots"
-    with pytest.raises(ConfigError) as caught:
+    assert isinstance(caught.value, ConfigError)
+    # As many as the random start found room for do start.
+    fit = caught.value.fit
+    assert 1 <= fit < 60 and caught.value.approximate
+    assert (
+        World(scenario_config("basic", {"robots": fit, "arena_side": 0.5}), seed=0).n_robots == fit
+    )
+    with pytest.raises(TooManyRobotsError) as caught:
         World(scenario_config("boxes", {"robots": 12, "arena_side": 0.5}), seed=0)
     assert caught.value.key == "simulation.robots"
+    assert "around the centre of a 0.5 m carpet" in caught.value.reason
+    fit = caught.value.fit
+    assert (
+        World(scenario_config("boxes", {"robots": fit, "arena_side": 0.5}), seed=0).n_robots == fit
+    )
+    with pytest.raises(TooManyRobotsError, match="around the centre"):
+        World(scenario_config("boxes", {"robots": fit + 1, "arena_side": 0.5}), seed=0)
