@@ -1,0 +1,326 @@
+"""Compiled simulation of the grid world: whole generations in one call.
+
+One run of one genome from one start configuration goes as the authors' code does it. Each step
+t = 0 ... T-1: (1) the occupancy of the start of the step is the snapshot every agent senses;
+(2) for each agent in index order its sensors are read, last step's prediction is scored against
+them, the actor decides, the predictor predicts the next reading, and its new pose is computed: a
+forward move succeeds only if the front cell is empty in the snapshot and no agent of lower index
+has moved into it during this step (so conflicts go to the lower index and nobody enters a cell
+being vacated), a turn always succeeds; (3) all agents take their new poses.
+
+Sensing is synchronous, so the networks of all agents of a step are computed together (the
+predictor vectorised across agents); only the moves are resolved one agent after the other. The
+actor has no state: its decision is a function of the R + 1 input bits, computed by the code's
+arithmetic the first time a genome meets an input and looked up afterwards. The predictor's hidden
+units use :func:`tanh_fast` (a rational approximation good to float32 rounding) unless ``exact``
+asks for the code's exp-based tanh: trajectories never depend on it, only the rare prediction
+whose output lies within float32 rounding of zero can.
+
+Sensor noise flips each sensor value an agent reads with probability ``noise`` (independent per
+run, step, agent and sensor; the same flips for every genome given the same ``noise_key``). The
+noisy values go into both networks and the fitness; moves are blocked by true occupancy only.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from surprise.gridnet import c_activation, c_negative
+from surprise.jit import kernel
+from surprise.rng import mix32
+
+__all__ = ["evaluate_batch", "tanh_fast"]
+
+
+@kernel(error_model="numpy")
+def tanh_fast(x: float) -> float:
+    """tanh by a rational approximation (error below 3e-7; its divisor is never 0, and without
+    branches or division checks the loops that call it vectorise)."""
+    x = 7.90531110763549805 if x > 7.90531110763549805 else x
+    x = -7.90531110763549805 if x < -7.90531110763549805 else x
+    x2 = x * x
+    p = x2 * -2.76076847742355e-16 + 2.00018790482477e-13
+    p = x2 * p + -8.60467152213735e-11
+    p = x2 * p + 5.12229709037114e-08
+    p = x2 * p + 1.48572235717979e-05
+    p = x2 * p + 6.37261928875436e-04
+    p = x2 * p + 4.89352455891786e-03
+    p = x * p
+    q = x2 * 1.19825839466702e-06 + 1.18534705686654e-04
+    q = x2 * q + 2.26843463243900e-03
+    q = x2 * q + 4.89352518554385e-03
+    return p / q
+
+
+@kernel
+def _actor_decision(
+    a_u: np.ndarray, a_hidden: np.ndarray, a_out: np.ndarray, key: int, inputs: int
+) -> int:
+    # The code's propagation for the input bits in ``key`` (bit i = input i); returns
+    # a0 + 2 * (1 if the turn goes left). Sums are float32 in the code's order.
+    ha = a_hidden.shape[0]
+    hidden = np.empty(ha, dtype=np.float32)
+    for j in range(ha):
+        z = np.float32(0.0)
+        for i in range(inputs):
+            z += a_u[(key >> i) & 1, i] * a_hidden[j, i]
+        hidden[j] = c_activation(z)
+    z0 = np.float32(0.0)
+    for j in range(ha):
+        z0 += hidden[j] * a_out[0, j]
+    z1 = np.float32(0.0)
+    for j in range(ha):
+        z1 += hidden[j] * a_out[1, j]
+    a0 = 0 if c_negative(z0) else 1
+    left = 1 if c_negative(z1) else 0
+    return a0 + 2 * left
+
+
+@kernel
+def _noise_bits(key: int, counter: int) -> int:
+    # 32 random bits for one sensor reading, a pure function of the key and the reading's index.
+    low = mix32(counter & 0xFFFFFFFF)
+    high = mix32((counter >> 32) + 0x9E3779B9)
+    return mix32(key ^ low ^ (high * 0x85EBCA6B))
+
+
+@kernel(error_model="numpy")
+def simulate_genome(
+    nb: np.ndarray,
+    starts: np.ndarray,
+    steps: int,
+    g: int,
+    a_u: np.ndarray,
+    a_hidden: np.ndarray,
+    a_out: np.ndarray,
+    p_u: np.ndarray,
+    p_hidden: np.ndarray,
+    p_self: np.ndarray,
+    p_out: np.ndarray,
+    outputs: np.ndarray,
+    fixed: np.ndarray,
+    memo: np.ndarray,
+    noise_threshold: int,
+    noise_key: int,
+    exact: bool,
+    correct: np.ndarray,
+    predsum: np.ndarray,
+    final: np.ndarray,
+    trace: np.ndarray,
+    trace_rep: int,
+) -> None:
+    """Genome ``g`` of the batch on every start configuration of ``starts`` ((reps, N, 2): cell,
+    heading), the runs side by side so the networks work on reps x N agents at once.
+
+    Per run ``rep``: ``correct[rep]`` gets the number of correct predictions, ``predsum[rep]``
+    (R,) the scored predictions summed over steps and agents, ``final[rep]`` (N, 2) the poses
+    after the last step. Run ``trace_rep`` (-1: none) has its poses before every step and after
+    the last written to ``trace`` ((T + 1, N, 2)). ``memo`` caches the actor's decisions by
+    input bits (-1: not yet known).
+    """
+    cells, r = nb.shape[0], nb.shape[2]
+    reps, n = starts.shape[0], starts.shape[1]
+    lanes = reps * n
+    inputs = r + 1
+    hp = p_hidden.shape[1]
+    o = outputs.shape[0]
+    cell = np.empty(lanes, dtype=np.int32)
+    head = np.empty(lanes, dtype=np.int32)
+    for rep in range(reps):
+        for a in range(n):
+            cell[rep * n + a] = starts[rep, a, 0]
+            head[rep * n + a] = starts[rep, a, 1]
+    a0 = np.zeros(lanes, dtype=np.int64)
+    left = np.zeros(lanes, dtype=np.int64)
+    occ = np.zeros((reps, cells), dtype=np.uint8)
+    claimed = np.zeros((reps, cells), dtype=np.int32)
+    nbf = nb.ravel()
+    # per agent: the sensor bits read this step with this step's a0 above them (the predictor's
+    # inputs), and the bits of the prediction to be scored at the next step
+    pkey = np.zeros(lanes, dtype=np.int64)
+    first = 0
+    for k in range(r):
+        first |= np.int64(fixed[k]) << k
+    pmask = np.full(lanes, first, dtype=np.int64)
+    popcount = np.zeros(1 << r, dtype=np.int64)
+    for v in range(1, 1 << r):
+        popcount[v] = popcount[v >> 1] + (v & 1)
+    hidden = np.zeros((hp, lanes), dtype=np.float32)
+    acc = np.empty(lanes, dtype=np.float32)
+    counts = np.zeros((reps, r), dtype=np.int64)
+    for rep in range(reps):
+        correct[rep] = 0
+        for a in range(n):
+            occ[rep, cell[rep * n + a]] = 1
+    for t in range(steps):
+        if trace_rep >= 0:
+            for a in range(n):
+                trace[t, a, 0] = cell[trace_rep * n + a]
+                trace[t, a, 1] = head[trace_rep * n + a]
+        # prediction counts of the step: the predictions scored now
+        for rep in range(reps):
+            for k in range(r):
+                total = 0
+                for a in range(rep * n, rep * n + n):
+                    total += (pmask[a] >> k) & 1
+                counts[rep, k] += total
+        # sensing on each run's snapshot, scoring last step's predictions, the actor
+        for rep in range(reps):
+            wrong = 0
+            for a in range(rep * n, rep * n + n):
+                base = (cell[a] * 4 + head[a]) * r
+                key = 0
+                if noise_threshold > 0:
+                    for k in range(r):
+                        s = np.int64(occ[rep, nbf[base + k]])
+                        counter = (((rep * steps) + t) * n + a - rep * n) * r + k
+                        if _noise_bits(noise_key, counter) < noise_threshold:
+                            s = 1 - s
+                        key |= s << k
+                else:
+                    for k in range(r):
+                        key |= np.int64(occ[rep, nbf[base + k]]) << k
+                wrong += popcount[key ^ pmask[a]]
+                key |= a0[a] << r
+                m = memo[key]
+                if m < 0:
+                    m = _actor_decision(a_u[g], a_hidden[g], a_out[g], key, inputs)
+                    memo[key] = m
+                a0[a] = m & 1
+                left[a] = m >> 1
+                pkey[a] = (key & ((1 << r) - 1)) | ((m & 1) << r)
+            correct[rep] += n * r - wrong
+        # predictor on all agents of all runs: hidden units with self-loops, then the outputs
+        for j in range(hp):
+            for a in range(lanes):
+                acc[a] = 0.0
+            for i in range(inputs):
+                c0 = p_u[g, 0, i] * p_hidden[g, j, i]
+                c1 = p_u[g, 1, i] * p_hidden[g, j, i]
+                for a in range(lanes):
+                    acc[a] += c1 if (pkey[a] >> i) & 1 else c0
+            v = p_self[g, j]
+            for a in range(lanes):
+                acc[a] += hidden[j, a] * v
+            if exact:
+                for a in range(lanes):
+                    hidden[j, a] = c_activation(acc[a])
+            else:
+                for a in range(lanes):
+                    hidden[j, a] = tanh_fast(acc[a])
+        if o > 0:
+            for a in range(lanes):
+                pmask[a] = first
+        for q in range(o):
+            for a in range(lanes):
+                acc[a] = 0.0
+            for j in range(hp):
+                w = p_out[g, q, j]
+                for a in range(lanes):
+                    acc[a] += hidden[j, a] * w
+            s = outputs[q]
+            tiny = False
+            for a in range(lanes):
+                pmask[a] |= np.int64(acc[a] >= 0.0) << s
+                tiny |= (acc[a] < 0.0) & (acc[a] > -1e-10)
+            if tiny:  # where the code's tanh may round to 0, let it decide
+                for a in range(lanes):
+                    if not c_negative(acc[a]):
+                        pmask[a] |= np.int64(1) << s
+        # moves in index order against the snapshot and the cells taken so far this step
+        stamp = t + 1
+        for rep in range(reps):
+            for a in range(rep * n, rep * n + n):
+                if a0[a] == 0:
+                    front = nb[cell[a], head[a], 0]
+                    if occ[rep, front] == 0 and claimed[rep, front] != stamp:
+                        claimed[rep, front] = stamp
+                        occ[rep, cell[a]] = 2  # vacated: still blocks this step's snapshot
+                        cell[a] = front
+                elif left[a] == 1:
+                    head[a] = (head[a] + 1) & 3
+                else:
+                    head[a] = (head[a] + 3) & 3
+            for a in range(rep * n, rep * n + n):
+                occ[rep, cell[a]] = 1
+            for c in range(cells):
+                if occ[rep, c] == 2:
+                    occ[rep, c] = 0
+    for rep in range(reps):
+        for a in range(n):
+            final[rep, a, 0] = cell[rep * n + a]
+            final[rep, a, 1] = head[rep * n + a]
+        for k in range(r):
+            predsum[rep, k] = counts[rep, k]
+    if trace_rep >= 0:
+        for a in range(n):
+            trace[steps, a, 0] = cell[trace_rep * n + a]
+            trace[steps, a, 1] = head[trace_rep * n + a]
+
+
+@kernel
+def final_sensors(nb: np.ndarray, state: np.ndarray, out: np.ndarray) -> None:
+    """Mean over agents of each true sensor value in configuration ``state`` ((N, 2)) into
+    ``out`` (R,): the behaviour characterisation's per-run part."""
+    cells, r = nb.shape[0], nb.shape[2]
+    n = state.shape[0]
+    occ = np.zeros(cells, dtype=np.uint8)
+    for a in range(n):
+        occ[state[a, 0]] = 1
+    for k in range(r):
+        total = 0
+        for a in range(n):
+            total += occ[nb[state[a, 0], state[a, 1], k]]
+        out[k] = total / n
+
+
+@kernel
+def evaluate_batch(
+    nb: np.ndarray,
+    starts: np.ndarray,
+    steps: int,
+    a_u: np.ndarray,
+    a_hidden: np.ndarray,
+    a_out: np.ndarray,
+    p_u: np.ndarray,
+    p_hidden: np.ndarray,
+    p_self: np.ndarray,
+    p_out: np.ndarray,
+    outputs: np.ndarray,
+    fixed: np.ndarray,
+    noise_threshold: int,
+    noise_key: int,
+    exact: bool,
+    fitness: np.ndarray,
+    predmean: np.ndarray,
+    final: np.ndarray,
+    behaviour: np.ndarray,
+    trace: np.ndarray,
+    trace_run: int,
+) -> None:
+    """Every genome of the batch on every start configuration (``starts``: (reps, N, 2)).
+
+    Writes, per genome g and run r: ``fitness[g, r]`` (share of correct predictions, Eq. 1),
+    ``predmean[g, r, k]`` (mean scored prediction of sensor k), ``final[g, r]`` (poses after the
+    last step) and ``behaviour[g, r, k]`` (mean true sensor value over agents in that final
+    configuration). The run ``g * reps + r == trace_run`` is recorded into ``trace``.
+    """
+    genomes = a_u.shape[0]
+    reps, n = starts.shape[0], starts.shape[1]
+    r = nb.shape[2]
+    memo = np.empty(1 << (r + 1), dtype=np.int8)
+    correct = np.empty(reps, dtype=np.int64)
+    predsum = np.empty((reps, r), dtype=np.float64)
+    for g in range(genomes):
+        memo[:] = -1
+        trace_rep = trace_run - g * reps if g * reps <= trace_run < (g + 1) * reps else -1
+        simulate_genome(
+            nb, starts, steps, g, a_u, a_hidden, a_out, p_u, p_hidden, p_self, p_out, outputs,
+            fixed, memo, noise_threshold, noise_key, exact, correct, predsum, final[g], trace,
+            trace_rep,
+        )  # fmt: skip
+        for rep in range(reps):
+            fitness[g, rep] = correct[rep] / (steps * n * r)
+            for k in range(r):
+                predmean[g, rep, k] = predsum[rep, k] / (steps * n)
+            final_sensors(nb, final[g, rep], behaviour[g, rep])
