@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gridworld.kernels import evaluate_batch
-from gridworld.world import Torus
+from gridworld.world import WINDOW_MAX_SIDE, Torus, window_table
 from surprise.gridnet import GridGenomeLayout, GridNetSpec, grid_networks
 
 __all__ = ["Evaluation", "GridEvaluator", "noise_threshold"]
@@ -66,6 +66,11 @@ class GridEvaluator:
         self.exact = exact
         self._threshold = noise_threshold(noise)
         self.neighbours = torus.neighbours(spec.sensors)
+        sides = (torus.width, torus.height)
+        if all(5 <= side <= WINDOW_MAX_SIDE for side in sides):
+            self.window = window_table(spec.sensors)
+        else:  # sensors are looked up cell by cell
+            self.window = np.zeros((0, 0), dtype=np.uint16)
 
     def evaluate(
         self,
@@ -97,9 +102,9 @@ class GridEvaluator:
         record = np.zeros((self.steps + 1, n, 2), dtype=np.int32)
         trace_run = -1 if trace is None else trace[0] * reps + trace[1]
         evaluate_batch(
-            self.neighbours, starts, self.steps, nets.a_u, nets.a_hidden, nets.a_out, nets.p_u,
-            nets.p_hidden, nets.p_self, nets.p_out, nets.outputs, nets.fixed, self._threshold,
-            int(noise_key) & 0xFFFFFFFF, self.exact, fitness, predictions, final, behaviour,
-            record, trace_run,
+            self.neighbours, self.window, self.torus.width, starts, self.steps, nets.a_u,
+            nets.a_hidden, nets.a_out, nets.p_u, nets.p_hidden, nets.p_self, nets.p_out,
+            nets.outputs, nets.fixed, self._threshold, int(noise_key) & 0xFFFFFFFF, self.exact,
+            fitness, predictions, final, behaviour, record, trace_run,
         )  # fmt: skip
         return Evaluation(fitness, predictions, final, behaviour, record if trace else None)

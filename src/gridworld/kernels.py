@@ -32,23 +32,38 @@ from surprise.rng import mix32
 __all__ = ["evaluate_batch", "tanh_fast"]
 
 
+# float32 constants keep the rational tanh in single precision (twice the lanes per vector)
+_CLAMP = np.float32(7.90531110763549805)
+_A13 = np.float32(-2.76076847742355e-16)
+_A11 = np.float32(2.00018790482477e-13)
+_A9 = np.float32(-8.60467152213735e-11)
+_A7 = np.float32(5.12229709037114e-08)
+_A5 = np.float32(1.48572235717979e-05)
+_A3 = np.float32(6.37261928875436e-04)
+_A1 = np.float32(4.89352455891786e-03)
+_B6 = np.float32(1.19825839466702e-06)
+_B4 = np.float32(1.18534705686654e-04)
+_B2 = np.float32(2.26843463243900e-03)
+_B0 = np.float32(4.89352518554385e-03)
+
+
 @kernel(error_model="numpy")
-def tanh_fast(x: float) -> float:
-    """tanh by a rational approximation (error below 3e-7; its divisor is never 0, and without
-    branches or division checks the loops that call it vectorise)."""
-    x = 7.90531110763549805 if x > 7.90531110763549805 else x
-    x = -7.90531110763549805 if x < -7.90531110763549805 else x
+def tanh_fast(x: np.float32) -> np.float32:
+    """tanh of a float32 by a rational approximation (absolute error below 3e-7; its divisor is
+    never 0, and without branches or division checks the loops that call it vectorise)."""
+    x = _CLAMP if x > _CLAMP else x
+    x = -_CLAMP if x < -_CLAMP else x
     x2 = x * x
-    p = x2 * -2.76076847742355e-16 + 2.00018790482477e-13
-    p = x2 * p + -8.60467152213735e-11
-    p = x2 * p + 5.12229709037114e-08
-    p = x2 * p + 1.48572235717979e-05
-    p = x2 * p + 6.37261928875436e-04
-    p = x2 * p + 4.89352455891786e-03
+    p = x2 * _A13 + _A11
+    p = x2 * p + _A9
+    p = x2 * p + _A7
+    p = x2 * p + _A5
+    p = x2 * p + _A3
+    p = x2 * p + _A1
     p = x * p
-    q = x2 * 1.19825839466702e-06 + 1.18534705686654e-04
-    q = x2 * q + 2.26843463243900e-03
-    q = x2 * q + 4.89352518554385e-03
+    q = x2 * _B6 + _B4
+    q = x2 * q + _B2
+    q = x2 * q + _B0
     return p / q
 
 
@@ -84,9 +99,36 @@ def _noise_bits(key: int, counter: int) -> int:
     return mix32(key ^ low ^ (high * 0x85EBCA6B))
 
 
+@kernel
+def _bitboards(
+    cell: np.ndarray,
+    lo: int,
+    n: int,
+    width: int,
+    height: int,
+    xs: np.ndarray,
+    ys: np.ndarray,
+    rows: np.ndarray,
+    cols: np.ndarray,
+) -> None:
+    # Coordinates of agents lo ... lo + n - 1 and the doubled bit rows and columns they occupy.
+    rows[:] = 0
+    cols[:] = 0
+    one = np.uint64(1)
+    for a in range(lo, lo + n):
+        x = cell[a] % width
+        y = cell[a] // width
+        xs[a] = x
+        ys[a] = y
+        rows[y] |= (one << np.uint64(x)) | (one << np.uint64(x + width))
+        cols[x] |= (one << np.uint64(y)) | (one << np.uint64(y + height))
+
+
 @kernel(error_model="numpy")
 def simulate_genome(
     nb: np.ndarray,
+    window: np.ndarray,
+    width: int,
     starts: np.ndarray,
     steps: int,
     g: int,
@@ -116,7 +158,9 @@ def simulate_genome(
     (R,) the scored predictions summed over steps and agents, ``final[rep]`` (N, 2) the poses
     after the last step. Run ``trace_rep`` (-1: none) has its poses before every step and after
     the last written to ``trace`` ((T + 1, N, 2)). ``memo`` caches the actor's decisions by
-    input bits (-1: not yet known).
+    input bits (-1: not yet known). ``window`` is :func:`gridworld.world.window_table` for the
+    sensor model when both sides lie in 5 ... 32: sensors are then read from bit rows and
+    columns of the occupancy; with an empty ``window`` they are looked up cell by cell.
     """
     cells, r = nb.shape[0], nb.shape[2]
     reps, n = starts.shape[0], starts.shape[1]
@@ -137,7 +181,32 @@ def simulate_genome(
     nbf = nb.ravel()
     # per agent: the sensor bits read this step with this step's a0 above them (the predictor's
     # inputs), and the bits of the prediction to be scored at the next step
-    pkey = np.zeros(lanes, dtype=np.int64)
+    pkey = np.zeros(lanes, dtype=np.int32)
+    key = np.zeros(lanes, dtype=np.int64)
+    base = np.zeros(lanes, dtype=np.int64)
+    # bit rows and columns of each run's occupancy, doubled (bits 0..W-1 repeated above) so a
+    # window of 5 that wraps around is one shift; per-coordinate neighbour and shift tables
+    bits_ok = window.shape[0] > 0
+    height = cells // width
+    rows = np.zeros((reps, height), dtype=np.uint64)
+    cols = np.zeros((reps, width), dtype=np.uint64)
+    xs = np.empty(lanes, dtype=np.int64)
+    ys = np.empty(lanes, dtype=np.int64)
+    xm = np.empty(width, dtype=np.int64)
+    xp = np.empty(width, dtype=np.int64)
+    sx = np.empty(width, dtype=np.uint64)
+    ym = np.empty(height, dtype=np.int64)
+    yp = np.empty(height, dtype=np.int64)
+    sy = np.empty(height, dtype=np.uint64)
+    for x in range(width):
+        xm[x] = (x + width - 1) % width
+        xp[x] = (x + 1) % width
+        sx[x] = (x + width - 2) % width
+    for y in range(height):
+        ym[y] = (y + height - 1) % height
+        yp[y] = (y + 1) % height
+        sy[y] = (y + height - 2) % height
+    five = np.uint64(31)
     first = 0
     for k in range(r):
         first |= np.int64(fixed[k]) << k
@@ -148,57 +217,77 @@ def simulate_genome(
     hidden = np.zeros((hp, lanes), dtype=np.float32)
     acc = np.empty(lanes, dtype=np.float32)
     counts = np.zeros((reps, r), dtype=np.int64)
+    learned = np.zeros(r, dtype=np.bool_)
+    for q in range(o):
+        learned[outputs[q]] = True
     for rep in range(reps):
         correct[rep] = 0
         for a in range(n):
             occ[rep, cell[rep * n + a]] = 1
+        if bits_ok:
+            _bitboards(cell, rep * n, n, width, height, xs, ys, rows[rep], cols[rep])
     for t in range(steps):
         if trace_rep >= 0:
             for a in range(n):
                 trace[t, a, 0] = cell[trace_rep * n + a]
                 trace[t, a, 1] = head[trace_rep * n + a]
-        # prediction counts of the step: the predictions scored now
+        # sensing on each run's snapshot (sensor by sensor across the run's agents, so the
+        # lookups vectorise), scoring last step's predictions
         for rep in range(reps):
-            for k in range(r):
-                total = 0
-                for a in range(rep * n, rep * n + n):
-                    total += (pmask[a] >> k) & 1
-                counts[rep, k] += total
-        # sensing on each run's snapshot, scoring last step's predictions, the actor
-        for rep in range(reps):
-            wrong = 0
-            for a in range(rep * n, rep * n + n):
-                base = (cell[a] * 4 + head[a]) * r
-                key = 0
-                if noise_threshold > 0:
+            occ_r = occ[rep]
+            lo, hi = rep * n, rep * n + n
+            if bits_ok:
+                for a in range(lo, hi):
+                    x, y = xs[a], ys[a]
+                    if head[a] & 1 == 0:
+                        s0 = sx[x]
+                        w = (rows[rep, ym[y]] >> s0) & five
+                        w |= ((rows[rep, y] >> s0) & five) << np.uint64(5)
+                        w |= ((rows[rep, yp[y]] >> s0) & five) << np.uint64(10)
+                    else:
+                        s0 = sy[y]
+                        w = (cols[rep, xm[x]] >> s0) & five
+                        w |= ((cols[rep, x] >> s0) & five) << np.uint64(5)
+                        w |= ((cols[rep, xp[x]] >> s0) & five) << np.uint64(10)
+                    key[a] = window[head[a], w]
+            else:
+                for a in range(lo, hi):
+                    base[a] = (cell[a] * 4 + head[a]) * r
+                    key[a] = 0
+                for k in range(r):
+                    for a in range(lo, hi):
+                        key[a] |= np.int64(occ_r[nbf[base[a] + k]]) << k
+            if noise_threshold > 0:
+                for a in range(lo, hi):
                     for k in range(r):
-                        s = np.int64(occ[rep, nbf[base + k]])
-                        counter = (((rep * steps) + t) * n + a - rep * n) * r + k
+                        counter = (((rep * steps) + t) * n + a - lo) * r + k
                         if _noise_bits(noise_key, counter) < noise_threshold:
-                            s = 1 - s
-                        key |= s << k
-                else:
-                    for k in range(r):
-                        key |= np.int64(occ[rep, nbf[base + k]]) << k
-                wrong += popcount[key ^ pmask[a]]
-                key |= a0[a] << r
-                m = memo[key]
-                if m < 0:
-                    m = _actor_decision(a_u[g], a_hidden[g], a_out[g], key, inputs)
-                    memo[key] = m
-                a0[a] = m & 1
-                left[a] = m >> 1
-                pkey[a] = (key & ((1 << r) - 1)) | ((m & 1) << r)
+                            key[a] ^= np.int64(1) << k
+            wrong = 0
+            for a in range(lo, hi):
+                wrong += popcount[key[a] ^ pmask[a]]
             correct[rep] += n * r - wrong
-        # predictor on all agents of all runs: hidden units with self-loops, then the outputs
+        # the actor: its decision for these input bits, computed once per genome and input
+        for a in range(lanes):
+            full = key[a] | (a0[a] << r)
+            m = memo[full]
+            if m < 0:
+                m = _actor_decision(a_u[g], a_hidden[g], a_out[g], full, inputs)
+                memo[full] = m
+            a0[a] = m & 1
+            left[a] = m >> 1
+            pkey[a] = np.int32(key[a] | ((m & 1) << r))
+        # predictor on all agents of all runs: hidden units with self-loops, then the outputs;
+        # the predictions made before the last step are counted for the mean per sensor
         for j in range(hp):
             for a in range(lanes):
                 acc[a] = 0.0
             for i in range(inputs):
                 c0 = p_u[g, 0, i] * p_hidden[g, j, i]
                 c1 = p_u[g, 1, i] * p_hidden[g, j, i]
+                bit = np.int32(1) << np.int32(i)
                 for a in range(lanes):
-                    acc[a] += c1 if (pkey[a] >> i) & 1 else c0
+                    acc[a] += c1 if pkey[a] & bit else c0
             v = p_self[g, j]
             for a in range(lanes):
                 acc[a] += hidden[j, a] * v
@@ -227,6 +316,12 @@ def simulate_genome(
                 for a in range(lanes):
                     if not c_negative(acc[a]):
                         pmask[a] |= np.int64(1) << s
+            if t < steps - 1:
+                for rep in range(reps):
+                    total = 0
+                    for a in range(rep * n, rep * n + n):
+                        total += (pmask[a] >> s) & 1
+                    counts[rep, s] += total
         # moves in index order against the snapshot and the cells taken so far this step
         stamp = t + 1
         for rep in range(reps):
@@ -246,12 +341,17 @@ def simulate_genome(
             for c in range(cells):
                 if occ[rep, c] == 2:
                     occ[rep, c] = 0
+            if bits_ok:
+                _bitboards(cell, rep * n, n, width, height, xs, ys, rows[rep], cols[rep])
     for rep in range(reps):
         for a in range(n):
             final[rep, a, 0] = cell[rep * n + a]
             final[rep, a, 1] = head[rep * n + a]
         for k in range(r):
-            predsum[rep, k] = counts[rep, k]
+            if learned[k]:  # the first step's prediction, then those made before the last
+                predsum[rep, k] = counts[rep, k] + fixed[k] * n
+            else:
+                predsum[rep, k] = fixed[k] * n * steps
     if trace_rep >= 0:
         for a in range(n):
             trace[steps, a, 0] = cell[trace_rep * n + a]
@@ -277,6 +377,8 @@ def final_sensors(nb: np.ndarray, state: np.ndarray, out: np.ndarray) -> None:
 @kernel
 def evaluate_batch(
     nb: np.ndarray,
+    window: np.ndarray,
+    width: int,
     starts: np.ndarray,
     steps: int,
     a_u: np.ndarray,
@@ -315,9 +417,9 @@ def evaluate_batch(
         memo[:] = -1
         trace_rep = trace_run - g * reps if g * reps <= trace_run < (g + 1) * reps else -1
         simulate_genome(
-            nb, starts, steps, g, a_u, a_hidden, a_out, p_u, p_hidden, p_self, p_out, outputs,
-            fixed, memo, noise_threshold, noise_key, exact, correct, predsum, final[g], trace,
-            trace_rep,
+            nb, window, width, starts, steps, g, a_u, a_hidden, a_out, p_u, p_hidden, p_self,
+            p_out, outputs, fixed, memo, noise_threshold, noise_key, exact, correct, predsum,
+            final[g], trace, trace_rep,
         )  # fmt: skip
         for rep in range(reps):
             fitness[g, rep] = correct[rep] / (steps * n * r)
