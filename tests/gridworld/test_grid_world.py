@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from grid_helpers import forced_genome, reference_run
 
 from gridworld.evaluate import GridEvaluator, noise_threshold
 from gridworld.world import HEADINGS, SENSOR_OFFSETS, Poses, Torus, draw_starts, heading_index
-from helpers import forced_genome, reference_run
 from surprise.gridnet import GridGenomeLayout, GridNetSpec
 
 # Sensor cells written out for heading east (x right, y up: right of east is -y), from the
@@ -108,8 +108,9 @@ def test_turns_never_conflict():
 @pytest.mark.parametrize(
     "sensors,predefined", [(14, None), (6, None), (8, None), (14, "line-partial"), (14, "pair")]
 )
-def test_compiled_loop_matches_the_plain_reference(sensors, predefined):
-    torus = Torus(6, 5)
+@pytest.mark.parametrize("width,height", [(6, 5), (4, 7)])  # bit rows; cell by cell
+def test_compiled_loop_matches_the_plain_reference(sensors, predefined, width, height):
+    torus = Torus(width, height)
     spec = GridNetSpec(sensors, predefined)
     layout = GridGenomeLayout(spec)
     rng = np.random.default_rng(sensors)
@@ -120,9 +121,9 @@ def test_compiled_loop_matches_the_plain_reference(sensors, predefined):
     for g in range(2):
         for rep in range(2):
             out = ev.evaluate(genomes[g : g + 1], starts, trace=(0, rep))
-            start = [(int(c) % 6, int(c) // 6, int(d)) for c, d in starts[rep]]
-            trace, fitness, predsum = reference_run(layout, genomes[g], 6, 5, start, steps)
-            ours = [[(int(c) % 6, int(c) // 6, int(d)) for c, d in f] for f in out.trace]
+            start = [(int(c) % width, int(c) // width, int(d)) for c, d in starts[rep]]
+            trace, fitness, predsum = reference_run(layout, genomes[g], width, height, start, steps)
+            ours = [[(int(c) % width, int(c) // width, int(d)) for c, d in f] for f in out.trace]
             assert ours == trace
             assert out.fitness[0, rep] == pytest.approx(fitness, abs=1e-12)
             np.testing.assert_allclose(out.predictions[0, rep], predsum, atol=1e-12)
