@@ -70,7 +70,7 @@ class GridEvaluator:
         if all(5 <= side <= WINDOW_MAX_SIDE for side in sides):
             self.window = window_table(spec.sensors)
         else:  # sensors are looked up cell by cell
-            self.window = np.zeros((0, 0), dtype=np.uint16)
+            self.window = np.zeros((0, 3, 32), dtype=np.uint16)
 
     def evaluate(
         self,

@@ -211,7 +211,7 @@ def simulate_genome(
     for k in range(r):
         first |= np.int64(fixed[k]) << k
     pmask = np.full(lanes, first, dtype=np.int64)
-    popcount = np.zeros(1 << r, dtype=np.int64)
+    popcount = np.zeros(1 << r, dtype=np.uint8)
     for v in range(1, 1 << r):
         popcount[v] = popcount[v >> 1] + (v & 1)
     hidden = np.zeros((hp, lanes), dtype=np.float32)
@@ -239,17 +239,18 @@ def simulate_genome(
             if bits_ok:
                 for a in range(lo, hi):
                     x, y = xs[a], ys[a]
-                    if head[a] & 1 == 0:
+                    d = head[a]
+                    if d & 1 == 0:
                         s0 = sx[x]
-                        w = (rows[rep, ym[y]] >> s0) & five
-                        w |= ((rows[rep, y] >> s0) & five) << np.uint64(5)
-                        w |= ((rows[rep, yp[y]] >> s0) & five) << np.uint64(10)
+                        w0 = (rows[rep, ym[y]] >> s0) & five
+                        w1 = (rows[rep, y] >> s0) & five
+                        w2 = (rows[rep, yp[y]] >> s0) & five
                     else:
                         s0 = sy[y]
-                        w = (cols[rep, xm[x]] >> s0) & five
-                        w |= ((cols[rep, x] >> s0) & five) << np.uint64(5)
-                        w |= ((cols[rep, xp[x]] >> s0) & five) << np.uint64(10)
-                    key[a] = window[head[a], w]
+                        w0 = (cols[rep, xm[x]] >> s0) & five
+                        w1 = (cols[rep, x] >> s0) & five
+                        w2 = (cols[rep, xp[x]] >> s0) & five
+                    key[a] = window[d, 0, w0] | window[d, 1, w1] | window[d, 2, w2]
             else:
                 for a in range(lo, hi):
                     base[a] = (cell[a] * 4 + head[a]) * r

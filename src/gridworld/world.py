@@ -98,17 +98,17 @@ WINDOW_MAX_SIDE = 32
 
 
 def window_table(sensors: int) -> np.ndarray:
-    """``table[heading, window]``: the sensor bits (bit k = sensor k) of an agent whose
-    surroundings are ``window``, 15 bits of occupancy around it. For headings east and west the
-    window is rows y-1, y, y+1 (5 bits each, x-2 ... x+2, lowest bit first); for north and south
-    it is columns x-1, x, x+1 (5 bits each, y-2 ... y+2). uint16, shape (4, 32768)."""
-    idx = np.arange(1 << 15, dtype=np.int64)
-    table = np.zeros((4, idx.size), dtype=np.int64)
+    """``table[heading, part, bits]``: the sensor bits (bit k = sensor k) that 5 bits of
+    occupancy around an agent stand for, to be ORed over the three parts. For headings east and
+    west the parts are rows y-1, y, y+1 (bits for x-2 ... x+2, lowest first); for north and
+    south columns x-1, x, x+1 (bits for y-2 ... y+2). uint16, shape (4, 3, 32)."""
+    bits = np.arange(32, dtype=np.int64)
+    table = np.zeros((4, 3, 32), dtype=np.int64)
     for d in range(4):
         for k, (f, r) in enumerate(SENSOR_OFFSETS[sensors]):
             dx, dy = sensor_cell_offset(d, f, r)
-            bit = (dy + 1) * 5 + (dx + 2) if d % 2 == 0 else (dx + 1) * 5 + (dy + 2)
-            table[d] |= ((idx >> bit) & 1) << k
+            part, bit = (dy + 1, dx + 2) if d % 2 == 0 else (dx + 1, dy + 2)
+            table[d, part] |= ((bits >> bit) & 1) << k
     return table.astype(np.uint16)
 
 
