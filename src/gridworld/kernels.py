@@ -29,7 +29,7 @@ from surprise.gridnet import c_activation, c_negative
 from surprise.jit import kernel
 from surprise.rng import mix32
 
-__all__ = ["evaluate_batch", "tanh_fast"]
+__all__ = ["actor_decision", "evaluate_batch", "tanh_fast"]
 
 
 # float32 constants keep the rational tanh in single precision (twice the lanes per vector)
@@ -68,24 +68,34 @@ def tanh_fast(x: np.float32) -> np.float32:
 
 
 @kernel
-def _actor_decision(
-    a_u: np.ndarray, a_hidden: np.ndarray, a_out: np.ndarray, key: int, inputs: int
+def actor_decision(
+    a_u: np.ndarray,
+    a_hidden: np.ndarray,
+    a_out: np.ndarray,
+    key: int,
+    inputs: int,
+    scratch: np.ndarray,
 ) -> int:
-    # The code's propagation for the input bits in ``key`` (bit i = input i); returns
-    # a0 + 2 * (1 if the turn goes left). Sums are float32 in the code's order.
+    """The actor's decision for the input bits in ``key`` (bit i = input i) by the code's
+    arithmetic: a0 + 2 * (1 if it turns left). ``scratch`` holds at least H_a float32 values.
+
+    Every hidden unit's sum runs over the inputs in order, in float32, as in the code; the
+    units are summed side by side (inputs outer) so the loop vectorises across them.
+    """
     ha = a_hidden.shape[0]
-    hidden = np.empty(ha, dtype=np.float32)
     for j in range(ha):
-        z = np.float32(0.0)
-        for i in range(inputs):
-            z += a_u[(key >> i) & 1, i] * a_hidden[j, i]
-        hidden[j] = c_activation(z)
+        scratch[j] = 0.0
+    for i in range(inputs):
+        u = a_u[(key >> i) & 1, i]
+        for j in range(ha):
+            scratch[j] += u * a_hidden[j, i]
+    for j in range(ha):
+        scratch[j] = c_activation(scratch[j])
     z0 = np.float32(0.0)
-    for j in range(ha):
-        z0 += hidden[j] * a_out[0, j]
     z1 = np.float32(0.0)
     for j in range(ha):
-        z1 += hidden[j] * a_out[1, j]
+        z0 += scratch[j] * a_out[0, j]
+        z1 += scratch[j] * a_out[1, j]
     a0 = 0 if c_negative(z0) else 1
     left = 1 if c_negative(z1) else 0
     return a0 + 2 * left
@@ -182,6 +192,7 @@ def simulate_genome(
     # per agent: the sensor bits read this step with this step's a0 above them (the predictor's
     # inputs), and the bits of the prediction to be scored at the next step
     pkey = np.zeros(lanes, dtype=np.int32)
+    scratch = np.zeros(a_hidden.shape[1], dtype=np.float32)
     key = np.zeros(lanes, dtype=np.int64)
     base = np.zeros(lanes, dtype=np.int64)
     # bit rows and columns of each run's occupancy, doubled (bits 0..W-1 repeated above) so a
@@ -273,7 +284,7 @@ def simulate_genome(
             full = key[a] | (a0[a] << r)
             m = memo[full]
             if m < 0:
-                m = _actor_decision(a_u[g], a_hidden[g], a_out[g], full, inputs)
+                m = actor_decision(a_u[g], a_hidden[g], a_out[g], full, inputs, scratch)
                 memo[full] = m
             a0[a] = m & 1
             left[a] = m >> 1

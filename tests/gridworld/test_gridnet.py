@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from gridworld.kernels import _actor_decision, tanh_fast
+from gridworld.kernels import actor_decision, tanh_fast
 from surprise.errors import GenomeError
 from surprise.gridnet import (
     GridGenomeLayout,
@@ -103,10 +103,12 @@ def test_actor_kernel_matches_the_reference_on_every_input(sensors):
     genome = rng.uniform(-1, 1, layout.size)
     nets = grid_networks(layout, genome)
     keys = range(1 << (sensors + 1)) if sensors < 14 else rng.integers(0, 1 << 15, 300)
+    scratch = np.zeros(spec.actor_hidden, dtype=np.float32)
     for key in keys:
         inputs = [(int(key) >> i) & 1 for i in range(sensors + 1)]
         a0, turn = actor_reference(layout, genome, inputs)
-        m = _actor_decision(nets.a_u[0], nets.a_hidden[0], nets.a_out[0], int(key), sensors + 1)
+        m = actor_decision(nets.a_u[0], nets.a_hidden[0], nets.a_out[0], int(key), sensors + 1,
+                           scratch)  # fmt: skip
         assert (m & 1, 1 if m >> 1 else -1) == (a0, turn)
 
 
