@@ -91,7 +91,7 @@ def generation_noise_key(seed: int, generation: int) -> int:
     return int(np.random.default_rng([seed, 2, generation]).integers(0, 2**32))
 
 
-def _columns(sensors: int, novelty: bool) -> list[str]:
+def _columns(sensors: int) -> list[str]:
     cols = ["generation", "best_fitness", "mean_fitness", "best_index", "repetition"]
     return cols + [f"prediction_{k}" for k in range(sensors)]
 
@@ -221,7 +221,7 @@ def run_evolution(
             "elapsed_s": elapsed,
         }
         write_json(checkpoint_file, state)
-        _write_csv(out / "generations.csv", _columns(sensors, config.novelty), rows)
+        _write_csv(out / "generations.csv", _columns(sensors), rows)
         if progress is not None:
             progress(
                 GenerationReport(g + 1, genetic.generations, fitness_best, outcome.mean_fitness,
