@@ -116,6 +116,8 @@ def _bitboards(
     n: int,
     width: int,
     height: int,
+    xof: np.ndarray,
+    yof: np.ndarray,
     xs: np.ndarray,
     ys: np.ndarray,
     rows: np.ndarray,
@@ -126,8 +128,8 @@ def _bitboards(
     cols[:] = 0
     one = np.uint64(1)
     for a in range(lo, lo + n):
-        x = cell[a] % width
-        y = cell[a] // width
+        x = xof[cell[a]]
+        y = yof[cell[a]]
         xs[a] = x
         ys[a] = y
         rows[y] |= (one << np.uint64(x)) | (one << np.uint64(x + width))
@@ -218,6 +220,15 @@ def simulate_genome(
         yp[y] = (y + 1) % height
         sy[y] = (y + height - 2) % height
     five = np.uint64(31)
+    xof = np.empty(cells, dtype=np.int64)
+    yof = np.empty(cells, dtype=np.int64)
+    front_of = np.empty(cells * 4, dtype=np.int64)
+    for c in range(cells):
+        xof[c] = c % width
+        yof[c] = c // width
+        for d in range(4):
+            front_of[c * 4 + d] = nb[c, d, 0]
+    before = np.empty(lanes, dtype=np.int32)
     first = 0
     for k in range(r):
         first |= np.int64(fixed[k]) << k
@@ -227,6 +238,8 @@ def simulate_genome(
         popcount[v] = popcount[v >> 1] + (v & 1)
     hidden = np.zeros((hp, lanes), dtype=np.float32)
     acc = np.empty(lanes, dtype=np.float32)
+    acc2 = np.empty(lanes, dtype=np.float32)
+    pre = np.empty((hp, lanes), dtype=np.float32)
     counts = np.zeros((reps, r), dtype=np.int64)
     learned = np.zeros(r, dtype=np.bool_)
     for q in range(o):
@@ -236,7 +249,7 @@ def simulate_genome(
         for a in range(n):
             occ[rep, cell[rep * n + a]] = 1
         if bits_ok:
-            _bitboards(cell, rep * n, n, width, height, xs, ys, rows[rep], cols[rep])
+            _bitboards(cell, rep * n, n, width, height, xof, yof, xs, ys, rows[rep], cols[rep])
     for t in range(steps):
         if trace_rep >= 0:
             for a in range(n):
@@ -291,7 +304,26 @@ def simulate_genome(
             pkey[a] = np.int32(key[a] | ((m & 1) << r))
         # predictor on all agents of all runs: hidden units with self-loops, then the outputs;
         # the predictions made before the last step are counted for the mean per sensor
-        for j in range(hp):
+        # input layer sums two hidden units at a time (sharing each agent's input bits)
+        for j in range(0, hp - 1, 2):
+            for a in range(lanes):
+                acc[a] = 0.0
+                acc2[a] = 0.0
+            for i in range(inputs):
+                c0 = p_u[g, 0, i] * p_hidden[g, j, i]
+                c1 = p_u[g, 1, i] * p_hidden[g, j, i]
+                d0 = p_u[g, 0, i] * p_hidden[g, j + 1, i]
+                d1 = p_u[g, 1, i] * p_hidden[g, j + 1, i]
+                bit = np.int32(1) << np.int32(i)
+                for a in range(lanes):
+                    on = pkey[a] & bit
+                    acc[a] += c1 if on else c0
+                    acc2[a] += d1 if on else d0
+            for a in range(lanes):
+                pre[j, a] = acc[a]
+                pre[j + 1, a] = acc2[a]
+        if hp % 2 == 1:
+            j = hp - 1
             for a in range(lanes):
                 acc[a] = 0.0
             for i in range(inputs):
@@ -300,6 +332,11 @@ def simulate_genome(
                 bit = np.int32(1) << np.int32(i)
                 for a in range(lanes):
                     acc[a] += c1 if pkey[a] & bit else c0
+            for a in range(lanes):
+                pre[j, a] = acc[a]
+        for j in range(hp):
+            for a in range(lanes):
+                acc[a] = pre[j, a]
             v = p_self[g, j]
             for a in range(lanes):
                 acc[a] += hidden[j, a] * v
@@ -335,26 +372,27 @@ def simulate_genome(
                         total += (pmask[a] >> s) & 1
                     counts[rep, s] += total
         # moves in index order against the snapshot and the cells taken so far this step
+        # (written without branches: whether an agent moves is not predictable)
         stamp = t + 1
         for rep in range(reps):
+            occ_r = occ[rep]
+            claimed_r = claimed[rep]
             for a in range(rep * n, rep * n + n):
-                if a0[a] == 0:
-                    front = nb[cell[a], head[a], 0]
-                    if occ[rep, front] == 0 and claimed[rep, front] != stamp:
-                        claimed[rep, front] = stamp
-                        occ[rep, cell[a]] = 2  # vacated: still blocks this step's snapshot
-                        cell[a] = front
-                elif left[a] == 1:
-                    head[a] = (head[a] + 1) & 3
-                else:
-                    head[a] = (head[a] + 3) & 3
+                c = cell[a]
+                h = head[a]
+                before[a] = c
+                front = front_of[c * 4 + h]
+                moves = (a0[a] == 0) & (occ_r[front] == 0) & (claimed_r[front] != stamp)
+                claimed_r[front] = stamp if moves else claimed_r[front]
+                cell[a] = front if moves else c
+                # a turn adds 1 (left) or 3 (right) to the heading, a move or a block adds 0
+                head[a] = (h + a0[a] * (3 - 2 * left[a])) & 3
             for a in range(rep * n, rep * n + n):
-                occ[rep, cell[a]] = 1
-            for c in range(cells):
-                if occ[rep, c] == 2:
-                    occ[rep, c] = 0
+                occ_r[before[a]] = 0
+            for a in range(rep * n, rep * n + n):
+                occ_r[cell[a]] = 1
             if bits_ok:
-                _bitboards(cell, rep * n, n, width, height, xs, ys, rows[rep], cols[rep])
+                _bitboards(cell, rep * n, n, width, height, xof, yof, xs, ys, rows[rep], cols[rep])
     for rep in range(reps):
         for a in range(n):
             final[rep, a, 0] = cell[rep * n + a]
