@@ -33,13 +33,17 @@ except ImportError:  # pragma: no cover - depends on the installation
 JIT: bool = _numba is not None
 
 
-def kernel(function: F) -> F:
+def kernel(function: F | None = None, *, error_model: str = "python") -> Any:
     """Compile ``function`` with numba (no Python objects, cached on disk) if available.
 
     The original function stays reachable as ``.py_func`` either way, so tests can check that the
-    interpreted and the compiled kernel agree.
+    interpreted and the compiled kernel agree. ``@kernel(error_model="numpy")`` compiles without
+    Python's division-by-zero check (x / 0 gives inf or nan): the check is a branch that keeps
+    loops from being vectorised, so an arithmetic kernel whose divisor is never 0 uses it.
     """
+    if function is None:
+        return lambda f: kernel(f, error_model=error_model)
     if _numba is None:
         function.py_func = function  # type: ignore[attr-defined]
         return function
-    return _numba.njit(cache=True, nogil=True)(function)  # type: ignore[return-value]
+    return _numba.njit(cache=True, nogil=True, error_model=error_model)(function)

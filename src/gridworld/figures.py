@@ -1,0 +1,198 @@
+"""The figures of paper Sec. IV from the summaries of many grid-world runs.
+
+Each function takes a pandas DataFrame with one row per run, holding :func:`gridworld.tasks.
+run_task`'s summary keys (``best_fitness``, ``quality``, ``pattern``, ``mean_predictions``, ...)
+plus a ``group`` column (e.g. ``evolved``, ``random``) and the sweep's column (e.g. ``size``), and
+writes PNG and PDF files. pandas (the ``studies`` extra) and matplotlib (``master``) are imported inside the
+functions. Every function returns the paths it wrote.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gridworld.patterns import PATTERN_NAMES, PATTERNS
+from gridworld.world import SENSOR_OFFSETS
+
+__all__ = [
+    "example_grids",
+    "fitness_and_quality_by",
+    "fitness_over_generations",
+    "pattern_distribution_by",
+    "predictions_by_pattern",
+]
+
+#: Colours of the nine patterns (stable across figures).
+PATTERN_COLOURS = dict(
+    zip(
+        PATTERNS,
+        ("#1f77b4", "#aec7e8", "#9edae5", "#d62728", "#ff7f0e", "#2ca02c", "#8c564b",
+         "#9467bd", "#7f7f7f"),
+        strict=True,
+    )
+)  # fmt: skip
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig: Any, stem: Path) -> list[Path]:
+    stem.parent.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for ext in ("png", "pdf"):
+        path = stem.with_name(f"{stem.name}.{ext}")
+        fig.savefig(path, dpi=150, bbox_inches="tight")
+        paths.append(path)
+    _pyplot().close(fig)
+    return paths
+
+
+def fitness_over_generations(
+    generation_files: Sequence[str | Path], out: str | Path, title: str | None = None
+) -> list[Path]:
+    """Best fitness per generation of many runs (paper Fig. 5a): a box per generation (every
+    tenth labelled) and the median as a line. ``generation_files`` are runs' generations.csv."""
+    import pandas as pd
+
+    plt = _pyplot()
+    frames = [pd.read_csv(path)[["generation", "best_fitness"]] for path in generation_files]
+    if not frames:
+        raise ValueError("no generations files given")
+    data = pd.concat(frames)
+    by_gen = [g["best_fitness"].to_numpy() for _, g in data.groupby("generation")]
+    gens = sorted(data["generation"].unique())
+    fig, ax = plt.subplots(figsize=(8, 3.5))
+    ax.boxplot(by_gen, positions=gens, widths=0.6, showfliers=False)
+    ax.plot(gens, [np.median(v) for v in by_gen], color="C3", label="median")
+    ticks = [g for g in gens if g % 10 == 0]
+    ax.set_xticks(ticks, [str(g) for g in ticks])
+    ax.set_xlabel("generation")
+    ax.set_ylabel("best fitness")
+    ax.legend()
+    if title:
+        ax.set_title(title)
+    return _save(fig, Path(out))
+
+
+def fitness_and_quality_by(frame: Any, out: str | Path, by: str = "size") -> list[Path]:
+    """Best fitness and solution quality per value of ``by`` (paper Fig. 5b/c, 8a/b, 11a/b):
+    box plots, one box per group side by side."""
+    plt = _pyplot()
+    groups = sorted(frame["group"].unique())
+    values = sorted(frame[by].unique())
+    fig, axes = plt.subplots(2, 1, figsize=(max(6, 0.5 * len(values) * len(groups)), 6),
+                             sharex=True)  # fmt: skip
+    width = 0.8 / len(groups)
+    for row, (column, label, scale) in enumerate(
+        (("best_fitness", "best fitness", 1.0), ("quality", "solution quality (%)", 100.0))
+    ):
+        ax = axes[row]
+        for gi, group in enumerate(groups):
+            sub = frame[frame["group"] == group]
+            data = [sub[sub[by] == v][column].dropna().to_numpy() * scale for v in values]
+            positions = np.arange(len(values)) + (gi - (len(groups) - 1) / 2) * width
+            parts = ax.boxplot(data, positions=positions, widths=width * 0.9,
+                               patch_artist=True, showfliers=False)  # fmt: skip
+            for box in parts["boxes"]:
+                box.set_facecolor(f"C{gi}")
+                box.set_alpha(0.6)
+            ax.plot([], [], color=f"C{gi}", label=str(group), linewidth=6, alpha=0.6)
+        ax.set_ylabel(label)
+        ax.legend(fontsize="small")
+    axes[1].set_xticks(np.arange(len(values)), [str(v) for v in values])
+    axes[1].set_xlabel(by)
+    return _save(fig, Path(out))
+
+
+def pattern_distribution_by(
+    frame: Any, out: str | Path, by: str = "size", group: str | None = None
+) -> list[Path]:
+    """Share of runs per dominant pattern for each value of ``by`` as stacked bars (paper
+    Fig. 7, 8c/d, 11c, 12), for one ``group`` (default: all rows)."""
+    plt = _pyplot()
+    if group is not None:
+        frame = frame[frame["group"] == group]
+    values = sorted(frame[by].unique())
+    fig, ax = plt.subplots(figsize=(max(6, 0.45 * len(values)), 3.8))
+    bottom = np.zeros(len(values))
+    for pattern in PATTERNS:
+        shares = np.array(
+            [100.0 * np.mean(frame[frame[by] == v]["pattern"] == pattern) for v in values]
+        )
+        ax.bar(np.arange(len(values)), shares, bottom=bottom, color=PATTERN_COLOURS[pattern],
+               label=pattern)  # fmt: skip
+        bottom += shares
+    ax.set_xticks(np.arange(len(values)), [str(v) for v in values])
+    ax.set_xlabel(by)
+    ax.set_ylabel("runs (%)")
+    ax.set_ylim(0, 100)
+    ax.legend(ncol=9, fontsize="x-small", loc="upper center", bbox_to_anchor=(0.5, 1.15))
+    return _save(fig, Path(out))
+
+
+def predictions_by_pattern(frame: Any, out: str | Path) -> list[Path]:
+    """Mean prediction per sensor drawn on the 14-cell sensor layout, grey from white (0) to
+    black (1), one panel per pattern present (paper Fig. 6). The agent's own cell is marked."""
+    plt = _pyplot()
+    from matplotlib.patches import Rectangle
+
+    rows = frame[frame["mean_predictions"].map(lambda v: v is not None and len(v) == 14)]
+    patterns = [p for p in PATTERNS if (rows["pattern"] == p).any()]
+    if not patterns:
+        raise ValueError("no run with 14 mean predictions")
+    fig, axes = plt.subplots(1, len(patterns), figsize=(2.0 * len(patterns), 3.2), squeeze=False)
+    for ax, pattern in zip(axes[0], patterns, strict=True):
+        mean = np.mean(np.stack(rows[rows["pattern"] == pattern]["mean_predictions"]), axis=0)
+        # the agent faces up: forward is +y, right is +x
+        for k, (f, r) in enumerate(SENSOR_OFFSETS[14]):
+            grey = 1.0 - float(mean[k])
+            ax.add_patch(Rectangle((r - 0.5, f - 0.5), 1, 1, facecolor=str(grey),
+                                   edgecolor="0.4"))  # fmt: skip
+            ax.text(r, f, str(k), ha="center", va="center", fontsize=7,
+                    color="white" if grey < 0.5 else "black")  # fmt: skip
+        ax.add_patch(Rectangle((-0.5, -0.5), 1, 1, facecolor="none", edgecolor="C3",
+                               hatch="//"))  # fmt: skip
+        ax.annotate("", xy=(0, 0.4), xytext=(0, -0.3), arrowprops={"arrowstyle": "->"})
+        ax.set_xlim(-1.6, 1.6)
+        ax.set_ylim(-2.6, 2.6)
+        ax.set_aspect("equal")
+        ax.axis("off")
+        count = int((rows["pattern"] == pattern).sum())
+        ax.set_title(f"{PATTERN_NAMES[pattern]}\n(n = {count})", fontsize=8)
+    return _save(fig, Path(out))
+
+
+def example_grids(frame: Any, out: str | Path, grid_file: str = "final_grid.json") -> list[Path]:
+    """One example final grid per pattern (paper Fig. 4): the highest-quality run of each
+    pattern; needs a ``run_dir`` column pointing at the runs' directories."""
+    import json
+
+    from gridworld.plots import draw_grid
+    from gridworld.world import Poses
+
+    plt = _pyplot()
+    picks = []
+    for pattern in PATTERNS:
+        sub = frame[frame["pattern"] == pattern]
+        if len(sub):
+            picks.append(sub.sort_values("quality", ascending=False).iloc[0])
+    if not picks:
+        raise ValueError("no runs to draw")
+    fig, axes = plt.subplots(1, len(picks), figsize=(3.0 * len(picks), 3.2), squeeze=False)
+    for ax, row in zip(axes[0], picks, strict=True):
+        data = json.loads((Path(row["run_dir"]) / grid_file).read_text(encoding="utf-8"))
+        poses = Poses.from_rows(data["final"])
+        title = f"{PATTERN_NAMES[row['pattern']]} ({row['quality']:.0%}), L = {data['width']}"
+        draw_grid(ax, data["width"], data["height"], poses, title)
+        ax.title.set_fontsize(8)
+    return _save(fig, Path(out))

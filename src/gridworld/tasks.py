@@ -1,0 +1,343 @@
+"""The grid world's tasks for the studies: plain data in, plain data out.
+
+``run_task(kind, params, seed, run_dir)`` runs one task of :data:`GRID_KINDS`, writes its files
+into ``run_dir`` (created) and returns a JSON-safe summary with at least ``kind``, ``seed``,
+``size``, ``best_fitness`` and ``fitness`` (the same number; None for novelty search, which has no
+predictor), ``pattern``, ``quality``, ``scores`` (pattern -> fraction), ``mean_predictions`` (one
+per sensor), ``generations_file`` (relative path of the per-generation CSV, or None) and
+``seconds``. The same seed gives the same result. ``params`` are decoded strictly per kind: an
+unknown or ill-typed key is a :class:`~surprise.errors.ConfigError` naming it.
+
+Kinds:
+
+- ``grid-evolved``: a GA run (:class:`gridworld.config.GridRunConfig`'s keys).
+- ``grid-random``: one random genome, scored as the GA scores a genome (``repetitions`` runs of
+  ``steps`` steps, reduced by ``fitness_of``).
+- ``grid-selected-random``: the best by that score of ``candidates`` random genomes (default
+  5000), all on the same start configurations (the code with population = candidates and one
+  generation).
+- ``grid-novelty``: a novelty-search run; ``individuals.csv`` holds every individual's novelty,
+  behaviour, pattern and quality, the summary its pattern counts and the quality-best one.
+- ``grid-damage``: rerun an evolved genome (``genome_run``: a run directory, or ``genome`` and
+  ``start``), remove the agents in the rectangle ``[xmin, xmax] x [ymin, ymax]`` of its final
+  structure (``variant: remove``) or put them back at random free cells outside it
+  (``reposition``), then run ``steps`` more steps; similarity S = share of the N0 agents of the
+  initial run whose final pose is a final pose of the repair.
+- ``grid-rerun``: rerun an evolved genome (``genome_run`` or ``genome``) on another grid from
+  random starts (``repetitions`` runs, default 1).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import msgspec
+import numpy as np
+
+from gridworld.config import GridRunConfig
+from gridworld.evaluate import GridEvaluator
+from gridworld.evolve import RunFinished, run_evolution, write_json
+from gridworld.patterns import classify
+from gridworld.world import Poses, Torus, draw_starts
+from surprise.config import Probability, Strict, decode
+from surprise.errors import ConfigError
+from surprise.genetic import reduce_repetitions
+from surprise.gridnet import GridGenomeLayout, GridNetSpec
+
+__all__ = ["GRID_KINDS", "run_task"]
+
+#: The task kinds :func:`run_task` knows.
+GRID_KINDS: tuple[str, ...] = (
+    "grid-evolved",
+    "grid-random",
+    "grid-selected-random",
+    "grid-novelty",
+    "grid-damage",
+    "grid-rerun",
+)
+
+PositiveInt = Annotated[int, msgspec.Meta(ge=1)]
+NonNegativeInt = Annotated[int, msgspec.Meta(ge=0)]
+
+
+class RandomParams(Strict):
+    """Parameters of ``grid-random`` and ``grid-selected-random``."""
+
+    size: PositiveInt = 15
+    height: PositiveInt | None = None
+    agents: PositiveInt = 100
+    sensors: Literal[14, 6, 8] = 14
+    predefined: str | None = None
+    noise: Probability = 0.0
+    repetitions: PositiveInt = 10
+    steps: PositiveInt = 500
+    initial_range: Annotated[float, msgspec.Meta(ge=0.0)] = 0.5
+    fitness_of: Literal["min", "mean", "max"] = "min"
+    candidates: PositiveInt = 5000
+
+
+class GenomeParams(Strict):
+    """The genome of ``grid-damage`` and ``grid-rerun``: a run directory, or the genome inline
+    with its sensors and predefined predictions (and, for damage, its start poses)."""
+
+    genome_run: str | None = None
+    genome: list[float] | None = None
+    sensors: Literal[14, 6, 8] = 14
+    predefined: str | None = None
+    start: list[list[int]] | None = None
+
+
+class RerunParams(GenomeParams):
+    """Parameters of ``grid-rerun``: the new grid and how many runs."""
+
+    size: PositiveInt = 15
+    height: PositiveInt | None = None
+    agents: PositiveInt = 100
+    noise: Probability = 0.0
+    repetitions: PositiveInt = 1
+    steps: PositiveInt = 500
+
+
+class DamageParams(GenomeParams):
+    """Parameters of ``grid-damage``: the rectangle, the variant, and the grid of the genome's
+    run (taken from ``genome_run`` when given)."""
+
+    variant: Literal["remove", "reposition"] = "remove"
+    xmin: NonNegativeInt = 0
+    xmax: NonNegativeInt = 3
+    ymin: NonNegativeInt = 0
+    ymax: NonNegativeInt = 3
+    size: PositiveInt = 15
+    height: PositiveInt | None = None
+    steps: PositiveInt = 500
+
+
+def _decode(params: dict, type_, kind: str):
+    return decode(params, type_, file=f"<{kind} params>")
+
+
+def run_task(kind: str, params: dict, seed: int, run_dir: str | Path) -> dict:
+    """Run one task of :data:`GRID_KINDS` into ``run_dir``; see the module docstring."""
+    if kind not in GRID_KINDS:
+        raise ConfigError(f"unknown kind {kind!r}; expected one of {', '.join(GRID_KINDS)}")
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    started = time.perf_counter()
+    params = dict(params or {})
+    if kind in ("grid-evolved", "grid-novelty"):
+        if kind == "grid-novelty":
+            params.setdefault("novelty", True)
+        config = _decode(params, GridRunConfig, kind)
+        if config.novelty != (kind == "grid-novelty"):
+            raise ConfigError("novelty must match the kind", file=f"<{kind} params>",
+                              key="novelty")  # fmt: skip
+        try:
+            summary = run_evolution(config, seed, run_dir)
+        except RunFinished as finished:  # deterministic: the stored result is the result
+            return finished.summary
+    elif kind in ("grid-random", "grid-selected-random"):
+        summary = _random(kind, _decode(params, RandomParams, kind), seed, run_dir)
+    elif kind == "grid-rerun":
+        summary = _rerun(_decode(params, RerunParams, kind), seed, run_dir)
+    else:
+        summary = _damage(_decode(params, DamageParams, kind), seed, run_dir)
+    summary["kind"] = kind
+    summary["seed"] = seed
+    summary["seconds"] = time.perf_counter() - started
+    summary.setdefault("generations_file", None)
+    write_json(run_dir / "summary.json", summary)
+    return summary
+
+
+def _classified(
+    width: int, height: int, final_cells: np.ndarray, torus: Torus
+) -> tuple[Poses, dict[str, Any]]:
+    poses = Poses.from_cells(torus, final_cells)
+    c = classify(width, height, poses)
+    return poses, {"pattern": c.pattern, "quality": c.quality, "scores": c.scores}
+
+
+def _random(kind: str, p: RandomParams, seed: int, run_dir: Path) -> dict[str, Any]:
+    height = p.height or p.size
+    torus = Torus(p.size, height)
+    spec = _spec(p.sensors, p.predefined)
+    evaluator = GridEvaluator(torus, spec, p.steps, p.noise)
+    layout = evaluator.layout
+    rng = np.random.default_rng([seed, 10])
+    count = p.candidates if kind == "grid-selected-random" else 1
+    starts = draw_starts(np.random.default_rng([seed, 11]), torus, p.agents, p.repetitions)
+    noise_key = int(np.random.default_rng([seed, 12]).integers(0, 2**32))
+    best = (-1.0, None, None, None, None)
+    for begin in range(0, count, 50):  # batches bound the memory of the results
+        batch = min(50, count - begin)
+        genomes = rng.uniform(-p.initial_range, p.initial_range, (batch, layout.size))
+        result = evaluator.evaluate(genomes, starts, noise_key)
+        fitness, reps = reduce_repetitions(result.fitness, p.fitness_of)
+        i = int(np.argmax(fitness))
+        if fitness[i] > best[0]:
+            rep = int(reps[i])
+            best = (float(fitness[i]), genomes[i], rep, result.final[i, rep],
+                    result.predictions[i, rep])  # fmt: skip
+    fitness_value, genome, rep, final, predictions = best
+    poses, classified = _classified(p.size, height, final, torus)
+    _write_genome(run_dir, genome, spec, fitness_value)
+    _write_grid(run_dir, p.size, height, Poses.from_cells(torus, starts[rep]), poses, rep)
+    return {
+        "size": p.size,
+        "height": height,
+        "candidates": count,
+        "best_fitness": fitness_value,
+        "fitness": fitness_value,
+        **classified,
+        "mean_predictions": np.asarray(predictions).tolist(),
+    }
+
+
+def _spec(sensors: int, predefined: str | None) -> GridNetSpec:
+    try:
+        return GridNetSpec(sensors, predefined)
+    except ValueError as exc:
+        raise ConfigError(str(exc), key="predefined") from None
+
+
+def _write_genome(run_dir: Path, genome: np.ndarray, spec: GridNetSpec, fitness: float) -> None:
+    write_json(run_dir / "best_genome.json", {
+        "genome": np.asarray(genome).tolist(), "sensors": spec.sensors,
+        "predefined": spec.predefined, "actor_only": spec.actor_only, "fitness": fitness,
+    })  # fmt: skip
+
+
+def _write_grid(run_dir: Path, width: int, height: int, start: Poses, final: Poses, rep) -> None:
+    write_json(run_dir / "final_grid.json", {
+        "width": width, "height": height, "repetition": rep,
+        "start": start.to_rows(), "final": final.to_rows(),
+    })  # fmt: skip
+
+
+def _load_genome(p: GenomeParams) -> tuple[np.ndarray, GridNetSpec, dict[str, Any] | None]:
+    key_file = "<params>"
+    if p.genome_run is not None:
+        run = Path(p.genome_run)
+        try:
+            data = json.loads((run / "best_genome.json").read_text(encoding="utf-8"))
+            grid = json.loads((run / "final_grid.json").read_text(encoding="utf-8"))
+        except (OSError, ValueError) as exc:
+            raise ConfigError(f"not a finished grid run: {exc}", file=key_file,
+                              key="genome_run") from None  # fmt: skip
+        spec = GridNetSpec(int(data["sensors"]), data.get("predefined"))
+        return np.array(data["genome"], dtype=np.float64), spec, grid
+    if p.genome is None:
+        raise ConfigError("give genome_run or genome", file=key_file, key="genome")
+    spec = _spec(p.sensors, p.predefined)
+    genome = np.array(p.genome, dtype=np.float64)
+    if genome.shape != (GridGenomeLayout(spec).size,):
+        raise ConfigError(
+            f"{genome.size} genes, the network needs {GridGenomeLayout(spec).size}",
+            file=key_file, key="genome",
+        )  # fmt: skip
+    return genome, spec, None
+
+
+def _rerun(p: RerunParams, seed: int, run_dir: Path) -> dict[str, Any]:
+    genome, spec, _ = _load_genome(p)
+    height = p.height or p.size
+    torus = Torus(p.size, height)
+    if p.agents > torus.cells:
+        raise ConfigError(f"{p.agents} agents do not fit", file="<params>", key="agents")
+    evaluator = GridEvaluator(torus, spec, p.steps, p.noise)
+    starts = draw_starts(np.random.default_rng([seed, 20]), torus, p.agents, p.repetitions)
+    noise_key = int(np.random.default_rng([seed, 21]).integers(0, 2**32))
+    result = evaluator.evaluate(genome[None, :], starts, noise_key)
+    fitness, reps = reduce_repetitions(result.fitness, "min")
+    rep = int(reps[0])
+    poses, classified = _classified(p.size, height, result.final[0, rep], torus)
+    _write_genome(run_dir, genome, spec, float(fitness[0]))
+    _write_grid(run_dir, p.size, height, Poses.from_cells(torus, starts[rep]), poses, rep)
+    return {
+        "size": p.size,
+        "height": height,
+        "best_fitness": float(fitness[0]),
+        "fitness": float(fitness[0]),
+        "run_fitness": result.fitness[0].tolist(),
+        **classified,
+        "mean_predictions": result.predictions[0, rep].tolist(),
+    }
+
+
+def _damage(p: DamageParams, seed: int, run_dir: Path) -> dict[str, Any]:
+    genome, spec, grid = _load_genome(p)
+    if grid is not None:
+        width, height = int(grid["width"]), int(grid["height"])
+        start = Poses.from_rows(grid["start"])
+    else:
+        if p.start is None:
+            raise ConfigError("an inline genome needs its start poses", file="<params>",
+                              key="start")  # fmt: skip
+        width, height = p.size, p.height or p.size
+        try:
+            start = Poses.from_rows(p.start)
+        except ValueError as exc:
+            raise ConfigError(str(exc), file="<params>", key="start") from None
+    torus = Torus(width, height)
+    evaluator = GridEvaluator(torus, spec, p.steps)
+    initial = evaluator.evaluate(genome[None, :], start.to_cells(torus)[None])
+    before = Poses.from_cells(torus, initial.final[0, 0])
+    n0 = before.x.size
+    inside = (
+        (before.x >= p.xmin) & (before.x <= p.xmax) & (before.y >= p.ymin) & (before.y <= p.ymax)
+    )
+    kept = Poses(before.x[~inside], before.y[~inside], before.heading[~inside])
+    removed = int(inside.sum())
+    if p.variant == "reposition" and removed:
+        # back at random free cells outside the rectangle, marked as taken as they are placed
+        rng = np.random.default_rng([seed, 30])
+        taken = {(int(x), int(y)) for x, y in zip(kept.x, kept.y, strict=True)}
+        xs, ys, hs = list(kept.x), list(kept.y), list(kept.heading)
+        free = [
+            (x, y)
+            for y in range(height)
+            for x in range(width)
+            if (x, y) not in taken and not (p.xmin <= x <= p.xmax and p.ymin <= y <= p.ymax)
+        ]
+        for idx in rng.choice(len(free), size=removed, replace=False):
+            xs.append(free[idx][0])
+            ys.append(free[idx][1])
+            hs.append(int(rng.integers(0, 4)))
+        damaged = Poses(np.array(xs), np.array(ys), np.array(hs))
+    else:
+        damaged = kept
+    repair = evaluator.evaluate(genome[None, :], damaged.to_cells(torus)[None])
+    after = Poses.from_cells(torus, repair.final[0, 0])
+    c_initial = classify(width, height, before)
+    c_start = classify(width, height, damaged)
+    c_end = classify(width, height, after)
+    final_set = set(map(tuple, before.to_rows()))
+    similarity = sum(tuple(row) in final_set for row in after.to_rows()) / n0
+    from gridworld.plots import plot_grid
+
+    for name, poses in (("initial", before), ("damaged", damaged), ("repaired", after)):
+        plot_grid(width, height, poses, run_dir / name)
+    write_json(run_dir / "damage.json", {
+        "initial": before.to_rows(), "damaged": damaged.to_rows(), "repaired": after.to_rows(),
+    })  # fmt: skip
+    return {
+        "size": width,
+        "height": height,
+        "variant": p.variant,
+        "removed": removed,
+        "initial_fitness": float(initial.fitness[0, 0]),
+        "initial_pattern": c_initial.pattern,
+        "initial_quality": c_initial.quality,
+        "best_fitness": float(repair.fitness[0, 0]),
+        "fitness": float(repair.fitness[0, 0]),
+        "quality_start": c_start.quality,
+        "pattern_start": c_start.pattern,
+        "pattern": c_end.pattern,
+        "quality": c_end.quality,
+        "scores": c_end.scores,
+        "similarity": similarity,
+        "mean_predictions": repair.predictions[0, 0].tolist(),
+    }

@@ -1,0 +1,153 @@
+"""The grid networks' genome layout, gene by gene, and the kernels' arithmetic against the
+plain-loop reference of the authors' propagation."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from gridworld.kernels import actor_decision, tanh_fast
+from surprise.errors import GenomeError
+from surprise.gridnet import (
+    GridGenomeLayout,
+    GridNetSpec,
+    activation,
+    actor_reference,
+    c_negative,
+    grid_networks,
+    predefined_names,
+    predictor_reference,
+)
+
+
+def test_sizes_of_the_codes_networks():
+    assert GridGenomeLayout(GridNetSpec(14)).size == 166 + 450
+    assert GridGenomeLayout(GridNetSpec(6)).size == (14 + 28 + 8) + (14 + 6 * 8 + 36)
+    assert GridGenomeLayout(GridNetSpec(8)).size == (18 + 54 + 12) + (18 + 8 * 10 + 64)
+    man = GridNetSpec(14, "line-partial")
+    assert man.outputs == (1, 2, 4, 5, 6, 7, 9, 10, 12, 13)
+    assert man.predictor_hidden == 12
+    assert GridGenomeLayout(man).size == 166 + 30 + 12 * 16 + 10 * 12
+    assert GridGenomeLayout(GridNetSpec(14, "line")).size == 166
+    assert GridGenomeLayout(GridNetSpec(14, actor_only=True)).size == 166
+
+
+def test_every_gene_has_one_place_in_code_order():
+    # a genome numbered 0, 1, 2, ...: each block is the used prefix of the code's layer array
+    spec = GridNetSpec(14)
+    layout = GridGenomeLayout(spec)
+    w = layout.unpack(np.arange(layout.size, dtype=float))
+    seen = np.concatenate([block.ravel() for block in w.values()])
+    np.testing.assert_array_equal(np.sort(seen), np.arange(layout.size))
+    start = 0
+    for i in range(15):  # layer 0: 2i weight, 2i + 1 threshold
+        assert w["actor.input"][i, 0] == start + 2 * i
+        assert w["actor.input"][i, 1] == start + 2 * i + 1
+    start += 30
+    for j in range(8):  # layer 1: 15 j + i
+        for i in range(15):
+            assert w["actor.hidden"][j, i] == start + 15 * j + i
+    start += 120
+    for k in range(2):  # layer 2: 8 k + j
+        for j in range(8):
+            assert w["actor.output"][k, j] == start + 8 * k + j
+    start += 16
+    for i in range(15):
+        assert w["predictor.input"][i, 0] == start + 2 * i
+    start += 30
+    for j in range(14):  # 16 j + i, self-loop at 16 j + 15
+        for i in range(16):
+            assert w["predictor.hidden"][j, i] == start + 16 * j + i
+    start += 224
+    for k in range(14):
+        for j in range(14):
+            assert w["predictor.output"][k, j] == start + 14 * k + j
+
+
+def test_each_gene_reaches_the_kernel_arrays_where_the_reference_reads_it():
+    spec = GridNetSpec(14)
+    layout = GridGenomeLayout(spec)
+    rng = np.random.default_rng(0)
+    base = rng.uniform(-1, 1, layout.size)
+    ref = grid_networks(layout, base)
+    for gene in range(layout.size):
+        genome = base.copy()
+        genome[gene] += 0.25
+        nets = grid_networks(layout, genome)
+        changed = [
+            name
+            for name in ("a_u", "a_hidden", "a_out", "p_u", "p_hidden", "p_self", "p_out")
+            if not np.array_equal(getattr(nets, name), getattr(ref, name))
+        ]
+        block = next(n for n, (s, shape) in layout.blocks.items()
+                     if s <= gene < s + math.prod(shape))  # fmt: skip
+        expected = {
+            "actor.input": "a_u", "actor.hidden": "a_hidden", "actor.output": "a_out",
+            "predictor.input": "p_u", "predictor.output": "p_out",
+        }  # fmt: skip
+        if block == "predictor.hidden":
+            s, _ = layout.blocks[block]
+            expected_name = "p_self" if (gene - s) % 16 == 15 else "p_hidden"
+        else:
+            expected_name = expected[block]
+        assert changed == [expected_name], (gene, block, changed)
+
+
+@pytest.mark.parametrize("sensors", [14, 6, 8])
+def test_actor_kernel_matches_the_reference_on_every_input(sensors):
+    spec = GridNetSpec(sensors)
+    layout = GridGenomeLayout(spec)
+    rng = np.random.default_rng(sensors)
+    genome = rng.uniform(-1, 1, layout.size)
+    nets = grid_networks(layout, genome)
+    keys = range(1 << (sensors + 1)) if sensors < 14 else rng.integers(0, 1 << 15, 300)
+    scratch = np.zeros(spec.actor_hidden, dtype=np.float32)
+    for key in keys:
+        inputs = [(int(key) >> i) & 1 for i in range(sensors + 1)]
+        a0, turn = actor_reference(layout, genome, inputs)
+        m = actor_decision(nets.a_u[0], nets.a_hidden[0], nets.a_out[0], int(key), sensors + 1,
+                           scratch)  # fmt: skip
+        assert (m & 1, 1 if m >> 1 else -1) == (a0, turn)
+
+
+def test_predictor_reference_keeps_fixed_sensors():
+    spec = GridNetSpec(14, "line-partial")
+    layout = GridGenomeLayout(spec)
+    genome = np.random.default_rng(1).uniform(-1, 1, layout.size)
+    predictions, hidden = predictor_reference(layout, genome, [0] * 15, [0.0] * 12)
+    assert [predictions[k] for k in (0, 3, 8, 11)] == [1, 1, 1, 1]
+    assert len(hidden) == 12
+    assert list(GridNetSpec(14, "pair").fixed) == [1] + [0] * 13
+    assert list(GridNetSpec(8, "line").fixed) == [1, 0, 0, 0, 0, 1, 0, 0]
+    assert list(GridNetSpec(14, "aggregation").fixed) == [1] * 14
+    assert GridNetSpec(14, "aggregation").outputs == ()
+
+
+def test_the_codes_tanh_and_its_sign():
+    assert activation(0.0) == 0.0
+    assert activation(0.5) == pytest.approx(math.tanh(0.5), abs=1e-7)
+    assert not c_negative(np.float32(0.0))
+    assert c_negative(np.float32(-1e-3))
+    # exp(2e-17) rounds to 1 in double: the code's tanh gives 0, which is not negative
+    assert not c_negative(np.float32(-1e-17))
+    xs = np.linspace(-12, 12, 4001, dtype=np.float32)
+    assert max(abs(float(tanh_fast(x)) - math.tanh(float(x))) for x in xs) < 3e-7
+
+
+def test_bad_specs_and_genomes_are_refused():
+    with pytest.raises(ValueError, match="one of 14, 6, 8"):
+        GridNetSpec(7)
+    with pytest.raises(ValueError, match="unknown predefined"):
+        GridNetSpec(14, "circle")
+    with pytest.raises(ValueError, match="nothing is left"):
+        GridNetSpec(6, "square-partial")
+    with pytest.raises(ValueError, match="nothing is left"):
+        GridNetSpec(14, "aggregation-partial")
+    assert "line-partial" in predefined_names()
+    layout = GridGenomeLayout(GridNetSpec(14))
+    with pytest.raises(GenomeError, match="shape"):
+        layout.unpack(np.zeros(5))
+    with pytest.raises(GenomeError, match="non-finite"):
+        layout.unpack(np.full(layout.size, np.nan))
