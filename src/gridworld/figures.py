@@ -3,8 +3,9 @@
 Each function takes a pandas DataFrame with one row per run, holding :func:`gridworld.tasks.
 run_task`'s summary keys (``best_fitness``, ``quality``, ``pattern``, ``mean_predictions``, ...)
 plus a ``group`` column (e.g. ``evolved``, ``random``) and the sweep's column (e.g. ``size``), and
-writes PNG and PDF files. pandas (the ``studies`` extra) and matplotlib (``master``) are imported inside the
-functions. Every function returns the paths it wrote.
+writes PNG and PDF files. pandas (the ``studies`` extra) and matplotlib (``master``) are imported
+inside the functions. Every function returns the paths it wrote; :func:`study_figures` draws them
+all for a study's report.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ __all__ = [
     "fitness_over_generations",
     "pattern_distribution_by",
     "predictions_by_pattern",
+    "study_figures",
 ]
 
 #: Colours of the nine patterns (stable across figures).
@@ -196,3 +198,64 @@ def example_grids(frame: Any, out: str | Path, grid_file: str = "final_grid.json
         draw_grid(ax, data["width"], data["height"], poses, title)
         ax.title.set_fontsize(8)
     return _save(fig, Path(out))
+
+
+def _subsets(frame: Any, keys: list[str]):
+    # (label, rows) for every combination of the values of keys ("" and all rows without keys).
+    if not keys:
+        yield "", frame
+        return
+    for values, rows in frame.groupby(keys, sort=True):
+        values = values if isinstance(values, tuple) else (values,)
+        yield ", ".join(f"{k}={v}" for k, v in zip(keys, values, strict=True)), rows
+
+
+def _slug(label: str) -> str:
+    return "".join(c if c.isalnum() or c in "=.-" else "_" for c in label.replace(", ", "_"))
+
+
+def study_figures(study: str | Path, frame: Any, directory: str | Path) -> list[str]:
+    """The Sec. IV figures of a study's grid runs, into ``directory/grid/``; the paths written.
+
+    ``frame`` holds the study's finished grid runs as ``studies.report.load_runs`` gives them
+    (``group``, ``kind``, ``run``, the sweep columns named in ``frame.attrs["sweep"]``, the
+    summary's ``size``, ``best_fitness``, ``quality``, ``pattern`` and the whole summary in
+    ``_summary``). Written: best fitness over generations for each evolved group and sweep value;
+    for each sweep key (the grid size when nothing is swept), fitness and quality per value with
+    every group side by side, and each group's pattern distribution per value (the other keys
+    fixed); mean predictions per pattern on the sensor layout, and one example grid per pattern,
+    from the evolved runs.
+    """
+    study, directory = Path(study), Path(directory) / "grid"
+    frame = frame.copy()
+    frame["run_dir"] = [str(study / "runs" / run) for run in frame["run"]]
+    frame["mean_predictions"] = [s.get("mean_predictions") for s in frame["_summary"]]
+    sweep = [k for k in frame.attrs.get("sweep", []) if k in frame and frame[k].notna().any()]
+    written: list[Path] = []
+    evolved = frame[frame["kind"] == "grid-evolved"]
+    for group, rows in evolved.groupby("group", sort=False):
+        for label, sub in _subsets(rows, [k for k in sweep if rows[k].notna().all()]):
+            files = [Path(d) / "generations.csv" for d in sub["run_dir"]]
+            files = [f for f in files if f.is_file()]
+            if files:
+                name = f"fitness_{group}" + (f"_{_slug(label)}" if label else "")
+                title = f"{group}{': ' + label if label else ''} ({len(files)} runs)"
+                written += fitness_over_generations(files, directory / name, title=title)
+    for key in sweep or ["size"]:
+        rows = frame[frame[key].notna() & frame["quality"].notna()]
+        others = [k for k in sweep if k != key and rows[k].notna().all()]
+        for label, sub in _subsets(rows, others):
+            suffix = f"_{_slug(label)}" if label else ""
+            written += fitness_and_quality_by(sub, directory / f"fitness_quality_by_{key}{suffix}",
+                                              by=key)  # fmt: skip
+            for group, group_rows in sub.groupby("group", sort=False):
+                written += pattern_distribution_by(
+                    group_rows, directory / f"patterns_{group}_by_{key}{suffix}", by=key
+                )
+    with_predictions = evolved[
+        evolved["mean_predictions"].map(lambda v: v is not None and len(v) == 14)
+    ]
+    if len(with_predictions):
+        written += predictions_by_pattern(with_predictions, directory / "predictions_by_pattern")
+        written += example_grids(with_predictions, directory / "example_grids")
+    return [str(path) for path in written]

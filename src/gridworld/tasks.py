@@ -47,7 +47,7 @@ from surprise.errors import ConfigError
 from surprise.genetic import reduce_repetitions
 from surprise.gridnet import GridGenomeLayout, GridNetSpec
 
-__all__ = ["GRID_KINDS", "run_task"]
+__all__ = ["GRID_KINDS", "check_params", "run_task"]
 
 #: The task kinds :func:`run_task` knows.
 GRID_KINDS: tuple[str, ...] = (
@@ -119,13 +119,12 @@ def _decode(params: dict, type_, kind: str):
     return decode(params, type_, file=f"<{kind} params>")
 
 
-def run_task(kind: str, params: dict, seed: int, run_dir: str | Path) -> dict:
-    """Run one task of :data:`GRID_KINDS` into ``run_dir``; see the module docstring."""
+def check_params(kind: str, params: dict | None) -> Any:
+    """Decode ``params`` for ``kind`` as :func:`run_task` does, without running anything: the
+    typed parameters, or a :class:`~surprise.errors.ConfigError` naming the bad key (a study
+    checks every run this way before it starts one)."""
     if kind not in GRID_KINDS:
         raise ConfigError(f"unknown kind {kind!r}; expected one of {', '.join(GRID_KINDS)}")
-    run_dir = Path(run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    started = time.perf_counter()
     params = dict(params or {})
     if kind in ("grid-evolved", "grid-novelty"):
         if kind == "grid-novelty":
@@ -134,16 +133,31 @@ def run_task(kind: str, params: dict, seed: int, run_dir: str | Path) -> dict:
         if config.novelty != (kind == "grid-novelty"):
             raise ConfigError("novelty must match the kind", file=f"<{kind} params>",
                               key="novelty")  # fmt: skip
+        return config
+    if kind in ("grid-random", "grid-selected-random"):
+        return _decode(params, RandomParams, kind)
+    if kind == "grid-rerun":
+        return _decode(params, RerunParams, kind)
+    return _decode(params, DamageParams, kind)
+
+
+def run_task(kind: str, params: dict, seed: int, run_dir: str | Path) -> dict:
+    """Run one task of :data:`GRID_KINDS` into ``run_dir``; see the module docstring."""
+    p = check_params(kind, params)
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    started = time.perf_counter()
+    if kind in ("grid-evolved", "grid-novelty"):
         try:
-            summary = run_evolution(config, seed, run_dir)
+            summary = run_evolution(p, seed, run_dir)
         except RunFinished as finished:  # deterministic: the stored result is the result
             return finished.summary
     elif kind in ("grid-random", "grid-selected-random"):
-        summary = _random(kind, _decode(params, RandomParams, kind), seed, run_dir)
+        summary = _random(kind, p, seed, run_dir)
     elif kind == "grid-rerun":
-        summary = _rerun(_decode(params, RerunParams, kind), seed, run_dir)
+        summary = _rerun(p, seed, run_dir)
     else:
-        summary = _damage(_decode(params, DamageParams, kind), seed, run_dir)
+        summary = _damage(p, seed, run_dir)
     summary["kind"] = kind
     summary["seed"] = seed
     summary["seconds"] = time.perf_counter() - started

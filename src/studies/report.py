@@ -35,8 +35,9 @@ __all__ = ["REPORT_DIR", "load_runs", "write_study_report"]
 
 REPORT_DIR = "report"
 _FIGURE_FORMATS = ("png", "pdf")
-_EVOLVED = ("evolved", "grid-evolved")
-_RANDOM = ("random", "grid-random")
+#: Up to this many values of a sweep key are also compared two by two (more: Kruskal-Wallis only,
+#: as 20 grid sizes would make 190 tests).
+_PAIRWISE_VALUES = 6
 
 
 def _behaviour_class(behaviour: dict[str, Any] | None) -> str | None:
@@ -134,13 +135,18 @@ def _summary_table(done):
     return table
 
 
-def _test_row(test: str, condition: str, samples: str, n1: int, n2: int | None, **result):
-    return {"test": test, "condition": condition, "samples": samples, "n1": n1, "n2": n2, **result}
+def _test_row(
+    test: str, measure: str, condition: str, samples: str, n1: int, n2: int | None, **result
+):
+    return {
+        "test": test, "measure": measure, "condition": condition, "samples": samples,
+        "n1": n1, "n2": n2, **result,
+    }  # fmt: skip
 
 
-def _behaviour_table(evolved, randoms) -> tuple[list[str], list[list[int]]]:
-    classes = sorted(set(evolved["behaviour"].dropna()) | set(randoms["behaviour"].dropna()))
-    table = [[int((s["behaviour"] == c).sum()) for c in classes] for s in (evolved, randoms)]
+def _behaviour_table(a, b) -> tuple[list[str], list[list[int]]]:
+    classes = sorted(set(a["behaviour"].dropna()) | set(b["behaviour"].dropna()))
+    table = [[int((s["behaviour"] == c).sum()) for c in classes] for s in (a, b)]
     return classes, table
 
 
@@ -150,49 +156,114 @@ def _corrected(family: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return family
 
 
-def _statistics(done) -> list[dict[str, Any]]:
-    conditions = _conditions(done)
-    mwu: list[dict[str, Any]] = []
-    fe: list[dict[str, Any]] = []
-    if conditions:
-        for values, sub in done.groupby(conditions, dropna=False, sort=False):
-            values = values if isinstance(values, tuple) else (values,)
-            label = ", ".join(f"{k}={v}" for k, v in zip(conditions, values, strict=True))
-            evolved = sub[sub["kind"].isin(_EVOLVED)]
-            randoms = sub[sub["kind"].isin(_RANDOM)]
-            if not (len(evolved) and len(randoms)):
-                continue
-            u = mann_whitney(evolved["best_fitness"], randoms["best_fitness"])
-            mwu.append(
+def _label(keys: list[str], values: Any) -> str:
+    values = values if isinstance(values, tuple) else (values,)
+    return ", ".join(f"{k}={v}" for k, v in zip(keys, values, strict=True)) or "all runs"
+
+
+def _subsets(frame, keys: list[str]):
+    # (label, rows) for every combination of the values of keys; the whole frame without keys.
+    if not keys:
+        yield "all runs", frame
+        return
+    for values, sub in frame.groupby(keys, dropna=False, sort=False):
+        yield _label(keys, values), sub
+
+
+def _numbers(rows, column: str) -> list[float]:
+    if column not in rows.columns:
+        return []
+    return rows[column].dropna().astype(float).tolist()
+
+
+def _two_samples(label: str, samples: str, a, b, tests: dict[str, list[dict[str, Any]]]) -> None:
+    # The paper's comparison of two sets of runs: fitness and solution quality (Mann-Whitney
+    # U), behaviours or patterns (Fisher's exact test on the counts).
+    for column, family in (
+        ("best_fitness", "mann-whitney-u"),
+        ("quality", "mann-whitney-u quality"),
+    ):
+        x, y = _numbers(a, column), _numbers(b, column)
+        if x and y:
+            u = mann_whitney(x, y)
+            tests[family].append(
                 _test_row(
-                    "mann-whitney-u", label, "evolved vs random", len(evolved), len(randoms),
-                    statistic=u["U"], p=u["p"],
+                    "mann-whitney-u",
+                    column,
+                    label,
+                    samples,
+                    len(x),
+                    len(y),
+                    statistic=u["U"],
+                    p=u["p"],
                 )
-            )  # fmt: skip
-            if "behaviour" in sub.columns:
-                classes, table = _behaviour_table(evolved, randoms)
-                f = fisher(table)
-                fe.append(
-                    _test_row(
-                        "fisher-exact", label, "evolved vs random behaviours", len(evolved),
-                        len(randoms), statistic=f.get("odds_ratio"), p=f["p"],
-                        classes=" ".join(classes),
-                    )
-                )  # fmt: skip
-    kw: list[dict[str, Any]] = []
+            )
+    if "behaviour" in a.columns and a["behaviour"].notna().any() and b["behaviour"].notna().any():
+        classes, table = _behaviour_table(a, b)
+        f = fisher(table)
+        tests["fisher-exact"].append(
+            _test_row(
+                "fisher-exact", "behaviour", label, samples, len(a), len(b),
+                statistic=f.get("odds_ratio"),
+                p=f["p"], classes=" ".join(classes),
+            )
+        )  # fmt: skip
+
+
+def _statistics(done) -> list[dict[str, Any]]:
+    """The paper's tests, each family Bonferroni-corrected (docs/studies.md):
+
+    * between every two groups run under the same condition (scenario, setting, sweep values),
+      e.g. evolved against random per arena or per grid size: Mann-Whitney U on the best
+      fitness and on the solution quality, Fisher's exact test on the behaviours;
+    * within a group across the values of one sweep key (the others fixed): Kruskal-Wallis on
+      the best fitness, and Mann-Whitney U between every two values when there are at most
+      :data:`_PAIRWISE_VALUES` of them (e.g. noise levels).
+    """
+    import itertools
+
+    tests: dict[str, list[dict[str, Any]]] = {
+        name: []
+        for name in (
+            "mann-whitney-u", "mann-whitney-u quality", "fisher-exact", "kruskal-wallis",
+            "mann-whitney-u across",
+        )
+    }  # fmt: skip
+    for label, sub in _subsets(done, _conditions(done)):
+        groups = list(dict.fromkeys(sub["group"]))
+        for a, b in itertools.combinations(groups, 2):
+            rows_a, rows_b = sub[sub["group"] == a], sub[sub["group"] == b]
+            _two_samples(label, f"{a} vs {b}", rows_a, rows_b, tests)
     sweep = [k for k in done.attrs.get("sweep", []) if k in done.columns]
-    for kind, sub in done.groupby("kind", sort=False):
+    for group, rows in done.groupby("group", sort=False):
         for key in sweep:
-            samples = [g["best_fitness"].astype(float).tolist() for _, g in sub.groupby(key)]
-            if len(samples) >= 2:
+            others = [k for k in sweep if k != key and rows[k].notna().any()]
+            for label, sub in _subsets(rows[rows[key].notna()], others):
+                where = f"{group} across {key}" + ("" if label == "all runs" else f" ({label})")
+                by_value = {v: _numbers(g, "best_fitness") for v, g in sub.groupby(key)}
+                by_value = {v: x for v, x in by_value.items() if x}
+                if len(by_value) < 2:
+                    continue
+                samples = list(by_value.values())
                 h = kruskal_wallis(samples)
-                kw.append(
+                tests["kruskal-wallis"].append(
                     _test_row(
-                        "kruskal-wallis", f"{kind} across {key}", f"{len(samples)} values",
+                        "kruskal-wallis", "best_fitness", where, f"{len(samples)} values",
                         sum(len(x) for x in samples), None, statistic=h["H"], p=h["p"],
                     )
                 )  # fmt: skip
-    return _corrected(mwu) + _corrected(fe) + _corrected(kw)
+                if len(by_value) > _PAIRWISE_VALUES:
+                    continue
+                for (v, x), (w, y) in itertools.combinations(by_value.items(), 2):
+                    u = mann_whitney(x, y)
+                    tests["mann-whitney-u across"].append(
+                        _test_row(
+                            "mann-whitney-u", "best_fitness", where, f"{key}={v} vs {key}={w}",
+                            len(x), len(y),
+                            statistic=u["U"], p=u["p"],
+                        )
+                    )  # fmt: skip
+    return [row for family in tests.values() for row in _corrected(family)]
 
 
 def _evaluations_table(out: Path, done):
@@ -272,7 +343,13 @@ def _figures(out: Path, directory: Path, done, evaluations) -> list[str]:
     thymio = done[done["kind"].isin(["evolved", "random"])]
     sweep = [k for k in done.attrs.get("sweep", []) if k in done.columns]
     # Fig. 11: best fitness over evaluations, medians and quartiles per group and sweep value.
-    if evaluations is not None and "best_fitness" in evaluations.columns:
+    # (The grid world's runs count generations: its figures draw them.)
+    if evaluations is not None:
+        if "evaluation" in evaluations.columns:
+            evaluations = evaluations[evaluations["kind"] == "evolved"]
+        else:
+            evaluations = None
+    if evaluations is not None and len(evaluations) and "best_fitness" in evaluations.columns:
         keys = ["group", *sweep]
         labels = list(evaluations.groupby(keys, sort=False).groups)
         fig = Figure(figsize=(7, 4.2))

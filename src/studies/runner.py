@@ -4,7 +4,8 @@ The study's directory holds ``study.yaml`` (the study file as it was run: runnin
 into the same directory is refused), ``tasks.json`` (every run, in order) and ``runs/`` (one
 directory per run). A study killed and run again skips the runs whose summary exists and runs
 the others afresh, so each run is done once. A failed run is recorded (``failed.json`` and
-``error.txt`` in its directory) and does not stop the others; it is run again next time.
+``error.txt`` in its directory) and does not stop the others; it is run again next time. Groups
+that use other groups' runs (``after``) are submitted once those have ended.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from studies.executors import Executor
-from studies.spec import expand, load_study
+from studies.spec import expand, load_study, task_stages
 from studies.tasks import FAILED, SUMMARY, is_finished, run_dir, run_task
 from surprise.errors import ConfigError
 
@@ -118,27 +119,32 @@ def run_study(
         else:
             pending.append(task)
     started = time.monotonic()
-    futures = {executor.submit(run_task, task, str(out)): task for task in pending}
-    counts.running = min(len(futures), executor.workers)
+    left = len(pending)
     if on_update is not None:
+        counts.running = min(left, executor.workers)
         on_update(counts, 0.0)
-    for future in executor.as_completed(futures):
-        task = futures[future]
-        try:
-            summary = future.result()
-        except Exception as exc:  # the worker itself died (killed, out of memory)
-            summary = {"run": task["run"], "status": "failed", "error": f"worker: {exc!r}"}
-            directory = run_dir(out, task)
-            directory.mkdir(parents=True, exist_ok=True)
-            (directory / FAILED).write_text(json.dumps(summary), encoding="utf-8")
-        if summary.get("status") == "done":
-            counts.done += 1
-        else:
-            counts.failed += 1
-            counts.failures.append(summary)
-        counts.running = min(counts.left, executor.workers)
-        if on_update is not None:
-            on_update(counts, time.monotonic() - started)
+    # A group that uses other groups' runs (``after``) starts once they have all ended.
+    for stage in task_stages(pending):
+        futures = {executor.submit(run_task, task, str(out)): task for task in stage}
+        counts.running = min(left, executor.workers)
+        for future in executor.as_completed(futures):
+            task = futures[future]
+            left -= 1
+            try:
+                summary = future.result()
+            except Exception as exc:  # the worker itself died (killed, out of memory)
+                summary = {"run": task["run"], "status": "failed", "error": f"worker: {exc!r}"}
+                directory = run_dir(out, task)
+                directory.mkdir(parents=True, exist_ok=True)
+                (directory / FAILED).write_text(json.dumps(summary), encoding="utf-8")
+            if summary.get("status") == "done":
+                counts.done += 1
+            else:
+                counts.failed += 1
+                counts.failures.append(summary)
+            counts.running = min(left, executor.workers)
+            if on_update is not None:
+                on_update(counts, time.monotonic() - started)
     return counts
 
 

@@ -13,11 +13,19 @@
         seeds: {from: 1, to: 20}  # or a list [1, 2, 3], or a count: 20 (seeds 1..20)
         sweep:                    # every combination of the values (dotted keys go deep)
           simulation.arena_side: [0.7, 0.8, 0.9, 1.0, 1.5]
+      - name: rerun               # a group that uses another group's runs
+        kind: grid-rerun
+        after: [evolved]          # runs once every run of these groups has ended
+        params: {genome_run: "evolved/size=16/seed-{seed}"}   # below the study's runs/
 
 ``params`` is the run kind's own configuration: for the Thymio kinds (``evolved``, ``random``) an
 experiment file's content (docs/simulation.md), for the grid kinds the grid world's
 (docs/gridworld.md). :func:`expand` turns a study into its tasks, one per run: plain data, so any
 executor can run them and a task names its own run directory.
+
+A group may use the runs of others (the grid world's reruns and damage of evolved genomes): it
+names them in ``after`` and starts once every run of those groups has ended; a relative
+``genome_run`` is a run below the study's ``runs/``, ``{seed}`` standing for the run's own seed.
 """
 
 from __future__ import annotations
@@ -32,7 +40,16 @@ import msgspec
 from surprise.config import Strict, decode, read_yaml
 from surprise.errors import ConfigError
 
-__all__ = ["THYMIO_KINDS", "Group", "SeedRange", "Study", "expand", "load_study", "run_name"]
+__all__ = [
+    "THYMIO_KINDS",
+    "Group",
+    "SeedRange",
+    "Study",
+    "expand",
+    "load_study",
+    "run_name",
+    "task_stages",
+]
 
 #: Run kinds of the Thymio simulation (the grid world adds its own, see studies.tasks).
 THYMIO_KINDS = ("evolved", "random")
@@ -69,6 +86,8 @@ class Group(Strict):
     seeds: list[Seed] | SeedRange | Annotated[int, msgspec.Meta(ge=1)] = 1
     #: dotted parameter -> values; every combination of the values is run with every seed
     sweep: dict[str, list[Any]] = msgspec.field(default_factory=dict)
+    #: groups whose runs this group's runs use: it starts once every run of them has ended
+    after: list[str] = msgspec.field(default_factory=list)
 
     def __post_init__(self) -> None:
         for key, values in self.sweep.items():
@@ -105,6 +124,28 @@ class Study(Strict):
         for name in names:
             if names.count(name) > 1:
                 raise ValueError(f"`groups`: the name {name!r} is used twice")
+        for index, group in enumerate(self.groups):
+            for other in group.after:
+                if other not in names:
+                    raise ValueError(f"`groups[{index}].after`: no group is named {other!r}")
+        self.stages()  # a circle of `after`s fails here, by name
+
+    def stages(self) -> list[list[str]]:
+        """The groups' names in the order they may run: each stage's groups need only groups
+        of earlier stages (``after``)."""
+        left = {group.name: set(group.after) for group in self.groups}
+        stages: list[list[str]] = []
+        done: set[str] = set()
+        while left:
+            ready = [name for name, needs in left.items() if needs <= done]
+            if not ready:
+                circle = ", ".join(sorted(left))
+                raise ValueError(f"`groups`: the groups {circle} wait for each other (`after`)")
+            stages.append(ready)
+            done.update(ready)
+            for name in ready:
+                del left[name]
+        return stages
 
 
 def load_study(path: str | Path) -> Study:
@@ -120,7 +161,32 @@ def load_study(path: str | Path) -> Study:
                 file=str(path),
                 key=f"groups[{index}].kind",
             )
+    _check_params(study, path)
     return study
+
+
+def _check_params(study: Study, path: str | Path) -> None:
+    # Every run's parameters decode before any run starts: a bad key fails the study at once,
+    # by name, not each of its runs later. One task per group and sweep value (seeds aside).
+    from studies.tasks import check_task
+
+    index = {group.name: i for i, group in enumerate(study.groups)}
+    seen: set[tuple[str, str]] = set()
+    for task in expand(study):
+        label = (task["group"], repr(task["sweep"]))
+        if label in seen:
+            continue
+        seen.add(label)
+        try:
+            check_task(task)
+        except ConfigError as exc:
+            where = f"groups[{index[task['group']]}].params"
+            sweep = ", ".join(f"{k}={v}" for k, v in task["sweep"].items())
+            raise ConfigError(
+                f"{exc.reason}" + (f" (with {sweep})" if sweep else ""),
+                file=str(path),
+                key=f"{where}.{exc.key}" if exc.key else where,
+            ) from None
 
 
 def _set_dotted(data: dict[str, Any], key: str, value: Any) -> None:
@@ -177,6 +243,25 @@ def expand(study: Study) -> list[dict[str, Any]]:
                         "sweep": sweep,
                         "params": params,
                         "run": run_name(group.name, sweep, seed),
+                        "after": list(group.after),
                     }
                 )
     return tasks
+
+
+def task_stages(tasks: list[dict[str, Any]]) -> list[list[dict[str, Any]]]:
+    """``tasks`` (of :func:`expand`) in stages: a task's ``after`` groups all lie in earlier
+    stages; within a stage, the tasks keep their order."""
+    stage_of: dict[str, int] = {}
+    for task in tasks:  # expand lists a group's tasks together, in the study's group order
+        stage_of.setdefault(task["group"], 0)
+    # A validated study has no circle: its groups settle after as many passes as there are.
+    for _ in range(len(stage_of)):
+        for task in tasks:
+            # A group none of whose tasks are given (all finished) holds nothing up.
+            need = max((stage_of.get(g, -1) + 1 for g in task.get("after", ())), default=0)
+            stage_of[task["group"]] = max(stage_of[task["group"]], need)
+    stages: list[list[dict[str, Any]]] = [[] for _ in range(max(stage_of.values(), default=-1) + 1)]
+    for task in tasks:
+        stages[stage_of[task["group"]]].append(task)
+    return stages

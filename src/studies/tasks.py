@@ -15,7 +15,9 @@ Kinds:
   fitness, the behaviour metrics of the post-evaluation and the mean predicted and real value of
   each sensor.
 * ``random``: one random network pair in a freshly reset arena (``surprise-master baseline``).
-* ``grid-*``: the grid world's kinds (``gridworld.tasks``), when that package is installed.
+* ``grid-*``: the grid world's kinds (``gridworld.tasks``), when that package is installed. A
+  relative ``genome_run`` (reruns and damage of an evolved genome) names another run of the
+  study below its ``runs/``, e.g. ``evolved/size=16/seed-{seed}`` with the run's own seed.
 """
 
 from __future__ import annotations
@@ -30,9 +32,20 @@ import traceback
 from pathlib import Path
 from typing import Any
 
+from surprise.errors import ConfigError
 from surprise.files import write_atomic
 
-__all__ = ["ERROR", "FAILED", "KINDS", "RUNS", "SUMMARY", "is_finished", "run_dir", "run_task"]
+__all__ = [
+    "ERROR",
+    "FAILED",
+    "KINDS",
+    "RUNS",
+    "SUMMARY",
+    "check_task",
+    "is_finished",
+    "run_dir",
+    "run_task",
+]
 
 #: The summary a finished run leaves in its directory.
 SUMMARY = "summary.json"
@@ -64,6 +77,17 @@ def run_dir(root: str | Path, task: dict[str, Any]) -> Path:
 def is_finished(root: str | Path, task: dict[str, Any]) -> bool:
     """Whether ``task`` finished (its summary exists)."""
     return (run_dir(root, task) / SUMMARY).is_file()
+
+
+def check_task(task: dict[str, Any]) -> None:
+    """Decode ``task``'s parameters as its run would, running nothing: a
+    :class:`~surprise.errors.ConfigError` naming the bad key (the key within ``params``)."""
+    if task["kind"] in _KIND_RUNNERS:
+        _experiment(task)
+    else:
+        from gridworld.tasks import check_params
+
+        check_params(task["kind"], task["params"])
 
 
 def run_task(task: dict[str, Any], root: str) -> dict[str, Any]:
@@ -149,10 +173,26 @@ def _run_random(task: dict[str, Any], directory: Path) -> dict[str, Any]:
 def _run_grid(task: dict[str, Any], directory: Path) -> dict[str, Any]:
     from gridworld.tasks import run_task as run_grid_task
 
-    summary = run_grid_task(task["kind"], task["params"], task["seed"], directory)
+    params = dict(task["params"])
+    if isinstance(params.get("genome_run"), str):
+        params["genome_run"] = str(_study_run(task, directory, params["genome_run"]))
+    summary = run_grid_task(task["kind"], params, task["seed"], directory)
     summary.pop("seed", None)
     summary.pop("kind", None)
     return summary
+
+
+def _study_run(task: dict[str, Any], directory: Path, name: str) -> Path:
+    # Another run of the same study, named below its runs/ folder; {seed} is this run's seed.
+    # An absolute path is any run's directory.
+    try:
+        name = name.format(seed=task["seed"])
+    except (KeyError, IndexError, ValueError) as exc:
+        raise ConfigError(
+            f"{name!r}: only {{seed}} may be filled in ({exc})", file="<params>", key="genome_run"
+        ) from None
+    runs_root = directory.parents[len(Path(task["run"]).parts) - 1]
+    return runs_root / name
 
 
 _KIND_RUNNERS = {"evolved": _run_evolved, "random": _run_random}

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
+import yaml
 from study_helpers import TINY, TINY_RUNS, write_study
 
 from studies.cli import main
@@ -158,22 +159,28 @@ def test_a_study_killed_midway_and_run_again_does_each_run_once(tmp_path):
 
 
 def test_a_run_that_raises_is_recorded_and_the_study_completes(tmp_path, capsys):
-    text = (
-        TINY
-        + """
-  - name: broken
-    kind: evolved
-    params: {scenario: basic, simulation: {arena_side: -1}}
-    seeds: 1
-"""
+    # Its parameters are fine (they are checked before the study starts): the run it reruns
+    # does not exist, which only running it finds out. (The Thymio defaults go into the Thymio
+    # groups, as the grid run takes none of them.)
+    study = yaml.safe_load(TINY)
+    defaults = study.pop("defaults")
+    for group in study["groups"]:
+        group["params"] = {**defaults, **group["params"]}
+    study["groups"].append(
+        {
+            "name": "broken",
+            "kind": "grid-rerun",
+            "params": {"genome_run": "nowhere/seed-1", "size": 7, "agents": 5},
+        }
     )
+    text = yaml.safe_dump(study)
     out = tmp_path / "study"
     code = main(["run", str(write_study(tmp_path, text)), "--out", str(out), "--workers", "2"])
     assert code == 1
     printed = capsys.readouterr().out
     assert f"{TINY_RUNS}/{TINY_RUNS + 1} runs done" in printed and "1 failed" in printed
     failed = out / "runs" / "broken" / "seed-1"
-    assert "arena_side" in json.loads((failed / "failed.json").read_text())["error"]
+    assert "genome_run" in json.loads((failed / "failed.json").read_text())["error"]
     assert "Traceback" in (failed / "error.txt").read_text()
     status = study_status(out)
     assert status["failed"] == 1 and status["groups"]["broken"]["failed"] == 1
@@ -182,6 +189,16 @@ def test_a_run_that_raises_is_recorded_and_the_study_completes(tmp_path, capsys)
     # Run again: the finished runs are skipped, the failed one is tried again (and fails again).
     assert main(["run", str(write_study(tmp_path, text)), "--out", str(out)]) == 1
     assert "(8 from before)" in capsys.readouterr().out
+
+
+def test_bad_parameters_stop_the_study_before_any_run(tmp_path, capsys):
+    text = TINY + "  - {name: broken, kind: evolved, params: {simulation: {arena_side: -1}}}\n"
+    path = write_study(tmp_path, text)
+    out = tmp_path / "study"
+    assert main(["run", str(path), "--out", str(out), "--workers", "1"]) == 2
+    (line,) = capsys.readouterr().err.splitlines()
+    assert line.startswith(f"surprise-study: {path}: key 'groups[2].params.simulation.arena_side'")
+    assert not (out / "runs").exists()
 
 
 def test_another_study_into_the_same_directory_is_refused(tmp_path, capsys):
