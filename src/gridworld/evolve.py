@@ -16,8 +16,8 @@ novelty, behaviour vector, pattern and quality.
 from __future__ import annotations
 
 import csv
+import io
 import json
-import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -30,6 +30,7 @@ from gridworld.config import GridRunConfig, decode_run_config
 from gridworld.evaluate import GridEvaluator
 from gridworld.patterns import classify
 from gridworld.world import Poses, Torus, draw_starts
+from surprise.files import write_atomic
 from surprise.genetic import GeneticAlgorithm
 from surprise.novelty import NoveltyArchive
 
@@ -67,10 +68,9 @@ class GenerationReport:
 
 
 def write_json(path: Path, data: Any) -> None:
-    """Write ``data`` as JSON atomically (a crash leaves the old file or the new one)."""
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=1), encoding="utf-8")
-    os.replace(tmp, path)
+    """Write ``data`` as JSON atomically and durably (a crash or a power cut leaves the old file
+    or the new one)."""
+    write_atomic(path, json.dumps(data, indent=1).encode("utf-8"))
 
 
 def evaluator_of(config: GridRunConfig, exact: bool = False) -> GridEvaluator:
@@ -97,12 +97,11 @@ def _columns(sensors: int) -> list[str]:
 
 
 def _write_csv(path: Path, header: list[str], rows: list[list[Any]]) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    with tmp.open("w", newline="", encoding="utf-8") as f:
-        writer = csv.writer(f)
-        writer.writerow(header)
-        writer.writerows(rows)
-    os.replace(tmp, path)
+    text = io.StringIO(newline="")
+    writer = csv.writer(text)
+    writer.writerow(header)
+    writer.writerows(rows)
+    write_atomic(path, text.getvalue().encode("utf-8"))
 
 
 def _individual_columns(sensors: int) -> list[str]:
