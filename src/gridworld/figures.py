@@ -86,7 +86,21 @@ def fitness_over_generations(
     return _save(fig, Path(out))
 
 
-def fitness_and_quality_by(frame: Any, out: str | Path, by: str = "size") -> list[Path]:
+#: Axis labels of the keys a grid study sweeps.
+AXIS_LABELS = {
+    "size": "grid side L",
+    "noise": "sensor noise (flip probability)",
+    "population": "population",
+    "generations": "generations",
+    "steps": "steps per evaluation T",
+    "repetitions": "repetitions per evaluation",
+    "mutation_rate": "mutation rate",
+}
+
+
+def fitness_and_quality_by(
+    frame: Any, out: str | Path, by: str = "size", title: str | None = None
+) -> list[Path]:
     """Best fitness and solution quality per value of ``by`` (paper Fig. 5b/c, 8a/b, 11a/b):
     box plots, one box per group side by side."""
     plt = _pyplot()
@@ -112,12 +126,18 @@ def fitness_and_quality_by(frame: Any, out: str | Path, by: str = "size") -> lis
         ax.set_ylabel(label)
         ax.legend(fontsize="small")
     axes[1].set_xticks(np.arange(len(values)), [str(v) for v in values])
-    axes[1].set_xlabel(by)
+    axes[1].set_xlabel(AXIS_LABELS.get(by, by))
+    if title:
+        axes[0].set_title(title)
     return _save(fig, Path(out))
 
 
 def pattern_distribution_by(
-    frame: Any, out: str | Path, by: str = "size", group: str | None = None
+    frame: Any,
+    out: str | Path,
+    by: str = "size",
+    group: str | None = None,
+    title: str | None = None,
 ) -> list[Path]:
     """Share of runs per dominant pattern for each value of ``by`` as stacked bars (paper
     Fig. 7, 8c/d, 11c, 12), for one ``group`` (default: all rows)."""
@@ -135,10 +155,15 @@ def pattern_distribution_by(
                label=pattern)  # fmt: skip
         bottom += shares
     ax.set_xticks(np.arange(len(values)), [str(v) for v in values])
-    ax.set_xlabel(by)
+    ax.set_xlabel(AXIS_LABELS.get(by, by))
     ax.set_ylabel("runs (%)")
     ax.set_ylim(0, 100)
-    ax.legend(ncol=9, fontsize="x-small", loc="upper center", bbox_to_anchor=(0.5, 1.15))
+    # Beside the bars, in the stacking order (the first pattern at the bottom).
+    handles, labels = ax.get_legend_handles_labels()
+    ax.legend(handles[::-1], labels[::-1], fontsize="x-small", loc="center left",
+              bbox_to_anchor=(1.01, 0.5))  # fmt: skip
+    if title:
+        ax.set_title(title)
     return _save(fig, Path(out))
 
 
@@ -246,12 +271,16 @@ def study_figures(study: str | Path, frame: Any, directory: str | Path) -> list[
         others = [k for k in sweep if k != key and rows[k].notna().all()]
         for label, sub in _subsets(rows, others):
             suffix = f"_{_slug(label)}" if label else ""
-            written += fitness_and_quality_by(sub, directory / f"fitness_quality_by_{key}{suffix}",
-                                              by=key)  # fmt: skip
+            where = f" ({label})" if label else ""
+            written += fitness_and_quality_by(
+                sub, directory / f"fitness_quality_by_{key}{suffix}", by=key,
+                title=f"Best fitness and solution quality per {AXIS_LABELS.get(key, key)}{where}",
+            )  # fmt: skip
             for group, group_rows in sub.groupby("group", sort=False):
                 written += pattern_distribution_by(
-                    group_rows, directory / f"patterns_{group}_by_{key}{suffix}", by=key
-                )
+                    group_rows, directory / f"patterns_{group}_by_{key}{suffix}", by=key,
+                    title=f"{group}: patterns of {len(group_rows)} runs{where}",
+                )  # fmt: skip
     with_predictions = evolved[
         evolved["mean_predictions"].map(lambda v: v is not None and len(v) == 14)
     ]
