@@ -17,16 +17,20 @@ class ConfigError(SurpriseError, ValueError):
 
     ``file`` is the path of the offending file (or ``None`` for in-memory data), ``key`` the dotted
     path of the offending key (``"evolution.mutation_rate"``; ``None`` when the whole document is
-    wrong) and ``reason`` what was expected.
+    wrong; a command-line option such as ``"--robots"`` when the value came from there) and
+    ``reason`` what was expected.
     """
 
     def __init__(self, reason: str, *, file: str | None = None, key: str | None = None) -> None:
         self.file = file
         self.key = key
         self.reason = reason
-        where = file or "<config>"
-        if key:
-            where += f": key '{key}'"
+        if file is None and key and key.startswith("--"):
+            where = f"option '{key}'"  # a command-line option, not a key of some file
+        else:
+            where = file or "<config>"
+            if key:
+                where += f": key '{key}'"
         super().__init__(f"{where}: {reason}")
 
 

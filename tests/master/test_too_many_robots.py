@@ -28,7 +28,7 @@ def test_sim_names_how_many_robots_fit_and_the_option(tmp_path, capsys):
     line = one_line_error(
         capsys, ["sim", "--robots", "500", "--evaluations", "2", "--out", str(out)]
     )
-    assert line.startswith("surprise-master: <config>: key '--robots': at most about ")
+    assert line.startswith("surprise-master: option '--robots': at most about ")
     assert line.endswith("; ask for fewer with --robots or a larger --arena")
     limit, side, asked = LIMIT.search(line).groups()
     assert (side, asked) == ("1.0", "500")
@@ -45,12 +45,12 @@ def test_a_small_arena_names_its_side(tmp_path, capsys):
     line = one_line_error(
         capsys, ["sim", "--arena", "0.3", "--robots", "20", "--out", str(tmp_path / "r")]
     )
-    assert "key '--robots'" in line
+    assert "option '--robots'" in line
     limit, side, asked = LIMIT.search(line).groups()
     assert (side, asked) == ("0.3", "20") and 1 <= int(limit) <= 4
     # The scenario's ten robots on a carpet made too small by --arena: that option is named.
     line = one_line_error(capsys, ["sim", "--arena", "0.3", "--out", str(tmp_path / "r")])
-    assert "key '--arena'" in line and "(10 asked for)" in line
+    assert "option '--arena'" in line and "(10 asked for)" in line
 
 
 def test_baseline_names_the_limit_before_creating_its_directory(tmp_path, capsys):
@@ -58,7 +58,7 @@ def test_baseline_names_the_limit_before_creating_its_directory(tmp_path, capsys
     line = one_line_error(
         capsys, ["baseline", "--random", "2", "--robots", "500", "--out", str(out)]
     )
-    assert "key '--robots': at most about" in line and "(500 asked for)" in line
+    assert "option '--robots': at most about" in line and "(500 asked for)" in line
     assert not out.exists()
 
 
@@ -79,7 +79,7 @@ def test_the_start_ring_names_how_many_robots_it_takes(tmp_path, capsys):
         capsys, ["sim", "--scenario", "boxes", "--robots", "50", "--out", str(tmp_path / "r")]
     )
     assert line == (
-        "surprise-master: <config>: key '--robots': at most 6 robots fit on the start ring "
+        "surprise-master: option '--robots': at most 6 robots fit on the start ring "
         "0.1 m around the centre (50 asked for); ask for fewer with --robots or a wider start "
         "ring (simulation.start_ring)"
     )
