@@ -15,19 +15,20 @@ from surprise.config import Probability, Strict, decode
 from surprise.genetic import GeneticConfig
 from surprise.gridnet import GridNetSpec
 
-__all__ = ["GridRunConfig", "decode_run_config"]
+__all__ = ["GridRunConfig", "GridWorldParams", "PositiveInt", "decode_run_config"]
 
 PositiveInt = Annotated[int, msgspec.Meta(ge=1)]
 
 
-class GridRunConfig(Strict):
-    """One evolution run in the grid world (also the world part of the single-genome tasks).
+class GridWorldParams(Strict):
+    """The world and the scoring every grid task shares: the torus, the agents, their sensors
+    and fixed predictions, sensor noise, and how a genome is scored.
 
     ``size`` is the torus side (``height`` makes it a rectangle: size wide, height tall);
     ``predefined`` names fixed predictions (``surprise.gridnet``: e.g. ``line``,
-    ``line-partial``); ``noise`` is the probability of flipping each sensor reading;
-    ``novelty`` evolves the actor alone by novelty search (no elitism; ``novelty_k`` nearest
-    neighbours, archive probability ``archive_probability``).
+    ``line-partial``); ``noise`` is the probability of flipping each sensor reading; a genome's
+    fitness is ``fitness_of`` its ``repetitions`` runs of ``steps`` steps; random genomes are
+    drawn uniformly from +-``initial_range``.
     """
 
     size: PositiveInt = 15
@@ -36,17 +37,10 @@ class GridRunConfig(Strict):
     sensors: Literal[14, 6, 8] = 14
     predefined: str | None = None
     noise: Probability = 0.0
-    population: PositiveInt = 50
-    generations: PositiveInt = 100
     repetitions: PositiveInt = 10
     steps: PositiveInt = 500
-    mutation_rate: Probability = 0.1
-    mutation_range: Annotated[float, msgspec.Meta(ge=0.0)] = 0.4
     initial_range: Annotated[float, msgspec.Meta(ge=0.0)] = 0.5
     fitness_of: Literal["min", "mean", "max"] = "min"
-    novelty: bool = False
-    novelty_k: PositiveInt = 10
-    archive_probability: Probability = 0.02
 
     def __post_init__(self) -> None:
         if self.agents > self.size * self.grid_height:
@@ -54,16 +48,35 @@ class GridRunConfig(Strict):
                 f"`agents`: {self.agents} agents do not fit on {self.size} x {self.grid_height}"
             )
         try:
-            self.net_spec()
+            GridNetSpec(self.sensors, self.predefined)
         except ValueError as exc:
             raise ValueError(f"`predefined`: {exc}") from None
-        if self.novelty and self.predefined is not None:
-            raise ValueError("`predefined`: novelty search evolves the actor alone")
 
     @property
     def grid_height(self) -> int:
         """The torus height (``height`` or ``size``)."""
         return self.height or self.size
+
+
+class GridRunConfig(GridWorldParams):
+    """One evolution run in the grid world: the world's parameters and the GA's.
+
+    ``novelty`` evolves the actor alone by novelty search (no elitism; ``novelty_k`` nearest
+    neighbours, archive probability ``archive_probability``).
+    """
+
+    population: PositiveInt = 50
+    generations: PositiveInt = 100
+    mutation_rate: Probability = 0.1
+    mutation_range: Annotated[float, msgspec.Meta(ge=0.0)] = 0.4
+    novelty: bool = False
+    novelty_k: PositiveInt = 10
+    archive_probability: Probability = 0.02
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.novelty and self.predefined is not None:
+            raise ValueError("`predefined`: novelty search evolves the actor alone")
 
     def net_spec(self) -> GridNetSpec:
         """The network shape this run evolves."""

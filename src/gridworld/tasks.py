@@ -37,7 +37,7 @@ from typing import Annotated, Any, Literal
 import msgspec
 import numpy as np
 
-from gridworld.config import GridRunConfig
+from gridworld.config import GridRunConfig, GridWorldParams, PositiveInt
 from gridworld.evaluate import GridEvaluator
 from gridworld.evolve import RunFinished, run_evolution, write_json
 from gridworld.patterns import classify
@@ -59,23 +59,13 @@ GRID_KINDS: tuple[str, ...] = (
     "grid-rerun",
 )
 
-PositiveInt = Annotated[int, msgspec.Meta(ge=1)]
 NonNegativeInt = Annotated[int, msgspec.Meta(ge=0)]
 
 
-class RandomParams(Strict):
-    """Parameters of ``grid-random`` and ``grid-selected-random``."""
+class RandomParams(GridWorldParams):
+    """Parameters of ``grid-random`` and ``grid-selected-random``: the world's, and how many
+    random genomes the selected one is the best of (``candidates``)."""
 
-    size: PositiveInt = 15
-    height: PositiveInt | None = None
-    agents: PositiveInt = 100
-    sensors: Literal[14, 6, 8] = 14
-    predefined: str | None = None
-    noise: Probability = 0.0
-    repetitions: PositiveInt = 10
-    steps: PositiveInt = 500
-    initial_range: Annotated[float, msgspec.Meta(ge=0.0)] = 0.5
-    fitness_of: Literal["min", "mean", "max"] = "min"
     candidates: PositiveInt = 5000
 
 

@@ -141,7 +141,7 @@ def test_a_bad_parameter_fails_the_study_before_any_run(tmp_path):
     path = write_study(
         tmp_path,
         "name: bad\ngroups:\n"
-        "  - {name: ok, kind: grid-random, params: {size: 9}}\n"
+        "  - {name: ok, kind: grid-random, params: {size: 10}}\n"
         "  - {name: damage, kind: grid-damage, params: {agents: 50}, sweep: {size: [9, 10]}}\n",
     )
     with pytest.raises(ConfigError) as caught:
