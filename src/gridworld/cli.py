@@ -39,25 +39,32 @@ def _parser() -> argparse.ArgumentParser:
     ev.add_argument("--size", type=int, help="torus side L (default 15)")
     ev.add_argument("--height", type=int, help="torus height for a rectangle (default L)")
     ev.add_argument("--seed", type=int, help="random seed (default 0)")
-    ev.add_argument("--sensors", type=int, choices=(14, 6, 8))
+    ev.add_argument("--sensors", type=int, choices=(14, 6, 8),
+                    help="sensor model: cells each agent senses (default 14)")  # fmt: skip
     ev.add_argument("--predefined", help="fixed predictions, e.g. line or line-partial")
     ev.add_argument("--novelty", action="store_true", help="novelty search (actor only)")
     ev.add_argument("--noise", type=float, help="probability of flipping a sensor reading")
-    ev.add_argument("--population", type=int)
-    ev.add_argument("--generations", type=int)
-    ev.add_argument("--agents", type=int)
-    ev.add_argument("--repetitions", type=int)
-    ev.add_argument("--steps", type=int)
-    ev.add_argument("--mutation-rate", type=float, dest="mutation_rate")
-    ev.add_argument("--fitness-of", choices=("min", "mean", "max"), dest="fitness_of")
+    ev.add_argument("--population", type=int, help="genomes per generation (default 50)")
+    ev.add_argument("--generations", type=int, help="generations (default 100)")
+    ev.add_argument("--agents", type=int, help="agents N on the torus (default 100)")
+    ev.add_argument("--repetitions", type=int,
+                    help="runs per genome, from different starts (default 10)")  # fmt: skip
+    ev.add_argument("--steps", type=int, help="steps T per run (default 500)")
+    ev.add_argument("--mutation-rate", type=float, dest="mutation_rate",
+                    help="probability of mutating each gene (default 0.1)")  # fmt: skip
+    ev.add_argument("--fitness-of", choices=("min", "mean", "max"), dest="fitness_of",
+                    help="a genome's fitness from its runs (default min)")  # fmt: skip
     ev.add_argument("--out", type=Path, help="run directory (default runs/grid-<time>)")
     ev.set_defaults(handler=_evolve)
     rp = sub.add_parser("replay", help="run the best genome again and animate it")
-    rp.add_argument("dir", type=Path, metavar="DIR")
+    rp.add_argument("dir", type=Path, metavar="DIR", help="a grid run's directory")
     rp.add_argument("--every", type=int, default=5, help="steps per animation frame")
     rp.set_defaults(handler=_replay)
     cl = sub.add_parser("classify", help="pattern scores of a grid file")
-    cl.add_argument("grid", type=Path, metavar="GRID")
+    cl.add_argument(
+        "grid", type=Path, metavar="GRID",
+        help="final_grid.json, or {width, height, final: [[x, y, hx, hy], ...]}",
+    )  # fmt: skip
     cl.set_defaults(handler=_classify)
     return parser
 
