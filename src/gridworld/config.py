@@ -31,15 +31,26 @@ class GridWorldParams(Strict):
     drawn uniformly from +-``initial_range``.
     """
 
+    #: the torus side L (its width)
     size: PositiveInt = 15
+    #: the torus height for a rectangle (default: L)
     height: PositiveInt | None = None
+    #: agents N, one per cell
     agents: PositiveInt = 100
+    #: the sensor model: how many cells around an agent it senses (14, 6 or 8)
     sensors: Literal[14, 6, 8] = 14
+    #: fixed predictions (e.g. `line`, `line-partial`; docs/gridworld.md), or none
     predefined: str | None = None
+    #: the probability of flipping each sensor reading (the networks and the fitness see it;
+    #: moves are blocked by true occupancy)
     noise: Probability = 0.0
+    #: runs per genome, each from its own start configuration
     repetitions: PositiveInt = 10
+    #: steps T per run
     steps: PositiveInt = 500
+    #: genes of a random or initial genome are uniform in +- this
     initial_range: Annotated[float, msgspec.Meta(ge=0.0)] = 0.5
+    #: a genome's fitness from its runs: the worst (the paper), the mean or the best
     fitness_of: Literal["min", "mean", "max"] = "min"
 
     def __post_init__(self) -> None:
@@ -65,12 +76,19 @@ class GridRunConfig(GridWorldParams):
     neighbours, archive probability ``archive_probability``).
     """
 
+    #: genomes per generation
     population: PositiveInt = 50
+    #: generations of the run
     generations: PositiveInt = 100
+    #: the probability of mutating each gene
     mutation_rate: Probability = 0.1
+    #: a mutation adds a uniform value in +- this
     mutation_range: Annotated[float, msgspec.Meta(ge=0.0)] = 0.4
+    #: novelty search: the actor alone, selected on novelty, no elitism
     novelty: bool = False
+    #: nearest neighbours in behaviour space whose mean distance is an individual's novelty
     novelty_k: PositiveInt = 10
+    #: the probability that an evaluated individual joins the novelty archive
     archive_probability: Probability = 0.02
 
     def __post_init__(self) -> None:

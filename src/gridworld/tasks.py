@@ -66,6 +66,8 @@ class RandomParams(GridWorldParams):
     """Parameters of ``grid-random`` and ``grid-selected-random``: the world's, and how many
     random genomes the selected one is the best of (``candidates``)."""
 
+    #: random genomes the selected one is the best of (`grid-selected-random`; 1 for
+    #: `grid-random`)
     candidates: PositiveInt = 5000
 
 
@@ -73,21 +75,33 @@ class GenomeParams(Strict):
     """The genome of ``grid-damage`` and ``grid-rerun``: a run directory, or the genome inline
     with its sensors and predefined predictions (and, for damage, its start poses)."""
 
+    #: the evolved run whose best genome is used: in a study, a run below its `runs/`
+    #: (`{seed}`: the run's own seed); else a directory
     genome_run: str | None = None
+    #: the genome inline, instead of `genome_run`
     genome: list[float] | None = None
+    #: an inline genome's sensor model
     sensors: Literal[14, 6, 8] = 14
+    #: an inline genome's fixed predictions
     predefined: str | None = None
+    #: an inline genome's start poses `[x, y, hx, hy]` (damage)
     start: list[list[int]] | None = None
 
 
 class RerunParams(GenomeParams):
     """Parameters of ``grid-rerun``: the new grid and how many runs."""
 
+    #: the new torus side L
     size: PositiveInt = 15
+    #: the new torus height (default: L)
     height: PositiveInt | None = None
+    #: agents N on the new grid, from random starts
     agents: PositiveInt = 100
+    #: the probability of flipping each sensor reading
     noise: Probability = 0.0
+    #: runs from different starts, scored by the worst
     repetitions: PositiveInt = 1
+    #: steps T per run
     steps: PositiveInt = 500
 
 
@@ -95,13 +109,21 @@ class DamageParams(GenomeParams):
     """Parameters of ``grid-damage``: the rectangle, the variant, and the grid of the genome's
     run (taken from ``genome_run`` when given)."""
 
+    #: `remove` the agents in the rectangle, or `reposition` them at random free cells outside
     variant: Literal["remove", "reposition"] = "remove"
+    #: the rectangle's first column (not wrapping)
     xmin: NonNegativeInt = 0
+    #: its last column
     xmax: NonNegativeInt = 3
+    #: its first row
     ymin: NonNegativeInt = 0
+    #: its last row
     ymax: NonNegativeInt = 3
+    #: the torus side of an inline genome's run (from `genome_run` otherwise)
     size: PositiveInt = 15
+    #: its height (default: L)
     height: PositiveInt | None = None
+    #: steps of the undamaged run, and of the repair
     steps: PositiveInt = 500
 
 

@@ -1,7 +1,8 @@
 """The configuration reference, ``docs/configuration.md``, generated from the typed configuration.
 
 Every configuration file of the project is YAML decoded into msgspec structures (experiment,
-agent, master, study; the experiment's ``simulation`` and ``safety`` sections). This module walks
+agent, master, study; the experiment's ``simulation`` and ``safety`` sections; the ``params`` of
+a study's grid-world groups). This module walks
 those structures and writes one table per file: every key (nested sections as dotted keys, list
 items as ``key[]``), its type, its default and its meaning, so the reference cannot drift from the
 code. ::
@@ -60,12 +61,22 @@ _COMMAND = "python -m master_service.config_reference"
 # --- meanings -------------------------------------------------------------------------------------
 
 
-@functools.cache
 def meanings(cls: type) -> dict[str, str]:
-    """Field name -> meaning for a configuration class (see the module docstring).
+    """Field name -> meaning for a configuration class (see the module docstring), its base
+    classes' fields included (each read from the class that declares it).
 
     Raises ``ValueError`` naming the class and field if a field has no meaning.
     """
+    found: dict[str, str] = {}
+    for base in reversed(cls.__mro__):
+        if inspect.get_annotations(base) and issubclass(base, msgspec.Struct):
+            found.update(_own_meanings(base))
+    return found
+
+
+@functools.cache
+def _own_meanings(cls: type) -> dict[str, str]:
+    # The meanings of the fields declared in cls's own body.
     source = textwrap.dedent(inspect.getsource(cls))
     lines = source.splitlines()
     tree = ast.parse(source)
@@ -519,6 +530,35 @@ def documents() -> list[Document]:
                 "a range of seeds: `surprise-study run FILE` (docs/studies.md)."
             ),
         ),
+        *_grid_documents(),
+    ]
+
+
+def _grid_documents() -> list[Document]:
+    # A grid-world group's params, one table per kind (docs/gridworld.md).
+    from gridworld.config import GridRunConfig
+    from gridworld.tasks import DamageParams, RandomParams, RerunParams
+
+    kinds = (
+        ("grid-evolved and grid-novelty", "grid-evolved", GridRunConfig,
+         "`gridworld.config.GridRunConfig`: an evolution run (also `surprise-grid evolve`'s "
+         "options); `grid-novelty` sets `novelty: true`"),
+        ("grid-random and grid-selected-random", "grid-random", RandomParams,
+         "`gridworld.tasks.RandomParams`: one random genome, or the best of `candidates`, scored "
+         "as the GA scores a genome"),
+        ("grid-rerun", "grid-rerun", RerunParams,
+         "`gridworld.tasks.RerunParams`: an evolved genome run again on another grid"),
+        ("grid-damage", "grid-damage", DamageParams,
+         "`gridworld.tasks.DamageParams`: an evolved genome's structure damaged and repaired"),
+    )  # fmt: skip
+    return [
+        Document(
+            title=f"The params of a study group: {title}",
+            anchor=f"params-{anchor}",
+            root=root,
+            intro=f"{intro} (docs/gridworld.md).",
+        )
+        for title, anchor, root, intro in kinds
     ]
 
 
@@ -566,7 +606,11 @@ def generate() -> str:
     """The whole text of ``docs/configuration.md``."""
     docs = documents()
     out = [_HEADER]
-    out.append("Sections: " + ", ".join(f"[{d.title[4:]}](#{d.anchor})" for d in docs) + ".\n")
+    out.append(
+        "Sections: "
+        + ", ".join(f"[{d.title.removeprefix('The ')}](#{d.anchor})" for d in docs)
+        + ".\n"
+    )
     for document in docs:
         out.append(f"## {document.title[0].upper()}{document.title[1:]}\n")
         intro = textwrap.fill(_markdown(document.intro), 100, break_on_hyphens=False)
