@@ -553,8 +553,8 @@ def _grid_documents() -> list[Document]:
     )  # fmt: skip
     return [
         Document(
-            title=f"The params of a study group: {title}",
-            anchor=f"params-{anchor}",
+            title=f"The params of {title} groups",
+            anchor=f"the-params-of-{title.replace(' ', '-')}-groups",
             root=root,
             intro=f"{intro} (docs/gridworld.md).",
         )
