@@ -540,15 +540,15 @@ def _grid_documents() -> list[Document]:
     from gridworld.tasks import DamageParams, RandomParams, RerunParams
 
     kinds = (
-        ("grid-evolved and grid-novelty", "grid-evolved", GridRunConfig,
+        ("grid-evolved and grid-novelty", GridRunConfig,
          "`gridworld.config.GridRunConfig`: an evolution run (also `surprise-grid evolve`'s "
          "options); `grid-novelty` sets `novelty: true`"),
-        ("grid-random and grid-selected-random", "grid-random", RandomParams,
+        ("grid-random and grid-selected-random", RandomParams,
          "`gridworld.tasks.RandomParams`: one random genome, or the best of `candidates`, scored "
          "as the GA scores a genome"),
-        ("grid-rerun", "grid-rerun", RerunParams,
+        ("grid-rerun", RerunParams,
          "`gridworld.tasks.RerunParams`: an evolved genome run again on another grid"),
-        ("grid-damage", "grid-damage", DamageParams,
+        ("grid-damage", DamageParams,
          "`gridworld.tasks.DamageParams`: an evolved genome's structure damaged and repaired"),
     )  # fmt: skip
     return [
@@ -558,7 +558,7 @@ def _grid_documents() -> list[Document]:
             root=root,
             intro=f"{intro} (docs/gridworld.md).",
         )
-        for title, anchor, root, intro in kinds
+        for title, root, intro in kinds
     ]
 
 
