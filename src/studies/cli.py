@@ -25,6 +25,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from surprise.errors import ConfigError
+from surprise.text import plural
 
 __all__ = ["main"]
 
@@ -75,7 +76,7 @@ def _run(args: argparse.Namespace) -> int:
 
     tasks = prepare(args.study, args.out)  # a bad study fails before any worker starts
     executor = _executor(args)
-    print(f"study {args.out}: {len(tasks)} runs on {executor.workers} workers")
+    print(f"study {args.out}: {plural(len(tasks), 'run')} on {plural(executor.workers, 'worker')}")
     started = time.monotonic()
     try:
         with StudyProgress() as progress:
@@ -86,7 +87,8 @@ def _run(args: argparse.Namespace) -> int:
     finally:
         executor.close()
     print(
-        f"study {args.out}: {counts.done}/{counts.total} runs done ({counts.skipped} from before), "
+        f"study {args.out}: {counts.done}/{plural(counts.total, 'run')} done "
+        f"({counts.skipped} from before), "
         f"{counts.failed} failed, {time.monotonic() - started:.0f} s; "
         f"see `surprise-study report {args.out}`"
     )
@@ -119,11 +121,12 @@ def _status(args: argparse.Namespace) -> int:
     from studies.runner import study_status
 
     status = study_status(args.dir)
-    print(f"{args.dir}: {status['done']}/{status['runs']} runs done, {status['failed']} failed")
+    runs = plural(status["runs"], "run")
+    print(f"{args.dir}: {status['done']}/{runs} done, {status['failed']} failed")
     for name, group in status["groups"].items():
         left = group["runs"] - group["done"] - group["failed"]
         print(
-            f"  {name} ({group['kind']}): {group['done']}/{group['runs']} done, "
+            f"  {name} ({group['kind']}): {group['done']}/{plural(group['runs'], 'run')} done, "
             f"{group['failed']} failed, {left} not run"
         )
     return 0
