@@ -344,8 +344,13 @@ def _damage(p: DamageParams, seed: int, run_dir: Path) -> dict[str, Any]:
     similarity = sum(tuple(row) in final_set for row in after.to_rows()) / n0
     from gridworld.plots import plot_grid
 
-    for name, poses in (("initial", before), ("damaged", damaged), ("repaired", after)):
-        plot_grid(width, height, poses, run_dir / name)
+    for name, poses, c in (
+        ("initial", before, c_initial),
+        ("damaged", damaged, c_start),
+        ("repaired", after, c_end),
+    ):
+        title = f"{name}: {poses.x.size} agents, {c.pattern} ({c.quality:.0%})"
+        plot_grid(width, height, poses, run_dir / name, title=title)
     write_json(run_dir / "damage.json", {
         "initial": before.to_rows(), "damaged": damaged.to_rows(), "repaired": after.to_rows(),
     })  # fmt: skip
