@@ -9,6 +9,10 @@ kept) and run as ``EVOL 15 15 PRED NONE NONE`` on the same core for ``--c-genera
 generations; its CPU time per generation is extrapolated to a whole run. We are also timed on that
 many generations. Prints ``name: value unit`` lines.
 
+``--parts`` first times one generation of random genomes with the full network pair, without a
+predictor (every prediction fixed) and with ten of its outputs (``line-partial``): the
+predictor's share of the time.
+
 ``--check N`` also feeds N random genomes and start configurations to the C code's REPLAY mode
 and to our simulator and compares, genome by genome: the fitness of the run, the mean prediction
 per sensor, and the whole trajectory of the C code's second (logged) run, step by step.
@@ -17,7 +21,7 @@ The C sources: ``--c-source`` names a checkout or bare git directory of the repo
 Minimize-Surprise/Self-assembly-Torus (e.g. ``git clone`` of it from GitHub). Without it only
 ours is measured. Run:
 ``python benchmarks/gridworld.py --c-source PATH [--generations 100] [--c-generations 3]
-[--check 20]``
+[--check 20] [--parts]``
 """
 
 from __future__ import annotations
@@ -73,6 +77,36 @@ def ours(generations: int, seed: int = 1) -> tuple[float, list[float]]:
         )
         best.append(ga.tell(result.fitness).best_fitness)
     return time.process_time() - started, best
+
+
+def parts(seed: int = 1, repeats: int = 3) -> dict[str, float]:
+    """Nanoseconds per agent-step of one generation of random genomes (L = 15, N = 100, 50
+    genomes, 10 x 500 steps; best CPU time of ``repeats``) for the full network pair, without a
+    predictor (every prediction fixed) and with the predictor partly fixed: where the time goes."""
+    from gridworld.evaluate import GridEvaluator
+    from gridworld.world import Torus, draw_starts
+    from surprise.gridnet import GridGenomeLayout, GridNetSpec
+
+    torus = Torus(15, 15)
+    rng = np.random.default_rng(seed)
+    starts = draw_starts(rng, torus, 100, 10)
+    out = {}
+    for name, predefined in (
+        ("full", None),
+        ("actor_only", "line"),
+        ("line_partial", "line-partial"),
+    ):
+        spec = GridNetSpec(14, predefined)
+        evaluator = GridEvaluator(torus, spec, 500)
+        genomes = rng.uniform(-0.5, 0.5, (50, GridGenomeLayout(spec).size))
+        evaluator.evaluate(genomes[:1], starts[:1])  # compile (or load the cache) before timing
+        best = float("inf")
+        for _ in range(repeats):
+            started = time.process_time()
+            evaluator.evaluate(genomes, starts)
+            best = min(best, time.process_time() - started)
+        out[name] = best / AGENT_STEPS_PER_GENERATION * 1e9
+    return out
 
 
 def build_c(source: Path, into: Path) -> Path:
@@ -208,8 +242,16 @@ def main() -> None:
     parser.add_argument("--c-source", type=Path)
     parser.add_argument("--check", type=int, default=0)
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument(
+        "--parts",
+        action="store_true",
+        help="also time a generation without the predictor and with it partly fixed",
+    )
     args = parser.parse_args()
     core = pin_to_one_core()
+    if args.parts:
+        for name, ns in parts(args.seed).items():
+            print(f"ours_ns_per_agent_step_{name}: {ns:.1f} ns")
     seconds, best = ours(args.generations, args.seed)
     agent_steps = AGENT_STEPS_PER_GENERATION * args.generations
     print(f"ours_run_seconds: {seconds:.1f} s ({args.generations} generations, one core)")
