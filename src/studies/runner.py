@@ -120,13 +120,12 @@ def run_study(
             pending.append(task)
     started = time.monotonic()
     left = len(pending)
+    counts.running = min(left, executor.workers)
     if on_update is not None:
-        counts.running = min(left, executor.workers)
         on_update(counts, 0.0)
     # A group that uses other groups' runs (``after``) starts once they have all ended.
     for stage in task_stages(pending):
         futures = {executor.submit(run_task, task, str(out)): task for task in stage}
-        counts.running = min(left, executor.workers)
         for future in executor.as_completed(futures):
             task = futures[future]
             left -= 1

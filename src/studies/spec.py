@@ -133,19 +133,25 @@ class Study(Strict):
     def stages(self) -> list[list[str]]:
         """The groups' names in the order they may run: each stage's groups need only groups
         of earlier stages (``after``)."""
-        left = {group.name: set(group.after) for group in self.groups}
-        stages: list[list[str]] = []
-        done: set[str] = set()
-        while left:
-            ready = [name for name, needs in left.items() if needs <= done]
-            if not ready:
-                circle = ", ".join(sorted(left))
-                raise ValueError(f"`groups`: the groups {circle} wait for each other (`after`)")
-            stages.append(ready)
-            done.update(ready)
-            for name in ready:
-                del left[name]
-        return stages
+        return _layers({group.name: set(group.after) for group in self.groups})
+
+
+def _layers(needs: dict[str, set[str]]) -> list[list[str]]:
+    # Names in layers, each needing only names of earlier layers; a needed name that is not a
+    # key (a group whose runs have all finished) holds nothing up.
+    left = {name: wanted & needs.keys() for name, wanted in needs.items()}
+    layers: list[list[str]] = []
+    done: set[str] = set()
+    while left:
+        ready = [name for name, wanted in left.items() if wanted <= done]
+        if not ready:
+            circle = ", ".join(sorted(left))
+            raise ValueError(f"`groups`: the groups {circle} wait for each other (`after`)")
+        layers.append(ready)
+        done.update(ready)
+        for name in ready:
+            del left[name]
+    return layers
 
 
 def load_study(path: str | Path) -> Study:
@@ -252,16 +258,12 @@ def expand(study: Study) -> list[dict[str, Any]]:
 def task_stages(tasks: list[dict[str, Any]]) -> list[list[dict[str, Any]]]:
     """``tasks`` (of :func:`expand`) in stages: a task's ``after`` groups all lie in earlier
     stages; within a stage, the tasks keep their order."""
-    stage_of: dict[str, int] = {}
-    for task in tasks:  # expand lists a group's tasks together, in the study's group order
-        stage_of.setdefault(task["group"], 0)
-    # A validated study has no circle: its groups settle after as many passes as there are.
-    for _ in range(len(stage_of)):
-        for task in tasks:
-            # A group none of whose tasks are given (all finished) holds nothing up.
-            need = max((stage_of.get(g, -1) + 1 for g in task.get("after", ())), default=0)
-            stage_of[task["group"]] = max(stage_of[task["group"]], need)
-    stages: list[list[dict[str, Any]]] = [[] for _ in range(max(stage_of.values(), default=-1) + 1)]
+    needs: dict[str, set[str]] = {}
+    for task in tasks:
+        needs.setdefault(task["group"], set()).update(task.get("after", ()))
+    layers = _layers(needs)
+    stage_of = {name: index for index, layer in enumerate(layers) for name in layer}
+    stages: list[list[dict[str, Any]]] = [[] for _ in layers]
     for task in tasks:
         stages[stage_of[task["group"]]].append(task)
     return stages
