@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from gridworld.kernels import actor_decision, tanh_fast
+from gridworld.kernels import actor_decision, prefix_sums, tanh_fast
 from surprise.errors import GenomeError
 from surprise.gridnet import (
     GridGenomeLayout,
@@ -96,20 +96,44 @@ def test_each_gene_reaches_the_kernel_arrays_where_the_reference_reads_it():
 
 
 @pytest.mark.parametrize("sensors", [14, 6, 8])
-def test_actor_kernel_matches_the_reference_on_every_input(sensors):
+@pytest.mark.parametrize("bits", [0, 5, 11])
+def test_actor_kernel_matches_the_reference_on_every_input(sensors, bits):
     spec = GridNetSpec(sensors)
     layout = GridGenomeLayout(spec)
     rng = np.random.default_rng(sensors)
-    genome = rng.uniform(-1, 1, layout.size)
-    nets = grid_networks(layout, genome)
+    genomes = rng.uniform(-1, 1, (2, layout.size))
+    # the second genome's hidden units come in nearly equal pairs of opposite output weights:
+    # its outputs lie near zero, where the kernel decides with the code's tanh
+    w = layout.unpack(genomes[1])
+    w["actor.hidden"][1::2] = w["actor.hidden"][0::2] * (1 + 1e-6)
+    w["actor.output"][:, 1::2] = -w["actor.output"][:, 0::2]
+    nets = grid_networks(layout, genomes)
     keys = range(1 << (sensors + 1)) if sensors < 14 else rng.integers(0, 1 << 15, 300)
     scratch = np.zeros(spec.actor_hidden, dtype=np.float32)
-    for key in keys:
-        inputs = [(int(key) >> i) & 1 for i in range(sensors + 1)]
-        a0, turn = actor_reference(layout, genome, inputs)
-        m = actor_decision(nets.a_u[0], nets.a_hidden[0], nets.a_out[0], int(key), sensors + 1,
-                           scratch)  # fmt: skip
-        assert (m & 1, 1 if m >> 1 else -1) == (a0, turn)
+    bits = min(bits, sensors + 1)
+    for g in range(2):
+        prefix = np.zeros((spec.actor_hidden, 1 << bits), dtype=np.float32)
+        prefix_sums(nets.a_u, nets.a_hidden, g, bits, prefix)
+        for key in keys:
+            inputs = [(int(key) >> i) & 1 for i in range(sensors + 1)]
+            a0, turn = actor_reference(layout, genomes[g], inputs)
+            m = actor_decision(nets.a_u, nets.a_hidden, nets.a_out, g, int(key), sensors + 1,
+                               prefix, bits, scratch)  # fmt: skip
+            assert (m & 1, 1 if m >> 1 else -1) == (a0, turn), (g, key)
+
+
+def test_prefix_sums_are_the_sums_in_input_order():
+    spec = GridNetSpec(14)
+    layout = GridGenomeLayout(spec)
+    nets = grid_networks(layout, np.random.default_rng(3).uniform(-1, 1, (1, layout.size)))
+    prefix = np.zeros((spec.predictor_hidden, 1 << 6), dtype=np.float32)
+    prefix_sums(nets.p_u, nets.p_hidden, 0, 6, prefix)
+    for k in range(1 << 6):
+        for j in range(spec.predictor_hidden):
+            total = np.float32(0.0)
+            for i in range(6):
+                total += nets.p_u[0, (k >> i) & 1, i] * nets.p_hidden[0, j, i]
+            assert prefix[j, k] == total  # bit for bit
 
 
 def test_predictor_reference_keeps_fixed_sensors():
