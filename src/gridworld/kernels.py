@@ -245,6 +245,7 @@ def simulate_genome(
     scratch = np.zeros(a_hidden.shape[1], dtype=np.float32)
     key = np.zeros(lanes, dtype=np.int64)
     base = np.zeros(lanes, dtype=np.int64)
+    flips = np.zeros(n * r, dtype=np.uint8)
     # each run's occupancy as bit lines: rows (by y) then columns (by x), each doubled (bits
     # 0..W-1 repeated above) so a window of 5 that wraps around is one shift. Per cell and
     # heading parity: the three lines an agent there reads and the shift that brings its window
@@ -342,11 +343,16 @@ def simulate_genome(
                     for a in range(lo, hi):
                         key[a] |= np.int64(event_r[nbf[base[a] + k]] & 1) << k
             if noise_threshold > 0:
+                # reading k of agent a has the counter origin + (a - lo) * r + k: the flips of a
+                # whole run are drawn in one loop that vectorises, then set into the keys
+                origin = ((rep * steps) + t) * n * r
+                for m in range(n * r):
+                    flips[m] = _noise_bits(noise_key, origin + m) < noise_threshold
                 for a in range(lo, hi):
+                    flipped = 0
                     for k in range(r):
-                        counter = (((rep * steps) + t) * n + a - lo) * r + k
-                        if _noise_bits(noise_key, counter) < noise_threshold:
-                            key[a] ^= np.int64(1) << k
+                        flipped |= np.int64(flips[(a - lo) * r + k]) << k
+                    key[a] ^= flipped
             wrong = 0
             for a in range(lo, hi):
                 wrong += popcount[np.uint64(key[a] ^ pmask[a])]
