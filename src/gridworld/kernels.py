@@ -181,11 +181,57 @@ def _noise_bits(key: int, counter: int) -> int:
     return mix32(key ^ low ^ (high * 0x85EBCA6B))
 
 
+@kernel
+def world_tables(nb: np.ndarray, width: int, bits_ok: bool) -> tuple:
+    """The torus's lookup tables, the same for every genome and run: ``(front_of, sense_line,
+    sense_shift, row_of, col_of, row_bits, col_bits, popcount)``.
+
+    ``front_of[4 c + d]`` is the cell in front of cell c facing d. A run's occupancy is kept as
+    bit lines: the rows (by y) then the columns (by x), each doubled (bits 0..W-1 repeated above)
+    so a window of 5 that wraps around is one shift. Per cell c and heading parity p,
+    ``sense_line[2 c + p]`` names the three lines an agent there reads and ``sense_shift`` the
+    shift that brings its window to bits 0..4; per cell, ``row_of``/``col_of`` name its row and
+    column and ``row_bits``/``col_bits`` the bits it sets in them (0 unless ``bits_ok``: sides of
+    at most 32, so the doubled lines fit 64 bits). ``popcount[v]`` counts the bits of v < 2^R.
+    """
+    cells, r = nb.shape[0], nb.shape[2]
+    height = cells // width
+    sense_line = np.empty((cells * 2, 3), dtype=np.uint32)
+    sense_shift = np.empty(cells * 2, dtype=np.uint64)
+    row_of = np.empty(cells, dtype=np.uint32)
+    col_of = np.empty(cells, dtype=np.uint32)
+    row_bits = np.zeros(cells, dtype=np.uint64)
+    col_bits = np.zeros(cells, dtype=np.uint64)
+    one = np.uint64(1)
+    front_of = np.empty(cells * 4, dtype=np.uint32)
+    for c in range(cells):
+        x, y = c % width, c // width
+        ym, yp = (y + height - 1) % height, (y + 1) % height
+        xm, xp = (x + width - 1) % width, (x + 1) % width
+        sense_line[2 * c, 0], sense_line[2 * c, 1], sense_line[2 * c, 2] = ym, y, yp
+        sense_shift[2 * c] = (x + width - 2) % width
+        sense_line[2 * c + 1, 0] = height + xm
+        sense_line[2 * c + 1, 1] = height + x
+        sense_line[2 * c + 1, 2] = height + xp
+        sense_shift[2 * c + 1] = (y + height - 2) % height
+        row_of[c], col_of[c] = y, height + x
+        if bits_ok:
+            row_bits[c] = (one << np.uint64(x)) | (one << np.uint64(x + width))
+            col_bits[c] = (one << np.uint64(y)) | (one << np.uint64(y + height))
+        for d in range(4):
+            front_of[c * 4 + d] = nb[c, d, 0]
+    popcount = np.zeros(1 << r, dtype=np.uint8)
+    for v in range(1, 1 << r):
+        popcount[v] = popcount[v >> 1] + (v & 1)
+    return front_of, sense_line, sense_shift, row_of, col_of, row_bits, col_bits, popcount
+
+
 @kernel(error_model="numpy")
 def simulate_genome(
     nb: np.ndarray,
     window: np.ndarray,
     width: int,
+    tables: tuple,
     starts: np.ndarray,
     steps: int,
     g: int,
@@ -214,7 +260,8 @@ def simulate_genome(
     Per run ``rep``: ``correct[rep]`` gets the number of correct predictions, ``predsum[rep]``
     (R,) the scored predictions summed over steps and agents, ``final[rep]`` (N, 2) the poses
     after the last step. Run ``trace_rep`` (-1: none) has its poses before every step and after
-    the last written to ``trace`` ((T + 1, N, 2)). ``memo`` caches the actor's decisions by
+    the last written to ``trace`` ((T + 1, N, 2)). ``tables`` is :func:`world_tables` of the
+    torus. ``memo`` caches the actor's decisions by
     input bits (-1: not yet known). ``window`` is :func:`gridworld.world.window_table` for the
     sensor model when both sides lie in 5 ... 32: sensors are then read from bit rows and
     columns of the occupancy; with an empty ``window`` they are looked up cell by cell.
@@ -246,47 +293,15 @@ def simulate_genome(
     key = np.zeros(lanes, dtype=np.int64)
     base = np.zeros(lanes, dtype=np.int64)
     flips = np.zeros(n * r, dtype=np.uint8)
-    # each run's occupancy as bit lines: rows (by y) then columns (by x), each doubled (bits
-    # 0..W-1 repeated above) so a window of 5 that wraps around is one shift. Per cell and
-    # heading parity: the three lines an agent there reads and the shift that brings its window
-    # to bits 0..4; per cell: its row and column and the bits it sets in them.
+    # each run's occupancy as bit lines (rows by y, then columns by x; see world_tables)
     bits_ok = window.shape[0] > 0
-    height = cells // width
-    lines = np.zeros((reps, height + width), dtype=np.uint64)
-    sense_line = np.empty((cells * 2, 3), dtype=np.uint32)
-    sense_shift = np.empty(cells * 2, dtype=np.uint64)
-    row_of = np.empty(cells, dtype=np.uint32)
-    col_of = np.empty(cells, dtype=np.uint32)
-    row_bits = np.empty(cells, dtype=np.uint64)
-    col_bits = np.empty(cells, dtype=np.uint64)
-    one = np.uint64(1)
-    front_of = np.empty(cells * 4, dtype=np.uint32)
-    for c in range(cells):
-        x, y = c % width, c // width
-        ym, yp = (y + height - 1) % height, (y + 1) % height
-        xm, xp = (x + width - 1) % width, (x + 1) % width
-        sense_line[2 * c, 0], sense_line[2 * c, 1], sense_line[2 * c, 2] = ym, y, yp
-        sense_shift[2 * c] = (x + width - 2) % width
-        sense_line[2 * c + 1, 0] = height + xm
-        sense_line[2 * c + 1, 1] = height + x
-        sense_line[2 * c + 1, 2] = height + xp
-        sense_shift[2 * c + 1] = (y + height - 2) % height
-        row_of[c], col_of[c] = y, height + x
-        row_bits[c] = 0
-        col_bits[c] = 0
-        if bits_ok:  # sides of at most 32: the doubled lines fit 64 bits
-            row_bits[c] = (one << np.uint64(x)) | (one << np.uint64(x + width))
-            col_bits[c] = (one << np.uint64(y)) | (one << np.uint64(y + height))
-        for d in range(4):
-            front_of[c * 4 + d] = nb[c, d, 0]
+    lines = np.zeros((reps, cells // width + width), dtype=np.uint64)
+    front_of, sense_line, sense_shift, row_of, col_of, row_bits, col_bits, popcount = tables
     five = np.uint64(31)
     first = 0
     for k in range(r):
         first |= np.int64(fixed[k]) << k
     pmask = np.full(lanes, first, dtype=np.int64)
-    popcount = np.zeros(1 << r, dtype=np.uint8)
-    for v in range(1, 1 << r):
-        popcount[v] = popcount[v >> 1] + (v & 1)
     hidden = np.zeros((hp, lanes), dtype=np.float32)
     bits = min(PREFIX_BITS, inputs)
     low_mask = (1 << bits) - 1
@@ -545,6 +560,7 @@ def evaluate_batch(
     genomes = a_u.shape[0]
     reps, n = starts.shape[0], starts.shape[1]
     r = nb.shape[2]
+    tables = world_tables(nb, width, window.shape[0] > 0)
     memo = np.empty(1 << (r + 1), dtype=np.int8)
     correct = np.empty(reps, dtype=np.int64)
     predsum = np.empty((reps, r), dtype=np.float64)
@@ -552,9 +568,9 @@ def evaluate_batch(
         memo[:] = -1
         trace_rep = trace_run - g * reps if g * reps <= trace_run < (g + 1) * reps else -1
         simulate_genome(
-            nb, window, width, starts, steps, g, a_u, a_hidden, a_out, p_u, p_hidden, p_self,
-            p_out, outputs, fixed, memo, noise_threshold, noise_key, exact, correct, predsum,
-            final[g], trace, trace_rep,
+            nb, window, width, tables, starts, steps, g, a_u, a_hidden, a_out, p_u, p_hidden,
+            p_self, p_out, outputs, fixed, memo, noise_threshold, noise_key, exact, correct,
+            predsum, final[g], trace, trace_rep,
         )  # fmt: skip
         for rep in range(reps):
             fitness[g, rep] = correct[rep] / (steps * n * r)
