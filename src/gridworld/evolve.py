@@ -30,8 +30,10 @@ from gridworld.config import GridRunConfig, decode_run_config
 from gridworld.evaluate import GridEvaluator
 from gridworld.patterns import classify
 from gridworld.world import Poses, Torus, draw_starts
-from surprise.files import write_atomic
+from surprise.config import to_builtins
+from surprise.files import write_atomic, write_json
 from surprise.genetic import GeneticAlgorithm
+from surprise.gridnet import GridNetSpec
 from surprise.novelty import NoveltyArchive
 
 __all__ = [
@@ -40,8 +42,10 @@ __all__ = [
     "evaluator_of",
     "generation_noise_key",
     "generation_starts",
+    "load_best",
     "run_evolution",
-    "write_json",
+    "write_best",
+    "write_final_grid",
 ]
 
 #: Version of checkpoint.json; bump when its shape changes.
@@ -67,10 +71,35 @@ class GenerationReport:
     elapsed_s: float
 
 
-def write_json(path: Path, data: Any) -> None:
-    """Write ``data`` as JSON atomically and durably (a crash or a power cut leaves the old file
-    or the new one)."""
-    write_atomic(path, json.dumps(data, indent=1).encode("utf-8"))
+def write_best(run_dir: Path, genome: Any, spec: GridNetSpec, fitness: float, **extra: Any) -> None:
+    """Write a run's best genome and its network spec to ``best_genome.json`` (with ``extra``
+    keys, e.g. the generation that found it)."""
+    write_json(run_dir / "best_genome.json", {
+        "genome": np.asarray(genome).tolist(), "sensors": spec.sensors,
+        "predefined": spec.predefined, "actor_only": spec.actor_only, "fitness": fitness, **extra,
+    })  # fmt: skip
+
+
+def write_final_grid(
+    run_dir: Path, width: int, height: int, repetition: int, start: list, final: list
+) -> None:
+    """Write the start and final poses (``Poses.to_rows``) of a run's recorded repetition to
+    ``final_grid.json``."""
+    write_json(run_dir / "final_grid.json", {
+        "width": width, "height": height, "repetition": repetition,
+        "start": start, "final": final,
+    })  # fmt: skip
+
+
+def load_best(run_dir: Path) -> tuple[np.ndarray, GridNetSpec, dict[str, Any]]:
+    """The best genome, its network spec and the final grid that :func:`write_best` and
+    :func:`write_final_grid` wrote; raises OSError, ValueError or KeyError for a run directory
+    that does not hold them."""
+    data = json.loads((run_dir / "best_genome.json").read_text(encoding="utf-8"))
+    grid = json.loads((run_dir / "final_grid.json").read_text(encoding="utf-8"))
+    spec = GridNetSpec(int(data["sensors"]), data.get("predefined"),
+                       bool(data.get("actor_only", False)))  # fmt: skip
+    return np.array(data["genome"], dtype=np.float64), spec, grid
 
 
 def evaluator_of(config: GridRunConfig, exact: bool = False) -> GridEvaluator:
@@ -136,7 +165,7 @@ def run_evolution(
     else:
         if config is None or seed is None:
             raise ValueError(f"{out} holds no run: a configuration and a seed are needed")
-        write_json(stored, {"config": _plain(config), "seed": seed})
+        write_json(stored, {"config": to_builtins(config), "seed": seed})
     assert config is not None and seed is not None
     evaluator = evaluator_of(config)
     spec = config.net_spec()
@@ -230,39 +259,15 @@ def run_evolution(
     return _finish(out, config, int(seed), last, elapsed, plots)
 
 
-def _plain(config: GridRunConfig) -> dict[str, Any]:
-    import msgspec
-
-    return msgspec.to_builtins(config)
-
-
 def _finish(
     out: Path, config: GridRunConfig, seed: int, last: dict[str, Any], elapsed: float, plots: bool
 ) -> dict[str, Any]:
     final = Poses.from_rows(last["final"])
     c = classify(config.size, config.grid_height, final)
-    spec = config.net_spec()
-    write_json(
-        out / "best_genome.json",
-        {
-            "genome": last["genome"],
-            "sensors": spec.sensors,
-            "predefined": spec.predefined,
-            "actor_only": spec.actor_only,
-            "generation": last["generation"],
-            "fitness": last["fitness"],
-        },
-    )
-    write_json(
-        out / "final_grid.json",
-        {
-            "width": config.size,
-            "height": config.grid_height,
-            "repetition": last["repetition"],
-            "start": last["start"],
-            "final": last["final"],
-        },
-    )
+    write_best(out, last["genome"], config.net_spec(), last["fitness"],
+               generation=last["generation"])  # fmt: skip
+    write_final_grid(out, config.size, config.grid_height, last["repetition"], last["start"],
+                     last["final"])  # fmt: skip
     summary: dict[str, Any] = {
         "kind": "grid-novelty" if config.novelty else "grid-evolved",
         "seed": seed,

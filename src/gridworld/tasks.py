@@ -1,12 +1,13 @@
 """The grid world's tasks for the studies: plain data in, plain data out.
 
 ``run_task(kind, params, seed, run_dir)`` runs one task of :data:`GRID_KINDS`, writes its files
-into ``run_dir`` (created) and returns a JSON-safe summary with at least ``kind``, ``seed``,
-``size``, ``best_fitness`` and ``fitness`` (the same number; None for novelty search, which has no
-predictor), ``pattern``, ``quality``, ``scores`` (pattern -> fraction), ``mean_predictions`` (one
-per sensor), ``generations_file`` (relative path of the per-generation CSV, or None) and
-``seconds``. The same seed gives the same result. ``params`` are decoded strictly per kind: an
-unknown or ill-typed key is a :class:`~surprise.errors.ConfigError` naming it.
+into ``run_dir`` (created) and returns a JSON-safe summary (the studies layer writes it) with at
+least ``kind``, ``seed``, ``size``, ``best_fitness`` and ``fitness`` (the same number; None for
+novelty search, which has no predictor), ``pattern``, ``quality``, ``scores`` (pattern ->
+fraction), ``mean_predictions`` (one per sensor), ``generations_file`` (relative path of the
+per-generation CSV, or None) and ``seconds``. The same seed gives the same result. ``params`` are
+decoded strictly per kind: an unknown or ill-typed key is a :class:`~surprise.errors.ConfigError`
+naming it.
 
 Kinds:
 
@@ -29,7 +30,6 @@ Kinds:
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -39,11 +39,18 @@ import numpy as np
 
 from gridworld.config import GridRunConfig, GridWorldParams, PositiveInt
 from gridworld.evaluate import GridEvaluator
-from gridworld.evolve import RunFinished, run_evolution, write_json
+from gridworld.evolve import (
+    RunFinished,
+    load_best,
+    run_evolution,
+    write_best,
+    write_final_grid,
+)
 from gridworld.patterns import classify
 from gridworld.world import Poses, Torus, draw_starts
 from surprise.config import Probability, Strict, decode
 from surprise.errors import ConfigError
+from surprise.files import write_json
 from surprise.genetic import reduce_repetitions
 from surprise.gridnet import GridGenomeLayout, GridNetSpec
 
@@ -174,7 +181,6 @@ def run_task(kind: str, params: dict, seed: int, run_dir: str | Path) -> dict:
     summary["seed"] = seed
     summary["seconds"] = time.perf_counter() - started
     summary.setdefault("generations_file", None)
-    write_json(run_dir / "summary.json", summary)
     return summary
 
 
@@ -209,8 +215,9 @@ def _random(kind: str, p: RandomParams, seed: int, run_dir: Path) -> dict[str, A
                     result.predictions[i, rep])  # fmt: skip
     fitness_value, genome, rep, final, predictions = best
     poses, classified = _classified(p.size, height, final, torus)
-    _write_genome(run_dir, genome, spec, fitness_value)
-    _write_grid(run_dir, p.size, height, Poses.from_cells(torus, starts[rep]), poses, rep)
+    write_best(run_dir, genome, spec, fitness_value)
+    write_final_grid(run_dir, p.size, height, rep,
+                     Poses.from_cells(torus, starts[rep]).to_rows(), poses.to_rows())  # fmt: skip
     return {
         "size": p.size,
         "height": height,
@@ -229,32 +236,15 @@ def _spec(sensors: int, predefined: str | None) -> GridNetSpec:
         raise ConfigError(str(exc), key="predefined") from None
 
 
-def _write_genome(run_dir: Path, genome: np.ndarray, spec: GridNetSpec, fitness: float) -> None:
-    write_json(run_dir / "best_genome.json", {
-        "genome": np.asarray(genome).tolist(), "sensors": spec.sensors,
-        "predefined": spec.predefined, "actor_only": spec.actor_only, "fitness": fitness,
-    })  # fmt: skip
-
-
-def _write_grid(run_dir: Path, width: int, height: int, start: Poses, final: Poses, rep) -> None:
-    write_json(run_dir / "final_grid.json", {
-        "width": width, "height": height, "repetition": rep,
-        "start": start.to_rows(), "final": final.to_rows(),
-    })  # fmt: skip
-
-
 def _load_genome(p: GenomeParams) -> tuple[np.ndarray, GridNetSpec, dict[str, Any] | None]:
     key_file = "<params>"
     if p.genome_run is not None:
         run = Path(p.genome_run)
         try:
-            data = json.loads((run / "best_genome.json").read_text(encoding="utf-8"))
-            grid = json.loads((run / "final_grid.json").read_text(encoding="utf-8"))
-        except (OSError, ValueError) as exc:
+            return load_best(run)
+        except (OSError, ValueError, KeyError) as exc:
             raise ConfigError(f"not a finished grid run: {exc}", file=key_file,
                               key="genome_run") from None  # fmt: skip
-        spec = GridNetSpec(int(data["sensors"]), data.get("predefined"))
-        return np.array(data["genome"], dtype=np.float64), spec, grid
     if p.genome is None:
         raise ConfigError("give genome_run or genome", file=key_file, key="genome")
     spec = _spec(p.sensors, p.predefined)
@@ -280,8 +270,9 @@ def _rerun(p: RerunParams, seed: int, run_dir: Path) -> dict[str, Any]:
     fitness, reps = reduce_repetitions(result.fitness, "min")
     rep = int(reps[0])
     poses, classified = _classified(p.size, height, result.final[0, rep], torus)
-    _write_genome(run_dir, genome, spec, float(fitness[0]))
-    _write_grid(run_dir, p.size, height, Poses.from_cells(torus, starts[rep]), poses, rep)
+    write_best(run_dir, genome, spec, float(fitness[0]))
+    write_final_grid(run_dir, p.size, height, rep,
+                     Poses.from_cells(torus, starts[rep]).to_rows(), poses.to_rows())  # fmt: skip
     return {
         "size": p.size,
         "height": height,

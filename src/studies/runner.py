@@ -20,8 +20,9 @@ from typing import Any
 
 from studies.executors import Executor
 from studies.spec import expand, load_study, task_stages
-from studies.tasks import FAILED, SUMMARY, is_finished, run_dir, run_task
+from studies.tasks import FAILED, finished, is_finished, run_dir, run_task
 from surprise.errors import ConfigError
+from surprise.files import write_json
 
 __all__ = [
     "STUDY_FILE",
@@ -135,7 +136,7 @@ def run_study(
                 summary = {"run": task["run"], "status": "failed", "error": f"worker: {exc!r}"}
                 directory = run_dir(out, task)
                 directory.mkdir(parents=True, exist_ok=True)
-                (directory / FAILED).write_text(json.dumps(summary), encoding="utf-8")
+                write_json(directory / FAILED, summary)
             if summary.get("status") == "done":
                 counts.done += 1
             else:
@@ -161,7 +162,7 @@ def study_status(out: str | Path) -> dict[str, Any]:
         )
         entry["runs"] += 1
         directory = run_dir(out, task)
-        if (directory / SUMMARY).is_file():
+        if finished(directory):
             entry["done"] += 1
         elif (directory / FAILED).is_file():
             entry["failed"] += 1

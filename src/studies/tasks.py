@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from surprise.errors import ConfigError
-from surprise.files import write_atomic
+from surprise.files import write_json
 
 __all__ = [
     "ERROR",
@@ -42,6 +42,7 @@ __all__ = [
     "RUNS",
     "SUMMARY",
     "check_task",
+    "finished",
     "is_finished",
     "run_dir",
     "run_task",
@@ -76,7 +77,18 @@ def run_dir(root: str | Path, task: dict[str, Any]) -> Path:
 
 def is_finished(root: str | Path, task: dict[str, Any]) -> bool:
     """Whether ``task`` finished (its summary exists)."""
-    return (run_dir(root, task) / SUMMARY).is_file()
+    return finished(run_dir(root, task))
+
+
+def finished(directory: Path) -> bool:
+    """Whether the run in ``directory`` finished: its summary is this module's, with status
+    done. A grid run writes a summary of its own into the same directory first, so a run killed
+    between the two is not taken for finished."""
+    try:
+        summary = json.loads((directory / SUMMARY).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return isinstance(summary, dict) and summary.get("status") == "done"
 
 
 def check_task(task: dict[str, Any]) -> None:
@@ -94,7 +106,7 @@ def run_task(task: dict[str, Any], root: str) -> dict[str, Any]:
     """Run ``task`` into its directory below ``root``; return (and write) its summary."""
     directory = run_dir(root, task)
     # A directory without a summary is what a killed run left: start it afresh.
-    if directory.exists() and not (directory / SUMMARY).exists():
+    if directory.exists() and not finished(directory):
         shutil.rmtree(directory)
     directory.parent.mkdir(parents=True, exist_ok=True)
     base = {key: task[key] for key in ("group", "kind", "seed", "sweep", "run")}
@@ -111,7 +123,8 @@ def run_task(task: dict[str, Any], root: str) -> dict[str, Any]:
         summary = {**base, "status": "failed", "error": f"{type(exc).__name__}: {exc}"}
     summary["seconds"] = time.perf_counter() - started
     summary["host"] = os.uname().nodename
-    _write_json(directory / (SUMMARY if summary["status"] == "done" else FAILED), summary)
+    # the summary marks the run finished: written atomically, never left empty
+    write_json(directory / (SUMMARY if summary["status"] == "done" else FAILED), summary)
     return summary
 
 
@@ -208,8 +221,3 @@ def _quiet():
         yield
     finally:
         logger.setLevel(level)
-
-
-def _write_json(path: Path, data: dict[str, Any]) -> None:
-    # The summary marks the run finished: durable, so that a power cut cannot leave an empty one.
-    write_atomic(path, json.dumps(data, indent=1).encode("utf-8"))

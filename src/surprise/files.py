@@ -10,12 +10,13 @@ the usual ``022``). Secrets ask for :data:`PRIVATE_MODE` instead.
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import secrets
 from pathlib import Path
 from typing import Final
 
-__all__ = ["PRIVATE_MODE", "write_atomic"]
+__all__ = ["PRIVATE_MODE", "write_atomic", "write_json"]
 
 #: The mode of a file only its owner may read or write: for secrets.
 PRIVATE_MODE: Final = 0o600
@@ -62,6 +63,12 @@ def write_atomic(
         raise
     if durable:
         _fsync_dir(path.parent)
+
+
+def write_json(path: Path, data: object) -> None:
+    """Write ``data`` as indented JSON with :func:`write_atomic` (a crash or a power cut leaves
+    the old file or the new one, never an empty one)."""
+    write_atomic(path, json.dumps(data, indent=1).encode("utf-8"))
 
 
 def _create_temp(path: Path, mode: int) -> tuple[int, Path]:
