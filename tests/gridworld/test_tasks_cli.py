@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from gridworld.cli import main
@@ -137,3 +138,18 @@ def test_replay_and_classify(tmp_path, capsys, evolved):
     assert "key 'final'" in capsys.readouterr().err
     assert main(["evolve", "--size", "3", "--out", str(tmp_path / "x")]) == 2
     assert "agents" in capsys.readouterr().err
+
+
+def test_a_runs_best_genome_loads_with_its_spec(tmp_path):
+    # an actor-only (novelty) genome is shorter than a full pair: its spec must come back whole
+    from gridworld.evolve import load_best, write_best, write_final_grid
+    from surprise.gridnet import GridGenomeLayout, GridNetSpec
+
+    spec = GridNetSpec(14, None, True)
+    genome = np.arange(GridGenomeLayout(spec).size, dtype=np.float64)
+    write_best(tmp_path, genome, spec, 0.5, generation=3)
+    write_final_grid(tmp_path, 15, 15, 2, [[0, 0, 1, 0]], [[1, 0, 1, 0]])
+    loaded, loaded_spec, grid = load_best(tmp_path)
+    assert loaded_spec == spec and GridGenomeLayout(loaded_spec).size == genome.size
+    np.testing.assert_array_equal(loaded, genome)
+    assert grid["repetition"] == 2 and grid["final"] == [[1, 0, 1, 0]]
