@@ -30,7 +30,7 @@ from pathlib import Path
 import surprise
 from drivers.body import Body
 from drivers.clock import Clock, MonotonicClock
-from drivers.config import BodyConfig, ThymioConfig
+from drivers.config import BodyConfig
 from drivers.thymio import ThymioBase
 from robot_agent.agent import Agent
 from robot_agent.config import AgentConfig, load_agent_config, make_ssl_context, read_secret
@@ -159,9 +159,7 @@ async def run_agent(
             signal.signal(sig, previous[sig])
 
 
-async def stop_motors_once(
-    config: AgentConfig, *, thymio_factory: Callable[[ThymioConfig], ThymioBase] | None = None
-) -> int:
+async def stop_motors_once(config: AgentConfig) -> int:
     """Set the Thymio's motor targets to zero and confirm it; returns the exit code.
 
     This is the last line of defence after the agent ended, however it ended (even SIGKILL): it
@@ -169,7 +167,7 @@ async def stop_motors_once(
     only connects to D-Bus and stops the motors through whichever medulla runs now; it loads no
     program and opens no other part of the body.
     """
-    thymio = (thymio_factory or ThymioBase)(config.body.thymio)
+    thymio = ThymioBase(config.body.thymio)
 
     async def stop() -> None:
         await thymio.connect()

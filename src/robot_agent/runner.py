@@ -102,13 +102,13 @@ async def finish(awaitable: Awaitable[object], timeout: float) -> BaseException 
     return error
 
 
-async def stop_motors(body: Body, timeout: float) -> bool:
-    """Stop the motors (see :func:`finish`); returns whether that is known to have worked."""
+async def stop_motors(body: Body, timeout: float) -> BaseException | None:
+    """Stop the motors (see :func:`finish`); returns None if that is known to have worked, else
+    the error (logged)."""
     error = await finish(body.stop(), timeout)
-    if error is None:
-        return True
-    log.error("stopping the motors failed: %r", error)
-    return False
+    if error is not None:
+        log.error("stopping the motors failed: %r", error)
+    return error
 
 
 class EvaluationRunner:
@@ -245,9 +245,8 @@ class EvaluationRunner:
                 self.running = None
                 # The stop is confirmed by the robot itself; a robot that does not confirm it
                 # is unreachable, whatever the evaluation looked like (the master must know).
-                stop_error = await finish(self.body.stop(), self.config.stop_timeout)
+                stop_error = await stop_motors(self.body, self.config.stop_timeout)
                 if stop_error is not None:
-                    log.error("stopping the motors failed: %r", stop_error)
                     if self.watchdog is not None:
                         await finish(self.watchdog.trip("stop failed"), self.config.stop_timeout)
                     if isinstance(stop_error, RobotUnreachableError | TimeoutError):

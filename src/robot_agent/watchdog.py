@@ -33,6 +33,8 @@ from collections.abc import Awaitable, Callable
 from types import TracebackType
 from typing import Self
 
+from surprise.backoff import Backoff, BackoffConfig
+
 log = logging.getLogger(__name__)
 
 #: No feed for this long (seconds) trips the watchdog: a 10 Hz loop feeds every 0.1 s, so this
@@ -98,7 +100,9 @@ class Watchdog:
         self._last_feed = now()
         self._tripped_reason: str | None = None
         self._stopped = False  # whether a stop succeeded since the trip
-        self._failures = 0  # failed stop attempts since the trip, to log the first one loudly
+        # Pauses between retries of a failing stop: ``period`` doubling up to RETRY_MAX. Its
+        # ``attempts`` counts the failed stops since the trip, to log the first one loudly.
+        self._retry_backoff = Backoff(BackoffConfig(initial=period, max=RETRY_MAX, jitter=0.0))
         self._next_retry = 0.0  # when a failed stop may be tried again (on ``now``)
         # Bumped by arm(): a stop attempt that began before it says nothing about the new arming.
         self._epoch = 0
@@ -138,7 +142,7 @@ class Watchdog:
         """Start watching (at the start of an evaluation); clears an earlier trip and feeds."""
         self._tripped_reason = None
         self._stopped = False
-        self._failures = 0
+        self._retry_backoff.reset()
         self._next_retry = 0.0
         self._epoch += 1
         self._last_feed = self._now()
@@ -226,15 +230,14 @@ class Watchdog:
             if error is None:
                 # Only for the arming it began in: the motors may have been driven since arm().
                 self._stopped = epoch == self._epoch
-                if self._failures:
-                    log.info("watchdog: motors stopped after %d failed attempts", self._failures)
-                self._failures = 0
+                failures = self._retry_backoff.attempts
+                if failures:
+                    log.info("watchdog: motors stopped after %d failed attempts", failures)
+                self._retry_backoff.reset()
                 return True
-            self._failures += 1
-            pause = min(RETRY_MAX, self._period * 2.0 ** min(self._failures - 1, 16))
-            self._next_retry = self._now() + pause
+            self._next_retry = self._now() + self._retry_backoff.next_delay()
             # Loud once, then quiet: a vanished robot would otherwise log a line a second.
-            level = logging.ERROR if self._failures == 1 else logging.DEBUG
+            level = logging.ERROR if self._retry_backoff.attempts == 1 else logging.DEBUG
             log.log(level, "watchdog: stopping the motors failed (%s); retrying", error)
             return False
 
