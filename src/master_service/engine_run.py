@@ -15,7 +15,6 @@ that much work.
 
 from __future__ import annotations
 
-import collections
 import logging
 import time
 from collections.abc import Callable
@@ -242,10 +241,7 @@ class FastRun:
             fitness,
             100 * share,
         )
-        reasons: collections.Counter[str] = collections.Counter()
-        for counts in record.interventions:
-            reasons.update(counts)
-        warning = dominance_warning(share, reasons)
+        warning = dominance_warning(share, record.interventions)
         if warning is not None:
             log.warning("post-evaluation: %s", warning)
         state.phase = "done"

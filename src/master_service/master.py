@@ -484,10 +484,7 @@ class Master:
             ", ".join(f"{r} {attempt.results[r].fitness:.4f}" for r in attempt.robots),
             100 * share,
         )
-        reasons: collections.Counter[str] = collections.Counter()
-        for result in results.values():
-            reasons.update(result.stats.interventions)
-        warning = dominance_warning(share, reasons)
+        warning = dominance_warning(share, [r.stats.interventions for r in results.values()])
         if warning is not None:
             self.log.warning("post-evaluation: %s", warning)
         state.phase = "done"

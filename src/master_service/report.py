@@ -42,7 +42,7 @@ from master_service.rundir import (
 from sim_stub import metrics as sim_metrics
 from surprise.config import ExperimentConfig
 from surprise.errors import ConfigError
-from surprise.safety import dominance_warning, intervention_share
+from surprise.safety import dominance_warning, intervention_reasons, intervention_share
 from surprise.text import plural
 
 __all__ = ["baseline_text", "compute_metrics", "safety_lines", "status_text", "write_report"]
@@ -160,16 +160,14 @@ def _safety_metrics(
         tail = shares[-max(1, len(shares) // 10) :]
         metrics["evolution_mean_share"] = float(np.mean(shares))
         metrics["last_tenth_share"] = float(np.mean(tail))
-    reasons: collections.Counter[str] = collections.Counter()
+    counts: list[dict[str, int]] = []
     if post is not None and post.get("robots"):
         stats = {robot: entry["stats"] for robot, entry in post["robots"].items()}
-        for entry in stats.values():
-            reasons.update(entry["interventions"])
+        counts = [e["interventions"] for e in stats.values()]
         metrics["post_evaluation_share"] = intervention_share(
-            [e["interventions"] for e in stats.values()],
-            sum(e["steps_run"] for e in stats.values()),
+            counts, sum(e["steps_run"] for e in stats.values())
         )
-        metrics["post_evaluation_reasons"] = dict(reasons.most_common())
+        metrics["post_evaluation_reasons"] = dict(intervention_reasons(counts).most_common())
         metrics["post_evaluation_robots"] = {
             robot: intervention_share([e["interventions"]], e["steps_run"])
             for robot, e in stats.items()
@@ -180,11 +178,11 @@ def _safety_metrics(
     # best genome was selected on: either dominated by the safety layer needs a look.
     warnings = []
     if "post_evaluation_share" in metrics:
-        warning = dominance_warning(metrics["post_evaluation_share"], reasons)
+        warning = dominance_warning(metrics["post_evaluation_share"], counts)
         if warning:
             warnings.append(f"in the post-evaluation {warning}")
     if "last_tenth_share" in metrics:
-        warning = dominance_warning(metrics["last_tenth_share"], {})
+        warning = dominance_warning(metrics["last_tenth_share"], [])
         if warning:
             warnings.append(f"in the last tenth of the evolution {warning}")
     metrics["warnings"] = warnings

@@ -19,7 +19,7 @@ from master_service.master import RunSummary
 from master_service.rundir import BOX_TRACK, SIMULATION_FILE, RunDirError
 from sim_stub.engine import robot_ids
 from sim_stub.scenarios import SCENARIOS, WorldConfig, scenario_config
-from sim_stub.settings import SETTINGS, safety_config, world_overrides
+from sim_stub.settings import check_setting, safety_config, world_overrides
 from sim_stub.world import TooManyRobotsError, World
 from surprise.config import ExperimentConfig, decode_experiment, read_yaml
 from surprise.errors import ConfigError
@@ -153,12 +153,7 @@ def _check_robots_fit(
 
 
 def _world(setting: Any, scenario: str, overrides: Any, file: str | Path | None) -> WorldConfig:
-    if setting not in SETTINGS:
-        raise ConfigError(
-            f"unknown setting {setting!r}; expected one of: {', '.join(SETTINGS)}",
-            file=str(file) if file else None,
-            key="setting",
-        )
+    check_setting(setting, file)
     if overrides is not None and not isinstance(overrides, dict):
         raise ConfigError(
             "expected a mapping of world parameters",

@@ -25,7 +25,6 @@ import contextlib
 import logging
 import random
 import time
-import zlib
 from collections.abc import Callable
 from types import TracebackType
 from typing import Self
@@ -37,6 +36,7 @@ from robot_agent.health import RobotHealth
 from robot_agent.link import Link, robot_logger
 from robot_agent.runner import EvaluationRunner, stop_motors
 from robot_agent.watchdog import Watchdog
+from surprise.safety import safety_seed
 from telemetry.payloads import robot_suffix
 from telemetry.publisher import TelemetryPublisher
 from telemetry.robot import RobotTelemetry
@@ -108,7 +108,7 @@ class Agent:
             safety=config.safety,
             watchdog=self.watchdog,
             # Stable per robot, different between robots: their escape turns should not agree.
-            safety_seed=zlib.crc32(config.robot_id.encode("utf-8")),
+            safety_seed=safety_seed(config.robot_id),
             telemetry=robot_telemetry,
             health=self.health,
         )

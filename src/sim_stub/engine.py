@@ -21,7 +21,6 @@ robot ids) and evaluates genomes on it; the evolution around it is the master's 
 
 from __future__ import annotations
 
-import zlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,20 +38,20 @@ from surprise.safety import (
     SafetyLayer,
     SafetyParams,
     intervention_share,
+    safety_seed,
     safety_step,
 )
+from surprise.sensors import ALL_SENSORS
 
-__all__ = ["EvaluationRecord", "Swarm", "evaluate", "robot_ids", "safety_seed"]
+__all__ = ["EvaluationRecord", "Swarm", "evaluate", "robot_ids"]
+
+#: Sensors in the world's full frame, every sensor it simulates (as ``World`` allocates it).
+_FULL_WIDTH = len(ALL_SENSORS)
 
 
 def robot_ids(count: int) -> list[str]:
     """The simulated robots' ids: ``sim-0`` .. ``sim-<count-1>``."""
     return [f"sim-{i}" for i in range(count)]
-
-
-def safety_seed(robot_id: str) -> int:
-    """The seed of a robot's escape turns, as its agent derives it: stable per robot."""
-    return zlib.crc32(robot_id.encode("utf-8"))
 
 
 @kernel
@@ -104,7 +103,7 @@ def evaluate(
     n = pose.shape[0]
     r = columns.shape[0]
     values = np.empty((n, sn.columns.shape[0]))
-    full = np.zeros((n, 12))
+    full = np.zeros((n, _FULL_WIDTH))
     s = np.empty(r)
     previous = np.full((n, 2), initial_action)
     hidden = np.empty((n, p_init.shape[0]))

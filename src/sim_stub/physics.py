@@ -82,7 +82,7 @@ IR_CONE = 0
 IR_RAY = 1
 
 # Indices of the sensors in the full frame (surprise.sensors.ALL_SENSORS).
-_IR0, _GROUND0, _FORCE, _LIGHT0, _FULL = 0, 7, 9, 10, 12
+_IR0, _GROUND0, _FORCE, _LIGHT0 = 0, 7, 9, 10
 
 _TWO_PI = 2.0 * math.pi
 # Overlaps shallower than this (metres) are left alone: resolving them exactly would take many
@@ -97,7 +97,6 @@ _SETTLE_ROUNDS = 3
 # boxes may touch another robot again, which may push it into boxes again; most steps need one
 # or two, jams of bladed robots among boxes up to five.
 _CONTACT_ROUNDS = 6
-_FAR = 1e6
 
 
 class Geometry(NamedTuple):
@@ -172,13 +171,6 @@ def gaussian(seed: int, step: int, robot: int, channel: int) -> float:
     u1 = (mix32(key ^ 0x9E3779B9) + 0.5) / 4294967296.0
     u2 = (mix32(key ^ 0x85EBCA6B) + 0.5) / 4294967296.0
     return math.sqrt(-2.0 * math.log(u1)) * math.cos(_TWO_PI * u2)
-
-
-@kernel
-def uniform_index(seed: int, step: int, robot: int, channel: int, n: int) -> int:
-    """An integer uniform in [0, n) for (seed, step, robot, channel)."""
-    key = mix32(seed ^ mix32(step ^ mix32(robot * 64 + channel)))
-    return (mix32(key ^ 0x27D4EB2F) * n) >> 32
 
 
 # --------------------------------------------------------------------------- motion and robots
@@ -533,10 +525,12 @@ def _relax(
     back_x = np.zeros(n)
     back_y = np.zeros(n)
     back_d = np.zeros(n)
+    # Headings do not change here (robots only back off), so their trigonometry holds for every
+    # pass.
+    for i in range(n):
+        c[i] = math.cos(pose[i, 2])
+        s[i] = math.sin(pose[i, 2])
     for _ in range(g.box_iterations):
-        for i in range(n):
-            c[i] = math.cos(pose[i, 2])
-            s[i] = math.sin(pose[i, 2])
         moved = np.zeros(nb, dtype=np.bool_)
         robots_moved = False
         back_d[:] = 0.0
@@ -686,18 +680,23 @@ def _push_boxes(
     # Should a box held by a wall still be inside a robot, the robot backs off it, and the boxes
     # settle again.
     stuck = np.zeros(n, dtype=np.bool_)
+    c = np.empty(n)
+    s = np.empty(n)
     for round_ in range(_SETTLE_ROUNDS):
         any_stuck = False
         deep = np.zeros(n)
         dpx = np.zeros(n)
         dpy = np.zeros(n)
+        # Per round: the first round puts stuck robots back where they were, heading included.
+        for r in range(n):
+            c[r] = math.cos(pose[r, 2])
+            s[r] = math.sin(pose[r, 2])
         for b in range(nb):
             if not near[b]:
                 continue
             for r in range(n):
-                c, s = math.cos(pose[r, 2]), math.sin(pose[r, 2])
                 px, py, depth, _ = _robot_box(
-                    g, boxes[b, 0], boxes[b, 1], pose[r, 0], pose[r, 1], c, s
+                    g, boxes[b, 0], boxes[b, 1], pose[r, 0], pose[r, 1], c[r], s[r]
                 )
                 if depth > deep[r]:
                     deep[r] = depth

@@ -26,7 +26,7 @@ from surprise.errors import ConfigError
 from surprise.safety import SafetyConfig
 from surprise.settings import SETTINGS
 
-__all__ = ["SETTINGS", "safety_config", "world_overrides"]
+__all__ = ["SETTINGS", "check_setting", "safety_config", "world_overrides"]
 
 # Webots' Thymio II distance sensor (Thymio2DistanceSensor.proto): effective distance in metres
 # -> raw value, normalised by 4500 as the authors' controllers do; 0 from 9.33 cm on.
@@ -125,7 +125,9 @@ _LAB_SAFETY: dict[str, dict[str, Any]] = {
 }
 
 
-def _check(setting: str, file: str | Path | None) -> None:
+def check_setting(setting: object, file: str | Path | None = None) -> None:
+    """Raise :class:`ConfigError` (key ``setting``, naming ``file``) unless ``setting`` is one of
+    :data:`SETTINGS`."""
     if setting not in SETTINGS:
         raise ConfigError(
             f"unknown setting {setting!r}; expected one of: {', '.join(SETTINGS)}",
@@ -136,7 +138,7 @@ def _check(setting: str, file: str | Path | None) -> None:
 
 def world_overrides(setting: str, scenario: str) -> dict[str, Any]:
     """What ``setting`` changes in ``scenario``'s world (the ``lab`` setting: nothing)."""
-    _check(setting, None)
+    check_setting(setting)
     if setting == "lab":
         return {}
     return {**_PAPER_WORLD, **_PAPER_SCENARIOS.get(scenario, {})}
@@ -151,7 +153,7 @@ def safety_config(
 ) -> SafetyConfig:
     """The simulated robots' safety layer in ``setting`` and ``scenario``, with the experiment's
     ``safety`` overrides; a bad key raises :class:`ConfigError` naming ``safety.<key>``."""
-    _check(setting, file)
+    check_setting(setting, file)
     table = _PAPER_SAFETY if setting == "paper" else _LAB_SAFETY
     merged = {**table.get(scenario, {"profile": "stop"}), **(overrides or {})}
     return decode({"safety": merged}, _SafetyDocument, file=file).safety

@@ -200,7 +200,6 @@ class World:
         self._cmd = np.zeros((n, 2))
         self._force = np.zeros(n)
         self._boxes = np.zeros((0, 2))
-        self._sensors = np.zeros((n, len(config.sensors)))
         self._full = np.zeros((n, len(ALL_SENSORS)))
         self._recording: list[np.ndarray] | None = [] if record else None
         self._box_recording: list[np.ndarray] = []

@@ -16,6 +16,7 @@ import yaml
 
 from surprise.errors import ConfigError
 from surprise.sensors import check_sensor_names
+from surprise.settings import SETTINGS, Setting, experiment_defaults
 
 T = TypeVar("T")
 
@@ -151,7 +152,7 @@ class ExperimentConfig(Strict):
     #: the bundle of defaults the experiment starts from: ``paper`` (the authors' Webots
     #: simulation) or ``lab`` (the real robots); see docs/simulation.md. A simulated run
     #: (``surprise-master sim``, a study) starts from ``paper`` when the file names none
-    setting: Literal["paper", "lab"] = "lab"
+    setting: Setting = "lab"
 
     #: the sensors the networks see, by name, in this order (``ir.f0`` .. ``ir.f4``, ``ir.b0``,
     #: ``ir.b1``, ``ground.0``, ``ground.1``, ``force``, ``light.0``, ``light.1``); every robot
@@ -213,8 +214,6 @@ def with_setting(data: dict[str, Any]) -> dict[str, Any]:
     The setting is ``data["setting"]`` (default ``lab``); an unknown one is left for decoding to
     reject by name. The input is not modified.
     """
-    from surprise.settings import SETTINGS, experiment_defaults
-
     if not isinstance(data, dict):
         return data
     setting = data.get("setting", "lab")

@@ -47,6 +47,8 @@ is simply off (see :attr:`SafetyLayer.active_rules`).
 from __future__ import annotations
 
 import math
+import zlib
+from collections import Counter
 from collections.abc import Iterable, Mapping, Sequence
 from functools import lru_cache
 from typing import Annotated, Literal, NamedTuple
@@ -354,13 +356,19 @@ def _manoeuvre(p: SafetyParams, state: np.ndarray) -> tuple[float, float]:
 
 
 @kernel
+def _begin_turn(p: SafetyParams, state: np.ndarray) -> tuple[float, float]:
+    # A new turn on the spot, and its first step.
+    _draw_turn(p, state)
+    return _manoeuvre(p, state)
+
+
+@kernel
 def _begin_drive(p: SafetyParams, state: np.ndarray, direction: int) -> tuple[float, float]:
     if p.escape_drive_steps == 0:
-        _draw_turn(p, state)
-    else:
-        state[0] = _DRIVE
-        state[1] = p.escape_drive_steps
-        state[2] = direction
+        return _begin_turn(p, state)
+    state[0] = _DRIVE
+    state[1] = p.escape_drive_steps
+    state[2] = direction
     return _manoeuvre(p, state)
 
 
@@ -448,8 +456,7 @@ def safety_step(
         if p.escape_looks_ahead and state[0] == _DRIVE:
             blocked = ahead if state[2] > 0 else (_REAR if obstacle_rear else 0)
             if blocked:
-                _draw_turn(p, state)
-                sl, sr = _manoeuvre(p, state)
+                sl, sr = _begin_turn(p, state)
                 return sl, sr, blocked
         sl, sr = _manoeuvre(p, state)
         return sl, sr, _ESCAPE
@@ -459,24 +466,21 @@ def safety_step(
     if obstacle_front:
         if p.escape_looks_ahead and obstacle_rear:
             # Boxed in front and back: either straight move would hit something, so only turn.
-            _draw_turn(p, state)
-            sl, sr = _manoeuvre(p, state)
+            sl, sr = _begin_turn(p, state)
             return sl, sr, _FRONT
         sl, sr = _begin_drive(p, state, -1)
         return sl, sr, _FRONT
     if obstacle_rear:
         # Escape forward unless the way ahead is unsafe too (front is already known clear).
         if p.escape_looks_ahead and ahead:
-            _draw_turn(p, state)
-            sl, sr = _manoeuvre(p, state)
+            sl, sr = _begin_turn(p, state)
             return sl, sr, _REAR
         sl, sr = _begin_drive(p, state, 1)
         return sl, sr, _REAR
     if ahead:  # force or the boundary: turn on the spot, unless already turning sharply
         ratio = p.boundary_turn_ratio
         if ratio < 0.0 or left == right or abs(left + right) > ratio * abs(right - left):
-            _draw_turn(p, state)
-            sl, sr = _manoeuvre(p, state)
+            sl, sr = _begin_turn(p, state)
             return sl, sr, ahead
     limit = p.backward_limit_steps
     # An intended stop is already what the limit wants: it passes and counts as no intervention.
@@ -621,6 +625,13 @@ _DOMINANT_HINTS: dict[str, str] = {
 }
 
 
+def safety_seed(robot_id: str) -> int:
+    """The seed of a robot's escape turns (:meth:`SafetyLayer.initial_state`): stable per robot,
+    different between robots, so their escape turns do not agree. The robot's agent and the
+    simulator's engine both derive it here, so the two give the same turns."""
+    return zlib.crc32(robot_id.encode("utf-8"))
+
+
 def intervention_share(counts: Iterable[Mapping[str, int]], steps: int) -> float:
     """The share of ``steps`` (all robots' steps together) in which the layer changed the
     command, from each robot's counts of interventions per reason."""
@@ -629,11 +640,22 @@ def intervention_share(counts: Iterable[Mapping[str, int]], steps: int) -> float
     return min(1.0, sum(sum(c.values()) for c in counts) / steps)
 
 
-def dominance_warning(share: float, reasons: Mapping[str, int]) -> str | None:
+def intervention_reasons(counts: Iterable[Mapping[str, int]]) -> Counter[str]:
+    """Each robot's counts of interventions per reason summed over the robots (reasons in the
+    order they first appear)."""
+    total: Counter[str] = Counter()
+    for c in counts:
+        total.update(c)
+    return total
+
+
+def dominance_warning(share: float, counts: Iterable[Mapping[str, int]]) -> str | None:
     """One sentence when the layer drove more than :data:`SAFETY_DOMINATES` of the steps, naming
-    the commonest reason and what to check; None otherwise."""
+    the commonest reason over every robot's ``counts`` of interventions per reason (as for
+    :func:`intervention_share`) and what to check; None otherwise."""
     if share <= SAFETY_DOMINATES:
         return None
+    reasons = intervention_reasons(counts)
     text = (
         f"the safety layer overrode {100 * share:.0f} % of the steps: what the robots did is "
         "mostly the safety layer's doing, not the networks' commands"
