@@ -38,8 +38,6 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 from xml.sax.saxutils import quoteattr
 
-import numpy as np
-
 from drivers.body import clamp_unit
 from drivers.config import CALL_TIMEOUT, PROGRAM_NODE, ThymioConfig
 from drivers.parts import gather_all
@@ -48,6 +46,7 @@ from surprise.files import write_atomic
 from surprise.sensors import GROUND_SENSORS, IR_SENSORS
 
 if TYPE_CHECKING:
+    import numpy as np
     from dbus_fast.aio import MessageBus
 
 __all__ = ["CALL_TIMEOUT", "MedullaRestarter", "ThymioBase", "ThymioConfig", "end_process"]
@@ -249,16 +248,22 @@ class ThymioBase:
 
     async def read_ir(self) -> np.ndarray:
         """The 7 horizontal IR values (front left..right, back left, right): raw / 4500, clipped."""
+        import numpy as np  # here: --stop-motors imports this module and must stay light
+
         raw = await self._get(PROX_HORIZONTAL, len(IR_SENSORS))
         return np.clip(np.asarray(raw, dtype=float) / IR_MAX, 0.0, 1.0)
 
     async def read_ground(self) -> np.ndarray:
         """The 2 ground values (left, right) of the configured variable, raw / 1023 in [0, 1]."""
+        import numpy as np  # see read_ir
+
         raw = await self._get(self.config.ground, len(GROUND_SENSORS))
         return np.clip(np.asarray(raw, dtype=float) / GROUND_MAX, 0.0, 1.0)
 
     async def read(self) -> np.ndarray:
         """IR then ground (9 values), both requested at once since each waits for the robot."""
+        import numpy as np  # see read_ir
+
         ir, ground = await gather_all(self.read_ir(), self.read_ground())
         return np.concatenate([ir, ground])
 
@@ -347,14 +352,10 @@ class ThymioBase:
         except HardwareTimeoutError:
             raise
         except HardwareError as exc:
-            hint = ""
             if _NO_REPLY in str(exc):
-                hint = (
-                    "; asebamedulla ended while loading it: it aborts on malformed XML, and on a "
-                    "program it cannot compile when the en_US.UTF-8 locale is not installed"
-                )
+                raise HardwareError(_abort_reason(what, path)) from exc
             raise HardwareError(
-                f"Thymio: asebamedulla could not load {what} {path}: {exc}{hint}"
+                f"Thymio: asebamedulla could not load {what} {path}: {exc}"
             ) from exc
         if not self.config.failsafe:
             return
@@ -490,6 +491,21 @@ class ThymioBase:
             return list(answer.body)
 
         return await _bounded(operation, exchange(), self.config.timeout)
+
+
+def _abort_reason(what: str, path: str) -> str:
+    """One line on a medulla that left the bus instead of answering ``LoadScripts``."""
+    from drivers.medulla_locale import LOCALE_FIX, MEDULLA_LOCALE, locale_installed
+
+    if locale_installed() is False:
+        return (
+            f"Thymio: asebamedulla aborts loading any program, {what} included: the "
+            f"{MEDULLA_LOCALE} locale it needs is not installed; run: {LOCALE_FIX}"
+        )
+    return (
+        f"Thymio: asebamedulla ended while loading {what} {path} (it aborts on a malformed "
+        "program file; its own output, e.g. journalctl -u asebamedulla, says why)"
+    )
 
 
 def program_path(name: str, node: str, directory: str | None) -> str:

@@ -376,15 +376,14 @@ async def test_several_agents_share_one_event_loop(master):
 
 
 async def test_the_link_can_run_over_tls(tmp_path):
-    import shutil
     import ssl
     import subprocess
 
+    from needs import require_binary
     from robot_agent.config import MasterConfig
     from transport.tls import ClientTlsConfig
 
-    if shutil.which("openssl") is None:
-        pytest.skip("openssl is not installed")
+    require_binary("openssl")
     cert, key = tmp_path / "master.pem", tmp_path / "master.key"
     subprocess.run(
         ["openssl", "req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1",

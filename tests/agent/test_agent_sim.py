@@ -8,16 +8,14 @@ import contextlib
 import random
 
 import numpy as np
-import pytest
 from agent_fakes import SECRET, ScriptedMaster, agent_config, receive, spec
 
+import sim_stub.body as sim_body
+import sim_stub.scenarios as scenarios
+import sim_stub.world as world_module
 from robot_agent.agent import Agent
 from surprise.network import GenomeLayout
 from surprise.wire import Evaluate, Result, genome_to_bytes
-
-sim_body = pytest.importorskip("sim_stub.body")
-scenarios = pytest.importorskip("sim_stub.scenarios")
-world_module = pytest.importorskip("sim_stub.world")
 
 ROBOTS = 3
 STEPS = 30

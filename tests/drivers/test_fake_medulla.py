@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-import shutil
 import signal
 import subprocess
 import sys
@@ -17,6 +16,7 @@ from dbus_fast import Message, MessageFlag, MessageType
 from dbus_fast.aio import MessageBus
 
 from drivers.thymio import ASEBA_INTERFACE, ASEBA_PATH, ASEBA_SERVICE, FAILSAFE_TICK
+from needs import pids, require_binary
 from sim_stub.fake_medulla import FakeMedulla, StaticThymioModel, serve_fake_medulla
 
 
@@ -187,8 +187,7 @@ async def test_is_connected_lags_behind_a_robot_that_went_away(
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
 def test_a_private_bus_dies_with_a_killed_parent(tmp_path):
     """``surprise-sim-robots`` killed with SIGKILL must not leave its dbus-daemons behind."""
-    if shutil.which("dbus-daemon") is None:  # the other D-Bus tests fail loudly in CI
-        pytest.skip("dbus-daemon is not installed")
+    require_binary("dbus-daemon")
     code = (
         "import asyncio\n"
         "from sim_stub.fake_medulla import private_bus\n"
@@ -202,15 +201,14 @@ def test_a_private_bus_dies_with_a_killed_parent(tmp_path):
     try:
         address = parent.stdout.readline().strip()
         socket_dir = address.split("path=")[1].split(",")[0].rsplit("/", 1)[0]
-        find = ["pgrep", "-f", socket_dir]
-        assert subprocess.run(find, capture_output=True).stdout.split()
+        assert pids("dbus-daemon", containing=socket_dir)
         parent.send_signal(signal.SIGKILL)
         parent.wait(timeout=5)
         for _ in range(50):  # the kernel signals the daemon at once; it exits within moments
-            if not subprocess.run(find, capture_output=True).stdout.split():
+            if not pids("dbus-daemon", containing=socket_dir):
                 break
             time.sleep(0.05)
-        assert not subprocess.run(find, capture_output=True).stdout.split()
+        assert not pids("dbus-daemon", containing=socket_dir)
     finally:
         parent.kill()
         parent.wait()

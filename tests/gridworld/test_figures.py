@@ -3,13 +3,12 @@ eye)."""
 
 from __future__ import annotations
 
-import pytest
-
 from gridworld import figures
 from gridworld.tasks import run_task
+from needs import require_module
 
-pd = pytest.importorskip("pandas")
-pytest.importorskip("matplotlib")
+pd = require_module("pandas")
+require_module("matplotlib")
 
 
 def test_every_figure_is_written(tmp_path):

@@ -27,8 +27,7 @@ import time
 from pathlib import Path
 from typing import Final
 
-import pytest
-
+from needs import missing
 from sim_stub.fake_medulla import bus_config
 
 _TESTS = Path(__file__).resolve().parent.parent
@@ -179,9 +178,12 @@ class Playground:
 class Medulla:
     """One robot's ``asebamedulla`` on one bus, restarted whenever it ends (see the module)."""
 
-    def __init__(self, directory: Path, bus: str, robot_port: int) -> None:
+    def __init__(
+        self, directory: Path, bus: str, robot_port: int, env: dict[str, str] | None = None
+    ) -> None:
         self.directory = directory
         self.bus = bus
+        self.env = env or {}
         self.robot_port = robot_port
         self.port = free_port()
         self.starts = 0
@@ -195,7 +197,7 @@ class Medulla:
         return process.pid if process is not None and process.poll() is None else None
 
     def _spawn(self) -> None:
-        env = {**os.environ, "DBUS_SESSION_BUS_ADDRESS": self.bus}
+        env = {**os.environ, **self.env, "DBUS_SESSION_BUS_ADDRESS": self.bus}
         self.directory.mkdir(parents=True, exist_ok=True)
         with open(self.directory / f"medulla.{self.starts}.log", "wb") as log:
             self._process = subprocess.Popen(
@@ -311,11 +313,46 @@ def have_private_tmp() -> bool:
     return probe.returncode == 0
 
 
-def private_tmp_command(command: list[str]) -> list[str]:
-    """``command`` run with a private, empty /tmp, as systemd's ``PrivateTmp=yes`` gives it."""
+def kept_in_tmp() -> list[Path]:
+    """The entries of /tmp that this Python runs from: its venv, its interpreter, this checkout
+    (a clone under /tmp is common); a private /tmp must still show them."""
+    tmp = Path("/tmp").resolve()
+    used = [Path(sys.prefix), Path(sys.base_prefix), Path(sys.executable), _TESTS.parent]
+    used += [Path(entry) for entry in sys.path if entry]
+    kept = set()
+    for path in used:
+        resolved = path.resolve()
+        if resolved.is_relative_to(tmp) and resolved != tmp:
+            kept.add(tmp / resolved.relative_to(tmp).parts[0])
+    return sorted(p for p in kept if p.is_dir())
+
+
+_PRIVATE_TMP_SCRIPT = """
+set -e
+private=$1; shift
+while [ "$1" != -- ]; do
+    mkdir -p "$private/$(basename "$1")"
+    mount --bind "$1" "$private/$(basename "$1")"
+    shift
+done
+shift
+mount --rbind "$private" /tmp
+exec "$@"
+"""
+
+
+def private_tmp_command(command: list[str], private: Path) -> list[str]:
+    """``command`` with a /tmp of its own, as systemd's ``PrivateTmp=yes`` gives a unit: the empty
+    directory ``private`` is its /tmp, so what it writes there is not in the /tmp that other
+    processes see. The parts of the real /tmp this Python runs from (:func:`kept_in_tmp`) are
+    mounted into it, so the command finds its interpreter and this checkout wherever they are."""
     if not have_private_tmp():
-        pytest.skip("a private /tmp needs unshare --mount (root)")
+        missing(
+            "a private /tmp needs unshare --mount, which needs root (apt-get install util-linux)"
+        )
+    private.mkdir(parents=True, exist_ok=True)
+    kept = [str(p) for p in kept_in_tmp()]
     return [
-        "unshare", "--mount", "--propagation", "private", "--", "sh", "-c",
-        'mount -t tmpfs none /tmp && exec "$@"', "private-tmp", *command,
+        "unshare", "--mount", "--propagation", "private", "--",
+        "sh", "-c", _PRIVATE_TMP_SCRIPT, "private-tmp", str(private), *kept, "--", *command,
     ]  # fmt: skip

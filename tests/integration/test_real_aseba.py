@@ -41,6 +41,7 @@ from aseba_stack import (
 
 import drivers.thymio as thymio_module
 from drivers.config import ThymioConfig
+from drivers.medulla_locale import LOCALE_FIX
 from drivers.thymio import ThymioBase
 from surprise.errors import HardwareError
 from surprise.wire import Evaluate, Failed, Result, genome_to_bytes
@@ -136,8 +137,11 @@ class Lab:
 
 
 @contextlib.asynccontextmanager
-async def lab_of(tmp_path: Path, robots: int) -> AsyncIterator[Lab]:
-    """Playground with ``robots`` Thymios, each behind its own medulla on its own bus."""
+async def lab_of(
+    tmp_path: Path, robots: int, medulla_env: dict[str, str] | None = None
+) -> AsyncIterator[Lab]:
+    """Playground with ``robots`` Thymios, each behind its own medulla on its own bus (with
+    ``medulla_env`` added to medulla's environment)."""
     require_aseba()
     ports = [free_port() for _ in range(robots)]
     playground = Playground(tmp_path / "playground", ports)
@@ -147,7 +151,7 @@ async def lab_of(tmp_path: Path, robots: int) -> AsyncIterator[Lab]:
         for index, port in enumerate(ports):
             bus = Bus(tmp_path / f"bus-{index}")
             bus.start()
-            medulla = Medulla(tmp_path / f"medulla-{index}", bus.address, port)
+            medulla = Medulla(tmp_path / f"medulla-{index}", bus.address, port, medulla_env)
             lab.robots.append(Robot(bus, medulla, port))
             await medulla.start()
         for robot in lab.robots:
@@ -237,7 +241,9 @@ async def test_the_failsafe_loads_for_an_agent_whose_tmp_is_private(tmp_path: Pa
             "    await base.close()\n"
             "asyncio.run(main())\n"
         )
-        command = private_tmp_command([sys.executable, "-c", script, address])
+        command = private_tmp_command(
+            [sys.executable, "-c", script, address], tmp_path / "private-tmp"
+        )
         result = await asyncio.to_thread(
             subprocess.run, command, capture_output=True, text=True, timeout=60
         )
@@ -245,6 +251,44 @@ async def test_the_failsafe_loads_for_an_agent_whose_tmp_is_private(tmp_path: Pa
         assert "True" in result.stdout
         async with Observer(address) as observer:
             assert await observer.get("heartbeat") == [0]  # medulla knows the program's variable
+
+
+async def test_a_missing_locale_is_named_with_the_command_that_installs_it(tmp_path: Path):
+    """Debian's medulla aborts loading any program without the en_US.UTF-8 locale; glibc's
+    LOCPATH pointed at an empty directory makes this machine lack every locale, for medulla and
+    for the driver alike, as on a fresh Pi."""
+    no_locales = tmp_path / "no-locales"
+    no_locales.mkdir()
+    env = {"LOCPATH": str(no_locales)}
+    async with lab_of(tmp_path, 1, medulla_env=env) as lab:
+        script = (
+            "import asyncio, sys\n"
+            "from drivers.config import ThymioConfig\n"
+            "from drivers.thymio import ThymioBase\n"
+            "from surprise.errors import HardwareError\n"
+            "async def main():\n"
+            "    base = ThymioBase(ThymioConfig(bus=sys.argv[1], failsafe=True))\n"
+            "    try:\n"
+            "        await base.open()\n"
+            "    except HardwareError as exc:\n"
+            "        print(exc)\n"
+            "    finally:\n"
+            "        await base.close()\n"
+            "asyncio.run(main())\n"
+        )
+        result = await asyncio.to_thread(
+            subprocess.run,
+            [sys.executable, "-c", script, lab.robots[0].address],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            env={**os.environ, **env},
+        )
+        log = (lab.robots[0].medulla.directory / "medulla.0.log").read_text(errors="replace")
+    assert "_S_create_c_locale name not valid" in log  # medulla's own abort, not a stand-in
+    (line,) = result.stdout.strip().splitlines()
+    assert "the en_US.UTF-8 locale it needs is not installed" in line
+    assert line.endswith(f"run: {LOCALE_FIX}")
 
 
 async def test_medulla_s_own_reason_is_reported_when_a_program_does_not_load(

@@ -18,7 +18,6 @@ import csv
 import json
 import os
 import re
-import shutil
 import signal
 import socket
 import subprocess
@@ -35,6 +34,7 @@ import yaml
 
 from drivers.config import ThymioConfig
 from drivers.thymio import ThymioBase
+from needs import pids, require_binary
 from robot_agent.config import load_agent_config
 
 ROBOTS = 4
@@ -140,15 +140,13 @@ class Processes:
 
 
 def children(pid: int, name: str = "dbus-daemon") -> list[int]:
-    """Process ids of ``pid``'s children called ``name`` (``pgrep -P``)."""
-    found = subprocess.run(["pgrep", "-P", str(pid), name], capture_output=True, text=True)
-    return [int(line) for line in found.stdout.split()]
+    """Process ids of ``pid``'s children called ``name``."""
+    return sorted(pids(name, parent=pid))
 
 
 def running(name: str = "dbus-daemon") -> set[int]:
-    """Process ids of every process called ``name`` (``pgrep``)."""
-    found = subprocess.run(["pgrep", name], capture_output=True, text=True)
-    return {int(line) for line in found.stdout.split()}
+    """Process ids of every process called ``name``."""
+    return pids(name)
 
 
 def _kill_pid(pid: int) -> None:
@@ -159,8 +157,7 @@ def _kill_pid(pid: int) -> None:
 @pytest.fixture
 def procs(tmp_path: Path) -> Iterator[Processes]:
     """The test's processes; all are stopped at the end, and their output tails printed."""
-    if shutil.which("dbus-daemon") is None or shutil.which("pgrep") is None:
-        pytest.skip("dbus-daemon or pgrep is not installed")
+    require_binary("dbus-daemon")
     processes = Processes(tmp_path / "logs")
     try:
         yield processes

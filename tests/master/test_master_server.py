@@ -8,7 +8,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import shutil
 import ssl
 import struct
 import subprocess
@@ -18,6 +17,7 @@ import pytest
 from master_helpers import SECRET, master_config
 
 from master_service import Master
+from needs import require_binary
 from sim_stub.scripted_robots import RobotRefusedError, ScriptedRobot
 from surprise.sensors import ALL_SENSORS, IR_SENSORS
 from surprise.session import FrameAuth, master_proof, new_nonce, proof_matches, robot_proof
@@ -259,6 +259,7 @@ async def test_the_master_answers_a_robots_ping(tmp_path):
 
 
 def _make_certificate(directory) -> tuple[str, str]:
+    require_binary("openssl")
     cert, key = directory / "cert.pem", directory / "key.pem"
     subprocess.run(
         [
@@ -272,7 +273,6 @@ def _make_certificate(directory) -> tuple[str, str]:
     return str(cert), str(key)
 
 
-@pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl command")
 async def test_tls(tmp_path):
     cert, key = _make_certificate(tmp_path)
     config = master_config(tls=ServerTlsConfig(cert_file=cert, key_file=key))

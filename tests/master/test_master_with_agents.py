@@ -11,14 +11,13 @@ import random
 import pytest
 from master_helpers import SECRET, experiment, master_config, read_csv
 
+import robot_agent.agent as agent_module
+import robot_agent.config as agent_config_module
+import sim_stub.body as sim_body
+import sim_stub.scenarios as scenarios
+import sim_stub.world as world_module
 from master_service import Master
 from master_service.report import write_report
-
-agent_module = pytest.importorskip("robot_agent.agent")
-agent_config_module = pytest.importorskip("robot_agent.config")
-sim_body = pytest.importorskip("sim_stub.body")
-scenarios = pytest.importorskip("sim_stub.scenarios")
-world_module = pytest.importorskip("sim_stub.world")
 
 ROBOTS = 3
 

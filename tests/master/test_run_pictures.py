@@ -14,9 +14,10 @@ from master_service import pictures
 from master_service.cli import main
 from master_service.engine_run import FastRun
 from master_service.simulate import simulation_experiment
+from needs import require_module
 
-pytest.importorskip("matplotlib")
-Image = pytest.importorskip("PIL.Image")
+require_module("matplotlib")
+Image = require_module("PIL.Image")
 
 
 def small(scenario: str, *, setting: str = "paper", evaluations: int = 6, **simulation):

@@ -6,12 +6,13 @@ import sys
 
 import pytest
 
+from needs import require_module
 from sim_stub.scenarios import SCENARIOS, scenario_config
 from sim_stub.world import World
 
-pytest.importorskip("matplotlib")
+require_module("matplotlib")
 
-from sim_stub import render
+from sim_stub import render  # noqa: E402  (needs matplotlib, checked above)
 
 
 def is_png(path) -> bool:

@@ -1,5 +1,6 @@
-"""Fixtures of the telemetry tests: a real ``mosquitto`` broker (skipped with the reason when it
-is not installed; CI installs it), a closed port, and subscribers. See ``telemetry_helpers``."""
+"""Fixtures of the telemetry tests: a real ``mosquitto`` broker (a missing one skips the test
+outside CI and fails it in CI, which installs it), a closed port, and subscribers. See
+``telemetry_helpers``."""
 
 from __future__ import annotations
 
@@ -9,13 +10,15 @@ from pathlib import Path
 import pytest
 from telemetry_helpers import Broker, Subscriber, free_port, mosquitto_binary
 
+from needs import require_binary
+
 
 @pytest.fixture
 def mosquitto(tmp_path: Path) -> Iterator[Broker]:
     """A running broker for one test, stopped afterwards."""
     binary = mosquitto_binary()
     if binary is None:
-        pytest.skip("mosquitto is not installed (apt-get install mosquitto; CI installs it)")
+        require_binary("mosquitto")
     broker = Broker(binary, tmp_path, free_port())
     broker.start()
     try:
