@@ -5,9 +5,12 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from types import TracebackType
-from typing import ClassVar, Self
+from typing import TYPE_CHECKING, ClassVar, Self
 
-import numpy as np
+if TYPE_CHECKING:
+    # Only annotations here: importing the drivers (as ``surprise-agent --stop-motors`` does, in
+    # systemd's stop timeout on a slow Pi) must not import numpy.
+    import numpy as np
 
 
 @dataclass(frozen=True, slots=True)

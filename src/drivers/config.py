@@ -29,6 +29,10 @@ MAX_MOTOR_TARGET = 500
 
 #: The node name a Thymio II announces, and the one the packaged Aseba programs are written for.
 PROGRAM_NODE = "thymio-II"
+#: The directory the agent's unit gives it for copies of the Aseba programs (its
+#: ``RuntimeDirectory=``, deploy/systemd/surprise-agent.service): writable under the unit's
+#: ``ProtectSystem=strict``, and outside its private /tmp, so medulla, another unit, can read it.
+RUNTIME_PROGRAM_DIR = "/run/minimize-surprise"
 
 PositiveSeconds = Annotated[float, msgspec.Meta(gt=0.0, le=60.0)]
 BusNumber = Annotated[int, msgspec.Meta(ge=0, le=255)]
@@ -77,7 +81,8 @@ class ThymioConfig(Strict):
     #: seconds without a motor command after which the failsafe program stops the motors
     failsafe_timeout: Annotated[float, msgspec.Meta(ge=0.2, le=300.0)] = 1.0
     #: a directory medulla can read (not a private /tmp) for copies of the Aseba programs,
-    #: needed only for a node not named ``thymio-II``
+    #: needed only for a node not named ``thymio-II``; under the deploy/ units
+    #: ``/run/minimize-surprise``, the agent's runtime directory
     program_dir: str | None = None
     #: end medulla (SIGTERM) when the robot cannot be reached through it, for its service to
     #: start a fresh one; needs medulla under a unit with ``Restart=always``, as the agent's user
@@ -95,7 +100,7 @@ class ThymioConfig(Strict):
             raise ValueError(
                 f"`program_dir`: the Aseba programs are installed for the node {PROGRAM_NODE!r}; "
                 f"for node {self.node!r} they are written into program_dir, a directory "
-                "asebamedulla can read (e.g. /run/minimize-surprise)"
+                f"asebamedulla can read (e.g. {RUNTIME_PROGRAM_DIR})"
             )
 
 

@@ -10,7 +10,13 @@ builds the real body (``drivers.compose.build_body``, imported only here), opens
 SIGINT or SIGHUP (a closed SSH session), which stop the motors and exit with code 0. A robot that
 cannot be reached at start (switched on later, medulla not up yet) does not end the agent: it
 connects to the master, fails evaluations with the reason, and recovers the robot in the
-background. Logs go to stdout, where systemd's journal collects them.
+background. Logs go to stdout, where systemd's journal collects them, each line with its priority
+(:mod:`robot_agent.journal`).
+
+``--stop-motors`` (systemd's ``ExecStopPost``) reads only ``body.thymio`` of the file and stops the
+motors. It runs in a fresh interpreter within the unit's stop timeout, on a slow Pi: this module
+imports only what it needs at the top, and the agent's own modules (numpy, the networks, the
+safety layer) where the agent starts.
 
 Exit codes: 0 stopped by a signal, 1 could not start (the body cannot be built) or crashed, 2 bad
 configuration.
@@ -26,19 +32,35 @@ import signal
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+import msgspec
 
 import surprise
 from drivers.body import Body
 from drivers.clock import Clock, MonotonicClock
-from drivers.config import BodyConfig
+from drivers.config import BodyConfig, ThymioConfig
 from drivers.thymio import ThymioBase
-from robot_agent.agent import Agent
-from robot_agent.config import AgentConfig, load_agent_config, make_ssl_context, read_secret
-from robot_agent.runner import finish, stop_motors
+from robot_agent.bounded import finish
+from robot_agent.journal import print_error, setup_logging
+from surprise.config import load_yaml
 from surprise.errors import ConfigError, HardwareError
-from telemetry.config import require_client_library
 
-__all__ = ["EXIT_CONFIG", "EXIT_FAILURE", "EXIT_OK", "amain", "main", "run_agent"]
+if TYPE_CHECKING:
+    from robot_agent.config import AgentConfig
+
+__all__ = [
+    "EXIT_CONFIG",
+    "EXIT_FAILURE",
+    "EXIT_OK",
+    "STOP_CLOSE_TIMEOUT",
+    "STOP_ONCE_TIMEOUT",
+    "amain",
+    "load_thymio_config",
+    "main",
+    "run_agent",
+    "stop_motors_once",
+]
 
 log = logging.getLogger("robot_agent")
 
@@ -53,8 +75,11 @@ EXIT_CONFIG = 2
 #: the session drops, and its default action would end the process with the motors running.
 _SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
 #: Seconds ``--stop-motors`` may take to reach D-Bus and stop the Thymio (a connection and four
-#: calls, each bounded by the driver's own timeout); systemd's stop timeout (5 s) bounds the whole.
+#: calls, each bounded by the driver's own timeout).
 STOP_ONCE_TIMEOUT = 3.0
+#: Seconds ``--stop-motors`` may then take to close the connection (which stops once more). With
+#: the interpreter's start, both must fit the unit's ``TimeoutStopSec`` (tests/deploy checks).
+STOP_CLOSE_TIMEOUT = 1.0
 
 BodyFactory = Callable[[BodyConfig], Body]
 
@@ -102,6 +127,8 @@ async def run_agent(
     previous handlers restored afterwards. ``body_factory`` builds the (unopened) body; tests pass
     a fake one. Must run in the main thread (signal handlers can only be set there).
     """
+    from robot_agent.agent import Agent  # heavy: see the module docstring
+
     loop = asyncio.get_running_loop()
     task = asyncio.current_task()
     assert task is not None
@@ -121,10 +148,10 @@ async def run_agent(
         try:
             body = body_factory(config.body)
         except ConfigError as exc:
-            print(f"surprise-agent: {exc}", file=sys.stderr)
+            print_error(f"surprise-agent: {exc}")
             return EXIT_CONFIG
         except Exception as exc:  # e.g. the drivers' libraries are missing
-            print(f"surprise-agent: cannot build the robot's body: {exc}", file=sys.stderr)
+            print_error(f"surprise-agent: cannot build the robot's body: {exc}")
             return EXIT_FAILURE
         unreachable: str | None = None
         try:
@@ -132,7 +159,7 @@ async def run_agent(
         except HardwareError as exc:  # e.g. asebamedulla not up yet, the robot switched off
             unreachable = str(exc)
         except Exception as exc:  # a bug, or a library the drivers need is broken
-            print(f"surprise-agent: cannot open the robot's body: {exc!r}", file=sys.stderr)
+            print_error(f"surprise-agent: cannot open the robot's body: {exc!r}")
             # close() is idempotent and stops whatever part did open; a stop() on a body that
             # never opened would only add a misleading error to the log.
             await finish(body.close(), 2 * config.loop.stop_timeout)
@@ -159,7 +186,25 @@ async def run_agent(
             signal.signal(sig, previous[sig])
 
 
-async def stop_motors_once(config: AgentConfig) -> int:
+class _ThymioOnly(msgspec.Struct):
+    # Not Strict: the other keys of the body are the agent's business, not the stop's.
+    thymio: ThymioConfig = msgspec.field(default_factory=ThymioConfig)
+
+
+class _BodyOnly(msgspec.Struct):
+    body: _ThymioOnly = msgspec.field(default_factory=_ThymioOnly)
+
+
+def load_thymio_config(path: str | Path) -> ThymioConfig:
+    """``body.thymio`` of an agent file, ignoring every other key.
+
+    Raises :class:`ConfigError` for that section only: a mistake elsewhere in the file (made
+    while the agent ran) must not keep ``--stop-motors`` from stopping the robot.
+    """
+    return load_yaml(path, _BodyOnly).body.thymio
+
+
+async def stop_motors_once(config: ThymioConfig) -> int:
     """Set the Thymio's motor targets to zero and confirm it; returns the exit code.
 
     This is the last line of defence after the agent ended, however it ended (even SIGKILL): it
@@ -167,22 +212,24 @@ async def stop_motors_once(config: AgentConfig) -> int:
     only connects to D-Bus and stops the motors through whichever medulla runs now; it loads no
     program and opens no other part of the body.
     """
-    thymio = ThymioBase(config.body.thymio)
+    thymio = ThymioBase(config)
 
     async def stop() -> None:
         await thymio.connect()
         await thymio.stop()
 
     error = await finish(stop(), STOP_ONCE_TIMEOUT)
-    await finish(thymio.close(), 2 * config.loop.stop_timeout)
+    await finish(thymio.close(), STOP_CLOSE_TIMEOUT)
     if error is not None:
-        print(f"surprise-agent: the motor stop was not confirmed: {error}", file=sys.stderr)
+        print_error(f"surprise-agent: the motor stop was not confirmed: {error}")
         return EXIT_FAILURE
     log.info("motors stopped")
     return EXIT_OK
 
 
 async def _close(body: Body, config: AgentConfig) -> None:
+    from robot_agent.runner import stop_motors  # heavy: see the module docstring
+
     # Motors first, bounded: close() of a vanished robot may hang, the stop must not wait for it.
     await stop_motors(body, config.loop.stop_timeout)
     with contextlib.suppress(Exception):
@@ -195,32 +242,39 @@ async def amain(
 ) -> int:
     """The whole command in a running loop: parse, load, run; returns the exit code."""
     args = _parser().parse_args(argv)
-    _setup_logging(args.log_level)
+    setup_logging(args.log_level)
+    if args.stop_motors:
+        return await _stop_motors(args.config)
+    return await _serve(args.config, body_factory)
+
+
+async def _stop_motors(path: Path) -> int:
     try:
-        config = load_agent_config(args.config)
-        if args.stop_motors:
-            return await stop_motors_once(config)
-        secret = read_secret(config, config_file=args.config)
-        make_ssl_context(config, config_file=args.config)  # fail now, not at the first connect
-        require_client_library(config.telemetry, file=args.config)  # a broker needs aiomqtt
+        config = load_thymio_config(path)
     except ConfigError as exc:
-        print(f"surprise-agent: {exc}", file=sys.stderr)
+        print_error(f"surprise-agent: {exc}")
+        return EXIT_CONFIG
+    return await stop_motors_once(config)
+
+
+async def _serve(path: Path, body_factory: BodyFactory) -> int:
+    # Imported here, not at the top: they import numpy and the safety layer (see the docstring).
+    from robot_agent.config import load_agent_config, make_ssl_context, read_secret
+    from telemetry.config import require_client_library
+
+    try:
+        config = load_agent_config(path)
+        secret = read_secret(config, config_file=path)
+        make_ssl_context(config, config_file=path)  # fail now, not at the first connect
+        require_client_library(config.telemetry, file=path)  # a broker needs aiomqtt
+    except ConfigError as exc:
+        print_error(f"surprise-agent: {exc}")
         return EXIT_CONFIG
     try:
         return await run_agent(config, secret, body_factory=body_factory)
     except Exception:
         log.exception("the agent crashed")
         return EXIT_FAILURE
-
-
-def _setup_logging(level: str) -> None:
-    # basicConfig leaves an already configured root logger alone (an embedding process, pytest).
-    # systemd's journal adds its own timestamps; keep ours for runs outside systemd.
-    logging.basicConfig(
-        stream=sys.stdout,
-        level=level,
-        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-    )
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -302,3 +302,21 @@ async def test_stop_motors_exits_1_when_the_robot_is_unreachable(tmp_path, capsy
     assert "stop was not confirmed" in capsys.readouterr().err
     code = await cli.amain(["--config", str(path), "--stop-motors"])  # no medulla at all
     assert code == cli.EXIT_FAILURE and "not running" in capsys.readouterr().err
+
+
+async def test_stop_motors_reads_only_the_thymio_section(tmp_path, dbus_address):
+    """A mistake elsewhere in the file (made while the agent ran) must not keep ExecStopPost from
+    stopping the robot."""
+    text = f"safety: {{profile: wild}}\nbody: {{thymio: {{bus: '{dbus_address}'}}, lidar: 1}}\n"
+    path = write(tmp_path, text, secret=None)
+    model = StaticThymioModel()
+    model.targets = {"left": 200, "right": 200}
+    async with serve_fake_medulla(dbus_address, model):
+        code = await cli.amain(["--config", str(path), "--stop-motors"])
+    assert code == cli.EXIT_OK and model.targets == {"left": 0, "right": 0}
+
+
+def test_stop_motors_names_a_bad_thymio_key(tmp_path, capsys):
+    path = write(tmp_path, MINIMAL + "body: {thymio: {bus: nowhere}}\n", secret=None)
+    assert asyncio.run(cli.amain(["--config", str(path), "--stop-motors"])) == cli.EXIT_CONFIG
+    assert "body.thymio" in capsys.readouterr().err

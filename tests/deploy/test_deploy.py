@@ -1,18 +1,29 @@
-"""deploy/: the example configurations load, the systemd units verify, the install script parses."""
+"""deploy/: the example configurations load, the systemd units verify and agree with the code,
+the install script parses and builds outside the checkout."""
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 from pathlib import Path
 
 import pytest
 
+from drivers.config import RUNTIME_PROGRAM_DIR, ThymioConfig
 from master_service.config import load_master_config
+from needs import missing, require_binary
+from robot_agent.cli import STOP_CLOSE_TIMEOUT, STOP_ONCE_TIMEOUT
 from robot_agent.config import load_agent_config
 
-DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
+REPO = Path(__file__).resolve().parents[2]
+DEPLOY = REPO / "deploy"
 EXAMPLES = DEPLOY / "examples"
+INSTALL = DEPLOY / "install-pi.sh"
+#: Seconds a fresh interpreter may take on a slow Pi to reach the motor stop of ``--stop-motors``.
+#: Measured 0.1 s on a desktop, where numpy imports in 0.05 s; numpy takes 1.7 s on an emulated
+#: Pi, 35 times as long, which makes 3.5 s.
+SLOW_PI_START = 5.0
 
 
 @pytest.mark.parametrize("path", sorted(EXAMPLES.glob("agent-*.yaml")), ids=lambda p: p.name)
@@ -46,13 +57,13 @@ def _stub(path: Path) -> None:
     path.chmod(0o755)
 
 
-@pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd-analyze not installed")
 def test_systemd_units_verify(tmp_path):
     """Verify in a throw-away root holding the distribution's units and the binaries the units
     run, so the check is about our units, not about what this machine has installed."""
+    require_binary("systemd-analyze")
     system = Path("/usr/lib/systemd/system")
     if not (system / "sysinit.target").exists():
-        pytest.skip("no systemd unit tree on this machine")
+        missing("no systemd unit tree on this machine: install the Debian package systemd")
     root = tmp_path / "root"
     shutil.copytree(system, root / "usr/lib/systemd/system", symlinks=True)
     units = sorted((DEPLOY / "systemd").glob("*.service"))
@@ -78,13 +89,148 @@ def test_systemd_units_verify(tmp_path):
     assert result.returncode == 0 and result.stderr.strip() == "", result.stderr
 
 
-def test_install_script_parses():
-    assert subprocess.run(["bash", "-n", str(DEPLOY / "install-pi.sh")]).returncode == 0
-
-
 def test_dbus_policy_is_well_formed_xml():
     import xml.etree.ElementTree as ET
 
     root = ET.parse(DEPLOY / "dbus/ch.epfl.mobots.Aseba.conf").getroot()
     owns = [e.get("own") for e in root.iter("allow")]
     assert "ch.epfl.mobots.Aseba" in owns
+
+
+# --------------------------------------------------------------------------- the units' settings
+
+
+def _unit(name: str) -> dict[str, dict[str, list[str]]]:
+    """The settings of a unit in deploy/systemd: section, then key, then its values in order."""
+    sections: dict[str, dict[str, list[str]]] = {}
+    section: dict[str, list[str]] = {}
+    for raw in (DEPLOY / "systemd" / name).read_text().splitlines():
+        line = raw.strip()
+        if not line or line.startswith(("#", ";")):
+            continue
+        if line.startswith("["):
+            section = sections.setdefault(line.strip("[]"), {})
+        else:
+            key, _, value = line.partition("=")
+            section.setdefault(key.strip(), []).append(value.strip())
+    return sections
+
+
+def _one(unit: str, section: str, key: str) -> str:
+    (value,) = _unit(unit)[section][key]
+    return value
+
+
+def test_the_program_dir_hint_is_the_agents_runtime_directory():
+    """The directory the configuration suggests for the programs' copies is the one the unit
+    creates, writable under ProtectSystem=strict and readable by medulla."""
+    service = "surprise-agent.service"
+    assert "/run/" + _one(service, "Service", "RuntimeDirectory") == RUNTIME_PROGRAM_DIR
+    with pytest.raises(ValueError, match=RUNTIME_PROGRAM_DIR):
+        ThymioConfig(node="thymio-7")
+    assert RUNTIME_PROGRAM_DIR in (REPO / "docs/configuration.md").read_text()
+    # medulla runs as the directory's owner (both units: User=surprise) and reads and lists it.
+    assert _one(service, "Service", "User") == _one("asebamedulla.service", "Service", "User")
+    assert int(_one(service, "Service", "RuntimeDirectoryMode"), 8) & 0o500 == 0o500
+    # Not removed by a stop or restart under a medulla that may be loading from it.
+    assert _one(service, "Service", "RuntimeDirectoryPreserve") in ("yes", "restart")
+
+
+def test_the_stop_timeout_leaves_time_for_the_stop_after_the_agent():
+    """TimeoutStopSec bounds ExecStopPost too: a fresh interpreter plus the stop's own bounds."""
+    timeout = _one("surprise-agent.service", "Service", "TimeoutStopSec")
+    assert timeout.isdigit(), "plain seconds, so that this test can read it"
+    assert int(timeout) >= STOP_ONCE_TIMEOUT + STOP_CLOSE_TIMEOUT + SLOW_PI_START
+    (stop,) = _unit("surprise-agent.service")["Service"]["ExecStopPost"]
+    assert stop.endswith("--stop-motors")
+
+
+def test_medulla_is_reachable_over_tcp_from_this_machine_only():
+    """asebamedulla listens on 0.0.0.0:33333 and cannot bind another address."""
+    service = _unit("asebamedulla.service")["Service"]
+    assert service["IPAddressAllow"] == ["localhost"]
+    assert service["IPAddressDeny"] == ["any"]
+
+
+# --------------------------------------------------------------------------- install-pi.sh
+
+#: A pip that, like the real one, builds in the tree it installs from. It notes that tree and
+#: what it held.
+_FAKE_PIP = """#!/usr/bin/env bash
+set -eu
+for arg in "$@"; do
+  case "$arg" in
+    *"[robot]")
+      tree=${{arg%"[robot]"}}
+      echo "$tree" > {where}
+      (cd "$tree" && find . -mindepth 1 | sort) > {seen}
+      mkdir -p "$tree/build/lib" "$tree/src/minimize_surprise.egg-info"
+      ;;
+  esac
+done
+"""
+
+
+def _tree(root: Path) -> dict[str, tuple[int, int]]:
+    """Every path below ``root`` with its owner and modification time."""
+    found = {}
+    for path in root.rglob("*"):
+        status = path.lstat()
+        found[str(path.relative_to(root))] = (status.st_uid, status.st_mtime_ns)
+    return found
+
+
+@pytest.fixture
+def checkout(tmp_path: Path) -> Path:
+    """A copy of this repository as a robot's checkout, with what development leaves in one."""
+    root = tmp_path / "checkout"
+    shutil.copytree(
+        REPO,
+        root,
+        ignore=shutil.ignore_patterns(
+            ".git", ".venv", "*.egg-info", "__pycache__", ".*_cache", ".hypothesis", "runs"
+        ),
+    )
+    for junk in (
+        ".git/HEAD",
+        ".venv/bin/python",
+        "runs/real-1/state.json",
+        "build/lib/x.py",
+        "src/minimize_surprise.egg-info/PKG-INFO",
+    ):
+        (root / junk).parent.mkdir(parents=True, exist_ok=True)
+        (root / junk).write_text("")
+    return root
+
+
+def test_install_script_parses():
+    assert subprocess.run(["bash", "-n", str(INSTALL)]).returncode == 0
+
+
+def test_the_package_is_built_outside_the_checkout(tmp_path, checkout):
+    """install-pi.sh runs as root: pip building in the pi user's checkout would leave root-owned
+    build/ and *.egg-info there. It builds from a copy, removed when the script ends."""
+    venv, where, seen = tmp_path / "venv", tmp_path / "where", tmp_path / "seen"
+    (venv / "bin").mkdir(parents=True)
+    pip = venv / "bin/pip"
+    pip.write_text(_FAKE_PIP.format(where=where, seen=seen))
+    pip.chmod(0o755)
+    before = _tree(checkout)
+    script = f'source {INSTALL} && install_package "$1" "$2"'
+    result = subprocess.run(
+        ["bash", "-c", script, "install-pi.sh", str(venv), str(checkout)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env={**os.environ, "TMPDIR": str(tmp_path)},
+    )
+    assert result.returncode == 0, result.stderr
+    assert _tree(checkout) == before  # nothing built, changed or left in the checkout
+    tree = Path(where.read_text().strip())
+    assert not tree.is_relative_to(checkout)
+    assert not tree.exists()  # the copy is gone with the script
+    copied = set(seen.read_text().splitlines())
+    assert {"./pyproject.toml", "./README.md", "./src/robot_agent/cli.py"} <= copied
+    assert "./src/drivers/failsafe.aesl" in copied  # package data
+    for excluded in (".git", ".venv", "runs", "build", "src/minimize_surprise.egg-info"):
+        assert f"./{excluded}" not in copied
