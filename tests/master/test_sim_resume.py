@@ -211,8 +211,10 @@ def test_sim_into_an_unwritable_directory_is_one_clear_line(tmp_path: Path):
     prefix: tuple[str, ...] = ()
     if os.access(locked, os.W_OK):
         # Root writes anywhere through these capabilities; without them it obeys the mode bits.
-        setpriv = require_binary("setpriv")
-        prefix = (setpriv, "--bounding-set=-dac_override,-dac_read_search", "--")
+        # Both sets: root's exec keeps what the inheritable set holds, and a container (nspawn)
+        # hands its processes a full one.
+        caps = "-dac_override,-dac_read_search"
+        prefix = (require_binary("setpriv"), f"--inh-caps={caps}", f"--bounding-set={caps}", "--")
     try:
         argv = ["sim", "--evaluations", "2", "--out", str(locked / "run")]
         process = start(argv, tmp_path, prefix)
