@@ -1,6 +1,7 @@
-"""Unauthenticated connections against the master: memory they hold, and a flood during a run.
+"""Unauthenticated connections against the master: memory they hold, a flood during a run, and
+robots rejoining during a flood of silent connections.
 
-Two measurements, each with the master, the robots and the attacker in separate processes:
+Three measurements, each with the master, the robots and the attacker in separate processes:
 
 ``held``: an attacker opens ``--held`` connections (default 1,000) and sends on each a Hello of
 65,000 empty sensor names (the largest that fit a 64 KiB frame), then keeps them open for a few
@@ -19,9 +20,18 @@ between two checkpoints during the flood; whether the master's run ended with an
 lines the master logged during the flood; how many of the attacker's connections the master
 closed at once.
 
+``rejoin``: ``--rejoin-clients`` clients (default 128, twice the master's default handshake
+places) from 127.0.0.1 connect, say nothing, and connect again the moment the master closes them;
+meanwhile a scripted robot joins (connect, Welcome, Bye) ``--rejoin`` times (default 200), with a
+pause of 20 ms between two attempts, once from 127.0.0.2 (a robot of a lab, whose address is its
+own) and once from 127.0.0.1 (the flood's address: robots behind one NAT, a simulated swarm).
+Figures: the joins that succeeded, how long a successful join took (median), and how many
+connections the flood opened meanwhile. The master runs with its default settings.
+
 Works on any version of the master whose ``ScriptedRobot`` connects with ``connect()``, so the same
 script measures before and after a change. Prints one figure a line as ``name: value unit``.
-Run: ``python benchmarks/hostile_connections.py [--held N] [--flood N]``
+Run: ``python benchmarks/hostile_connections.py [--held N] [--flood N] [--rejoin N]
+[--rejoin-clients N] [--only held,flood,rejoin]``
 """
 
 from __future__ import annotations
@@ -30,10 +40,13 @@ import argparse
 import asyncio
 import contextlib
 import datetime
+import functools
+import inspect
 import itertools
 import multiprocessing
 import os
 import resource
+import statistics
 import struct
 import tempfile
 import time
@@ -49,6 +62,12 @@ HOSTILE_SENSORS = 65_000
 MASTER_FD_LIMIT = 1024
 #: Seconds of the run measured before the flood starts, the flood's hold time and the time after.
 BEFORE_S, HOLD_S, AFTER_S = 4.0, 6.0, 4.0
+#: Where the rejoin measurement's flood comes from, and the other address its robot may use.
+FLOOD_ADDRESS, OTHER_ADDRESS = "127.0.0.1", "127.0.0.2"
+#: A join slower than this counts as failed (a robot's own handshake deadline is 10 s).
+JOIN_TIMEOUT_S = 10.0
+#: Pause between two join attempts: a robot's backoff, shortened so the measurement is quick.
+JOIN_PAUSE_S = 0.02
 
 
 def hostile_hello() -> bytes:
@@ -229,6 +248,79 @@ async def _attack(
     queue.put(("closed", time.time(), closed_before_release, failed))
 
 
+# ------------------------------------------------------------------------------- the rejoin
+
+
+def _silent_flood_process(queue: Any, release: Any, port: int, clients: int) -> None:
+    _raise_fd_limit()
+    asyncio.run(_silent_flood(queue, release, port, clients))
+
+
+async def _silent_flood(queue: Any, release: Any, port: int, clients: int) -> None:
+    """``clients`` silent connections from FLOOD_ADDRESS, each reopened once the master closes
+    it, until ``release``; reports how many connections were opened."""
+    opened = 0
+    stop = asyncio.Event()
+
+    async def client() -> None:
+        nonlocal opened
+        while not stop.is_set():
+            try:
+                reader, writer = await asyncio.open_connection(
+                    "127.0.0.1", port, local_addr=(FLOOD_ADDRESS, 0)
+                )
+            except OSError:
+                await asyncio.sleep(0.01)
+                continue
+            opened += 1
+            closed = asyncio.ensure_future(reader.read())
+            stopped = asyncio.ensure_future(stop.wait())
+            await asyncio.wait({closed, stopped}, return_when=asyncio.FIRST_COMPLETED)
+            for task in (closed, stopped):
+                task.cancel()
+            await asyncio.gather(closed, stopped, return_exceptions=True)
+            writer.transport.abort()
+
+    tasks = [asyncio.create_task(client()) for _ in range(clients)]
+    while opened < clients:
+        await asyncio.sleep(0.01)
+    queue.put(("flooding", opened))
+    while not release.is_set():
+        await asyncio.sleep(0.05)
+    stop.set()
+    await asyncio.gather(*tasks)
+    queue.put(("stopped", opened))
+
+
+def _rejoin_process(queue: Any, port: int, attempts: int, address: str) -> None:
+    asyncio.run(_rejoin(queue, port, attempts, address))
+
+
+async def _rejoin(queue: Any, port: int, attempts: int, address: str) -> None:
+    from sim_stub.scripted_robots import ScriptedRobot
+
+    if "local_address" in inspect.signature(ScriptedRobot).parameters:
+        robot = ScriptedRobot("r0", SECRET, port, local_address=address)
+    else:  # an older ScriptedRobot: bind its connections in this process instead
+        asyncio.open_connection = functools.partial(  # type: ignore[assignment]
+            asyncio.open_connection, local_addr=(address, 0)
+        )
+        robot = ScriptedRobot("r0", SECRET, port)
+    times = []
+    for _ in range(attempts):
+        started = time.monotonic()
+        try:
+            async with asyncio.timeout(JOIN_TIMEOUT_S):
+                await robot.connect()
+        except (OSError, EOFError, TimeoutError):
+            pass
+        else:
+            times.append(time.monotonic() - started)
+            await robot.close()
+        await asyncio.sleep(JOIN_PAUSE_S)
+    queue.put(("joined", times))
+
+
 # ------------------------------------------------------------------------------- measurements
 
 
@@ -323,6 +415,38 @@ def measure_flood(connections: int) -> dict[str, Any]:
     }
 
 
+def measure_rejoin(attempts: int, clients: int, address: str) -> dict[str, Any]:
+    """``attempts`` joins of a robot from ``address`` while ``clients`` silent connections from
+    FLOOD_ADDRESS keep the master's handshake places taken."""
+    context = multiprocessing.get_context("spawn")
+    queue, stop, release = context.Queue(), context.Event(), context.Event()
+    flood_queue, robot_queue = context.Queue(), context.Queue()
+    master = context.Process(target=_master_process, args=(queue, stop, "held", None))
+    master.start()
+    port, _ = _get(queue, "port")
+    flooder = context.Process(
+        target=_silent_flood_process, args=(flood_queue, release, port, clients)
+    )
+    flooder.start()
+    _get(flood_queue, "flooding")
+    time.sleep(1.0)  # the flood settles: every place taken, closed ones coming back
+    robot = context.Process(target=_rejoin_process, args=(robot_queue, port, attempts, address))
+    robot.start()
+    (times,) = _get(robot_queue, "joined", timeout=attempts * (JOIN_TIMEOUT_S + 1))
+    robot.join()
+    release.set()
+    (opened,) = _get(flood_queue, "stopped")
+    flooder.join()
+    stop.set()
+    _get(queue, "done")
+    master.join()
+    return {
+        "joined": len(times),
+        "median_s": statistics.median(times) if times else None,
+        "opened": opened,
+    }
+
+
 def _log_lines_between(log: list[str], start: float, end: float) -> int:
     """Lines logged from ``start`` to ``end`` (epoch seconds), the run's progress lines aside.
 
@@ -343,26 +467,42 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--held", type=int, default=1000)
     parser.add_argument("--flood", type=int, default=10_000)
+    parser.add_argument("--rejoin", type=int, default=200)
+    parser.add_argument("--rejoin-clients", type=int, default=128)
+    parser.add_argument("--only", default="held,flood,rejoin", help="comma-separated")
     args = parser.parse_args()
+    only = set(args.only.split(","))
+    if "held" in only:
+        _print_held(args.held)
+    if "flood" in only:
+        _print_flood(args.flood)
+    if "rejoin" in only:
+        _print_rejoin(args.rejoin, args.rejoin_clients)
+
+
+def _print_held(connections: int) -> None:
     mib = 2**20
     from master_service import MasterConfig
 
     runs = [("default", None, hostile_hello())]
     if "max_pending_connections" in MasterConfig.__struct_fields__:
         runs += [
-            ("uncapped", args.held, hostile_hello()),
-            ("largest_hello_uncapped", args.held, largest_hello()),
+            ("uncapped", connections, hostile_hello()),
+            ("largest_hello_uncapped", connections, largest_hello()),
         ]
     for label, cap, hello in runs:
-        held = measure_held(args.held, cap, hello)
-        name = f"held_{args.held}_{label}"
+        held = measure_held(connections, cap, hello)
+        name = f"held_{connections}_{label}"
         print(f"{name}_master_rss_before: {held['before'] / mib:.1f} MiB")
         print(f"{name}_master_rss_held: {held['held'] / mib:.1f} MiB")
         print(f"{name}_master_rss_after_close: {held['after'] / mib:.1f} MiB")
         print(f"{name}_closed_by_master_while_held: {held['closed_early']} connections")
         print(f"{name}_connect_failures: {held['failed']} connections")
-    flood = measure_flood(args.flood)
-    name = f"flood_{args.flood}"
+
+
+def _print_flood(connections: int) -> None:
+    flood = measure_flood(connections)
+    name = f"flood_{connections}"
     print(f"{name}_evaluations_before: {flood['before']:.1f} per s")
     print(f"{name}_evaluations_during: {flood['during']:.1f} per s")
     print(f"{name}_evaluations_after: {flood['after']:.1f} per s")
@@ -373,6 +513,16 @@ def main() -> None:
     print(f"{name}_attacker_open_time: {flood['opened_s']:.2f} s")
     print(f"{name}_closed_by_master_while_held: {flood['closed_early']} connections")
     print(f"{name}_connect_failures: {flood['failed']} connections")
+
+
+def _print_rejoin(attempts: int, clients: int) -> None:
+    for label, address in (("other_address", OTHER_ADDRESS), ("flood_address", FLOOD_ADDRESS)):
+        rejoin = measure_rejoin(attempts, clients, address)
+        name = f"rejoin_{clients}_silent_robot_from_{label}"
+        median = rejoin["median_s"]
+        print(f"{name}_joined: {rejoin['joined']} of {attempts} attempts")
+        print(f"{name}_median_join: {'-' if median is None else f'{median * 1e3:.1f}'} ms")
+        print(f"{name}_flood_connections: {rejoin['opened']} connections")
 
 
 if __name__ == "__main__":

@@ -20,12 +20,12 @@ from typing import Any
 import msgspec
 import numpy as np
 
+from master_service.rundir import write_atomic
 from master_service.simulation_setup import simulated_safety, world_config
 from sim_stub import metrics as sim_metrics
 from sim_stub.engine import EvaluationRecord, Swarm
 from surprise.config import ExperimentConfig
 from surprise.evolution import random_genome
-from surprise.files import write_atomic
 from surprise.fitness import surprise_fitness, swarm_fitness
 from surprise.network import GenomeLayout, spec_from_config
 

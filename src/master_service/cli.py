@@ -15,9 +15,10 @@ Subcommands::
     surprise-master watch --broker URL [--prefix P] [--once]
                                                     live view of a run's MQTT telemetry
 
-Exit status: 0 done; 1 the run stopped on an error (a busy port, a full disk); 2 bad configuration
-or run directory (one message naming the file and key; nothing was started); 128 + N stopped by
-signal N (SIGINT, SIGTERM), the run can be resumed.
+Exit status: 0 done; 1 the run stopped on an error (a busy port, a full disk: one line naming the
+file and what to do, the run can be resumed); 2 bad configuration or run directory (one message
+naming the file and key; nothing was started); 128 + N stopped by signal N (SIGINT, SIGTERM), the
+run can be resumed.
 """
 
 from __future__ import annotations
@@ -25,21 +26,25 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import errno
 import logging
 import signal
 import sys
 import time
 from collections.abc import Awaitable, Iterator, Sequence
 from pathlib import Path
-from typing import Final, TypeVar
+from typing import TYPE_CHECKING, Final, TypeVar
 
 from master_service.config import MasterConfig, load_master_config, load_secret
 from master_service.master import Master
 from master_service.progress import ProgressDisplay
-from master_service.rundir import RunDir, RunDirError
+from master_service.rundir import CONFIG_SNAPSHOT, SIMULATION_FILE, RunDir, RunDirError
 from surprise.config import ExperimentConfig
-from surprise.errors import ConfigError
+from surprise.errors import ConfigError, FileWriteError
 from surprise.text import plural
+
+if TYPE_CHECKING:
+    from master_service.simulation_setup import SimulatedRun
 
 __all__ = ["main"]
 
@@ -47,6 +52,9 @@ _log = logging.getLogger("master_service.cli")
 
 #: The signals that stop a run cleanly (it can be resumed).
 _STOP_SIGNALS: Final = (signal.SIGINT, signal.SIGTERM)
+#: Reasons a file cannot be written that space, or a writable directory, puts right.
+_NO_SPACE: Final = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG})
+_NOT_WRITABLE: Final = frozenset({errno.EACCES, errno.EPERM, errno.EROFS})
 
 T = TypeVar("T")
 
@@ -161,6 +169,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _os_error_text(exc: OSError) -> str:
+    if isinstance(exc, FileWriteError):
+        return str(exc)
     if exc.filename is not None and exc.strerror:
         return f"{exc.filename}: {exc.strerror}"
     return str(exc)
@@ -214,15 +224,47 @@ def _resume(args: argparse.Namespace) -> int:
 
 def _serve(master: Master, args: argparse.Namespace) -> int:
     level = logging.DEBUG if args.verbose else logging.INFO
-    with ProgressDisplay(level=level) as display:
-        master.add_progress_listener(display.update)
-        try:
-            return asyncio.run(_serve_async(master))
-        except OSError as exc:
-            # Typically a busy port: nothing was created (the port is bound before the run
-            # directory is touched).
-            _log.error("surprise-master: %s", exc)
-            return 1
+    try:
+        with ProgressDisplay(level=level) as display:
+            master.add_progress_listener(display.update)
+            try:
+                return asyncio.run(_serve_async(master))
+            except FileWriteError:
+                raise
+            except OSError as exc:
+                # Typically a busy port: nothing was created (the port is bound before the run
+                # directory is touched).
+                _log.error("surprise-master: %s", exc)
+                return 1
+    except FileWriteError as exc:
+        return _write_failed(exc, master.run_dir.path, simulated=False)
+
+
+def _write_failed(exc: FileWriteError, run_dir: Path, *, simulated: bool) -> int:
+    """Say in one line (after the progress display is gone) which file could not be written,
+    why, and how to go on; the exit status."""
+    print(f"surprise-master: {exc}; {_next_step(exc, run_dir, simulated)}", file=sys.stderr)
+    return 1
+
+
+def _next_step(exc: FileWriteError, run_dir: Path, simulated: bool) -> str:
+    if exc.errno in _NO_SPACE:
+        remedy = "free some space"
+    elif exc.errno in _NOT_WRITABLE:
+        remedy = f"make {run_dir} writable"
+    else:
+        remedy = "put that right"
+    run = RunDir(run_dir)
+    needed = (CONFIG_SNAPSHOT, SIMULATION_FILE) if simulated else (CONFIG_SNAPSHOT,)
+    if not all(run.file(name).is_file() for name in needed):
+        # It stopped before it could be resumed.
+        return f"{remedy} and start the run again (its --out must be empty)"
+    with contextlib.suppress(OSError, RunDirError):
+        checkpoint = run.read_checkpoint_data()
+        if checkpoint is not None and checkpoint.get("phase") == "done":
+            # Every evaluation is in; what failed was the report at the end.
+            return f"{remedy} and run `surprise-master report {run_dir}`"
+    return f"{remedy} and run `surprise-master resume {run_dir}`"
 
 
 async def _serve_async(master: Master) -> int:
@@ -311,15 +353,42 @@ def _simulate(
 ) -> int:
     """Run (or resume) a simulated experiment with its progress display; on SIGINT or SIGTERM
     stop at the next commit and say in one line where the run stands and how to go on."""
-    from master_service.simulate import SimulatedSwarm, quiet_agents, summary_text
+    from master_service.simulate import summary_text
 
     display = ProgressDisplay(level=logging.DEBUG if verbose else logging.INFO)
     if display.live and not verbose:
         # A simulated run counts dozens of evaluations a second: the panel shows the progress,
         # master.log keeps every line, the console only what needs a look.
         display.level = logging.WARNING
-    mode = "real time" if realtime else "lockstep"
     received: list[int] = []
+    try:
+        result, started = _run_simulation(
+            experiment, out, engine, realtime, display, received, resume=resume
+        )
+    except FileWriteError as exc:
+        return _write_failed(exc, out, simulated=True)
+    if result is None:
+        print(_stopped_text(out, experiment, received[0]), file=sys.stderr)
+        return 128 + received[0]
+    print(summary_text(result.metrics, out, time.perf_counter() - started, resumed=resume))
+    return 0
+
+
+def _run_simulation(
+    experiment: ExperimentConfig,
+    out: Path,
+    engine: str,
+    realtime: bool,
+    display: ProgressDisplay,
+    received: list[int],
+    *,
+    resume: bool,
+) -> tuple[SimulatedRun | None, float]:
+    """The simulated run behind :func:`_simulate` with its display; the run (None when stopped
+    by a signal, which ``received`` names) and when it started (``time.perf_counter``)."""
+    from master_service.simulate import SimulatedSwarm, quiet_agents
+
+    mode = "real time" if realtime else "lockstep"
     with display, quiet_agents():
         print(
             f"{'resuming' if resume else 'simulating'} {experiment.scenario} "
@@ -339,11 +408,7 @@ def _simulate(
         else:
             swarm = SimulatedSwarm(experiment, realtime=realtime, on_progress=display.update)
             result = asyncio.run(_until_signal(swarm.run(out, resume=resume), received))
-    if result is None:
-        print(_stopped_text(out, experiment, received[0]), file=sys.stderr)
-        return 128 + received[0]
-    print(summary_text(result.metrics, out, time.perf_counter() - started, resumed=resume))
-    return 0
+    return result, started
 
 
 @contextlib.contextmanager

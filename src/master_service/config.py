@@ -60,9 +60,10 @@ __all__ = [
 #: lab WLAN, short enough that a half-open or dribbling connection does not hold its slot long.
 DEFAULT_HANDSHAKE_TIMEOUT: Final = 10.0
 #: Handshakes that may run at once. A lab's swarm is a few dozen robots that reconnect with
-#: backoff, so 64 lets all of them reconnect together; beyond it a connection is closed at once,
-#: so that peers without the secret can never use up the master's file descriptors (the run's
-#: checkpoints need some) or its memory.
+#: backoff, so 64 lets all of them reconnect together; one more connection closes one at once,
+#: always of the address holding the most (master_service.handshakes), so that peers without the
+#: secret can never use up the master's file descriptors (the run's checkpoints need some) or its
+#: memory, nor keep robots of other addresses out.
 DEFAULT_MAX_PENDING_CONNECTIONS: Final = 64
 #: The link is declared dead after 3 intervals without any message (protocol.md). 2 s notices a
 #: dropped robot within 6-8 s, less than one 10 s evaluation, at a negligible ping traffic.
@@ -91,9 +92,10 @@ class MasterConfig(Strict):
     added to ``steps * step_period`` (the experiment's) for a round's deadline;
     ``heartbeat_interval`` is how often the master pings (a link is dead after three silent
     intervals; robots accept 0.05 s to 60 s); ``handshake_timeout`` bounds a whole handshake;
-    ``max_pending_connections`` bounds how many handshakes run at once (a connection beyond is
-    closed at once); ``max_frame_size`` bounds one incoming message (bytes). ``telemetry``
-    (optional) publishes the run's status over MQTT (``docs/telemetry.md``).
+    ``max_pending_connections`` bounds how many handshakes run at once (one more connection
+    closes one at once, of the address holding the most); ``max_frame_size`` bounds one
+    incoming message (bytes). ``telemetry`` (optional) publishes the run's status
+    over MQTT (``docs/telemetry.md``).
     """
 
     #: the experiment, inline (give exactly one of ``experiment`` and ``experiment_file``)
@@ -121,7 +123,8 @@ class MasterConfig(Strict):
     heartbeat_interval: _HeartbeatInterval = DEFAULT_HEARTBEAT_INTERVAL
     #: seconds a whole handshake (TLS included) may take
     handshake_timeout: _PositiveSeconds = DEFAULT_HANDSHAKE_TIMEOUT
-    #: handshakes that may run at once; a connection beyond them is closed at once
+    #: handshakes that may run at once; one more connection closes one at once, of the address
+    #: holding the most (docs/protocol.md)
     max_pending_connections: Annotated[int, msgspec.Meta(ge=1)] = DEFAULT_MAX_PENDING_CONNECTIONS
     #: the largest incoming message, in bytes
     max_frame_size: Annotated[int, msgspec.Meta(ge=1024)] = MAX_FRAME_SIZE

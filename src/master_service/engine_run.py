@@ -27,7 +27,6 @@ from master_service.config import MasterConfig
 from master_service.master import Progress, RunSummary
 from master_service.rundir import (
     EVALUATION_COLUMNS,
-    LOG,
     RunDir,
     RunState,
     format_row,
@@ -42,6 +41,7 @@ from master_service.simulation_setup import (
 from sim_stub.engine import EvaluationRecord, Swarm
 from sim_stub.world import box_frame_steps
 from surprise.config import ExperimentConfig
+from surprise.errors import FileWriteError
 from surprise.evolution import OnePlusOne
 from surprise.fitness import swarm_fitness
 from surprise.network import GenomeLayout, spec_from_config
@@ -99,7 +99,7 @@ class FastRun:
 
         directory = RunDir(run_dir)
         state = self._open(directory, resume)
-        log, handler = _run_log(directory)
+        log = _run_log(directory)
         stop = should_stop or (lambda: False)
         try:
             if resume:
@@ -110,10 +110,13 @@ class FastRun:
             ):
                 return None
             post = self._post_evaluate(directory, state, log, started)
+        except FileWriteError as exc:
+            # Into master.log if it still takes lines; the command line says it on the console.
+            log.error("the run stopped: %s; it can be resumed", exc)
+            raise
         finally:
             directory.close()
-            log.removeHandler(handler)
-            handler.close()
+            directory.close_log(log)
         self._write_simulation_file(directory.path)
         opt = state.optimizer
         summary = RunSummary(
@@ -266,7 +269,7 @@ class FastRun:
         directory.commit(state.to_json(), "".join(rows) or None, header)
         opt = state.optimizer
         if best_changed and opt.best is not None:
-            directory.write_best(opt.best, opt.best_fitness, opt.evaluations, self.spec)
+            directory.write_best(opt.best, opt.best_fitness, opt.best_evaluation, self.spec)
 
     def _emit(
         self, state: RunState, last: float | None, started: float, share: float | None
@@ -331,12 +334,10 @@ def _result(evaluation_id: int, record: EvaluationRecord, robot: int, steps: int
     )
 
 
-def _run_log(directory: RunDir) -> tuple[logging.Logger, logging.Handler]:
+def _run_log(directory: RunDir) -> logging.Logger:
     # The run's own logger writing master.log, as the master's does.
     log = logging.getLogger(f"master_service.run.{directory.path.resolve().name}")
-    handler = logging.FileHandler(directory.file(LOG), encoding="utf-8")
-    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
-    log.addHandler(handler)
+    directory.open_log(log)
     log.setLevel(logging.INFO)
     log.propagate = False
-    return log, handler
+    return log

@@ -46,7 +46,7 @@ from master_service.config import MasterConfig, build_ssl_context
 from master_service.rounds import Attempt, RoundRunner
 from master_service.rundir import (
     EVALUATION_COLUMNS,
-    LOG,
+    FILE_ONLY,
     POST_EVALUATION,
     Phase,
     RunDir,
@@ -54,7 +54,7 @@ from master_service.rundir import (
     format_row,
 )
 from master_service.server import RobotServer, Session
-from surprise.errors import ConfigError
+from surprise.errors import ConfigError, FileWriteError
 from surprise.evolution import OnePlusOne
 from surprise.fitness import swarm_fitness
 from surprise.network import GenomeLayout, spec_from_config
@@ -189,7 +189,6 @@ class Master:
         # One logger per run; the run's log file hangs on it, so two masters in one process
         # (tests, the sim command) keep separate logs and there is no global state.
         self.log = logging.getLogger(f"master_service.run.{self.run_id}")
-        self._log_handler: logging.Handler | None = None
         self.state: RunState | None = None
         self.server = RobotServer(
             host=config.host,
@@ -220,6 +219,7 @@ class Master:
         self._last_safety_share: float | None = None
         self._write: asyncio.Future[None] | None = None
         self._live_task: asyncio.Task[None] | None = None
+        self._live_failed = False
         self._started = False
 
     # -- lifecycle ---------------------------------------------------------------------------
@@ -301,10 +301,7 @@ class Master:
         if self.state is not None:
             with contextlib.suppress(OSError):
                 self.run_dir.write_live(self._live_data(running=False))
-        if self._log_handler is not None:
-            self.log.removeHandler(self._log_handler)
-            self._log_handler.close()
-            self._log_handler = None
+        self.run_dir.close_log(self.log)
         if self.telemetry is not None:
             if self.state is not None:
                 self._publish_status(self.progress, online=False)
@@ -356,6 +353,11 @@ class Master:
             if state.phase == "post-evaluation":
                 await self._post_evaluate()
             await self._flush()
+        except FileWriteError as exc:
+            # Nothing went wrong in the master, and the command line says so in one line: the
+            # log gets the line, the console no traceback.
+            self.log.error("the run stopped: %s; it can be resumed", exc, extra=FILE_ONLY)
+            raise
         except Exception:
             # Into the run's log too: the caller may only see the exception.
             self.log.exception("the run stopped on an error; it can be resumed")
@@ -541,7 +543,7 @@ class Master:
         opt = state.optimizer
         best = None
         if best_changed and opt.best is not None:
-            best = (opt.best.copy(), opt.best_fitness, opt.evaluations)
+            best = (opt.best.copy(), opt.best_fitness, opt.best_evaluation)
 
         def write() -> None:
             self.run_dir.commit(data, row, header)
@@ -719,17 +721,14 @@ class Master:
     # -- files -------------------------------------------------------------------------------
 
     def _open_log(self) -> None:
-        handler = logging.FileHandler(self.run_dir.file(LOG), encoding="utf-8")
-        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
-        self.log.addHandler(handler)
+        self.run_dir.open_log(self.log)
         if self.log.getEffectiveLevel() > logging.INFO:
             self.log.setLevel(logging.INFO)
-        self._log_handler = handler
 
     def _write_best(self) -> None:
         opt = self._require_state().optimizer
         if opt.best is not None and opt.best_fitness is not None:
-            self.run_dir.write_best(opt.best, opt.best_fitness, opt.evaluations, self.spec)
+            self.run_dir.write_best(opt.best, opt.best_fitness, opt.best_evaluation, self.spec)
 
     def _live_data(self, *, running: bool) -> dict[str, Any]:
         state = self._require_state()
@@ -761,8 +760,17 @@ class Master:
             try:
                 await asyncio.to_thread(self.run_dir.write_live, data)
             except OSError as exc:
-                self.log.warning("cannot write live.json: %s", exc)
+                self._live_write_failed(exc)
+            else:
+                self._live_failed = False
             await asyncio.sleep(LIVE_MIN_INTERVAL)
+
+    def _live_write_failed(self, exc: OSError) -> None:
+        # Once per spell, into the log only: the directory or the disk that refuses live.json
+        # refuses the next commit too, and that stops the run with one line on the console.
+        if not self._live_failed:
+            self._live_failed = True
+            self.log.warning("%s; live.json is not current", exc, extra=FILE_ONLY)
 
     def _require_state(self) -> RunState:
         if self.state is None:

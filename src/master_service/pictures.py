@@ -16,6 +16,7 @@ from typing import Any, Final
 
 import numpy as np
 
+from master_service.rundir import writing
 from sim_stub.render import draw_arena, draw_boxes, draw_robot, robot_colours
 from sim_stub.scenarios import WorldConfig
 from surprise.safety import SAFETY_DOMINATES
@@ -76,7 +77,8 @@ def _save(fig: Any, directory: Path, name: str) -> list[Path]:
     paths = []
     for fmt in FORMATS:
         path = directory / f"{name}.{fmt}"
-        fig.savefig(path, dpi=_DPI, format=fmt)
+        with writing(path):
+            fig.savefig(path, dpi=_DPI, format=fmt)
         paths.append(path)
     return paths
 
@@ -438,7 +440,7 @@ def animate_post_evaluation(
     heading = ax.set_title("")
     dynamic: list[Any] = []
     writer = PillowWriter(fps=_ANIMATION_FPS)
-    with writer.saving(fig, str(path), dpi=80):
+    with writing(path), writer.saving(fig, str(path), dpi=80):
         for t in range(0, steps, stride):
             for artist in dynamic:
                 artist.remove()

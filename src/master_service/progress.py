@@ -12,6 +12,7 @@ import sys
 from typing import IO, Any
 
 from master_service.master import Progress, format_duration
+from master_service.rundir import for_console
 from surprise.safety import SAFETY_DOMINATES
 
 __all__ = ["ProgressDisplay", "describe"]
@@ -82,6 +83,7 @@ class ProgressDisplay:
         # The console's level is the handler's: the run's log file below keeps every INFO line
         # whatever the console shows.
         self._handler.setLevel(self.level)
+        self._handler.addFilter(for_console)
         self._logger.addHandler(self._handler)
         self._logger.setLevel(min(self.level, logging.INFO))
         return self

@@ -38,6 +38,7 @@ from master_service.rundir import (
     RunDir,
     RunDirError,
     write_atomic,
+    writing,
 )
 from sim_stub import metrics as sim_metrics
 from surprise.config import ExperimentConfig
@@ -398,7 +399,8 @@ def _arena(data: _Run) -> pictures.Arena | None:
 def _draw(data: _Run, metrics: dict[str, Any], *, plots: bool, animate: bool) -> list[Path]:
     """Draw the run's pictures into ``plots/``; the paths written."""
     directory = data.run.file(PLOTS)
-    directory.mkdir(exist_ok=True)
+    with writing(directory):
+        directory.mkdir(exist_ok=True)
     title = _title(data, metrics)
     post = metrics.get("post_evaluation") or {}
     poses = {robot: t["poses"] for robot, t in data.traces.items() if "poses" in t}

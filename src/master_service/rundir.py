@@ -23,6 +23,12 @@ between the two writes neither loses nor duplicates a row.
 The run holds no secret: every file gets the permissions ``open()`` gives (``0644`` under the
 usual umask), so that the lab's group can read a run as it reads ``evaluations.csv``.
 
+A file that cannot be written (a full disk, a directory made read-only) raises
+:class:`~surprise.errors.FileWriteError` naming that file, never the temporary name of an atomic
+write; a line ``master.log`` cannot take is kept back as such an error (:class:`RunLog`) and
+raised by the next commit. Either way the run stops with its last checkpoint on disk, and resumes
+from it once the disk takes writes again.
+
 The ``attempts`` column counts the attempts sent for that evaluation (an attempt in flight when the
 master stopped counts too), ``duration_s`` is the time from the counted attempt's Evaluate to its
 last Result, ``safety_share`` the share of the robots' steps in which the safety layer changed the
@@ -34,12 +40,15 @@ initial genome is neither an offspring nor a re-evaluation), then ``offspring`` 
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import json
+import logging
 import os
+import sys
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Final, Literal
@@ -49,10 +58,10 @@ import numpy as np
 import yaml
 
 from master_service.config import MasterConfig
+from surprise import files
 from surprise.config import ExperimentConfig, load_yaml
-from surprise.errors import ConfigError, SurpriseError
+from surprise.errors import ConfigError, FileWriteError, SurpriseError
 from surprise.evolution import EvolutionStateError, OnePlusOne
-from surprise.files import write_atomic
 from surprise.network import NetworkSpec
 from surprise.wire import Result
 
@@ -63,6 +72,7 @@ __all__ = [
     "CONFIG_SNAPSHOT",
     "EVALUATIONS",
     "EVALUATION_COLUMNS",
+    "FILE_ONLY",
     "LIVE",
     "LOG",
     "METRICS",
@@ -73,9 +83,12 @@ __all__ = [
     "Phase",
     "RunDir",
     "RunDirError",
+    "RunLog",
     "RunState",
-    # the run directory's writer, kept here for the modules that write files into a run
+    "for_console",
+    # the run directory's writers, for the modules that write files into a run
     "write_atomic",
+    "writing",
 ]
 
 CONFIG_SNAPSHOT: Final = "config.yaml"
@@ -113,9 +126,67 @@ CHECKPOINT_FORMAT: Final = 1
 #: Where a run stands: evolving, post-evaluating the best genome, or finished.
 Phase = Literal["evolution", "post-evaluation", "done"]
 
+#: ``extra`` of a log call whose line belongs in master.log but not on the console, where the
+#: command line says the same thing in its own last line.
+FILE_ONLY: Final = {"file_only": True}
+
 
 class RunDirError(SurpriseError, RuntimeError):
     """The run directory cannot be used: it exists already, or its files contradict each other."""
+
+
+@contextlib.contextmanager
+def writing(path: Path) -> Iterator[None]:
+    """Inside, an OSError is a :class:`FileWriteError` naming ``path``."""
+    try:
+        yield
+    except FileWriteError:
+        raise
+    except OSError as exc:
+        raise FileWriteError.from_os_error(str(path), exc) from exc
+
+
+def write_atomic(
+    path: str | Path, data: bytes, *, durable: bool = True, mode: int | None = None
+) -> None:
+    """:func:`surprise.files.write_atomic`, whose OSError is a :class:`FileWriteError` naming
+    ``path`` (the error itself may name the temporary file)."""
+    with writing(Path(path)):
+        files.write_atomic(path, data, durable=durable, mode=mode)
+
+
+def for_console(record: logging.LogRecord) -> bool:
+    """A filter for console handlers: drops the lines logged with :data:`FILE_ONLY`."""
+    return not getattr(record, "file_only", False)
+
+
+class RunLog(logging.FileHandler):
+    """The handler writing a run's ``master.log``.
+
+    Logging's handlers print a traceback to stderr for every line they cannot write: on a full
+    disk, one per line logged. This one keeps the first such error as :attr:`error` (a
+    :class:`FileWriteError` naming the log) and says nothing; :meth:`RunDir.commit` raises it.
+    """
+
+    def __init__(self, path: Path) -> None:
+        with writing(path):
+            super().__init__(path, encoding="utf-8")
+        self.path = path
+        self.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
+        #: the first line that could not be written, as the error to stop the run with
+        self.error: FileWriteError | None = None
+
+    def handleError(self, record: logging.LogRecord) -> None:
+        exc = sys.exc_info()[1]
+        if not isinstance(exc, OSError):
+            super().handleError(record)  # a bug in a log call: logging's own report
+        elif self.error is None:
+            self.error = FileWriteError.from_os_error(str(self.path), exc)
+
+    def close(self) -> None:
+        # Closing flushes what a full disk refused again; that error is known already.
+        with contextlib.suppress(OSError):
+            super().close()
 
 
 @dataclass
@@ -217,6 +288,7 @@ class RunDir:
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         self._csv: Any = None
+        self._log: RunLog | None = None
 
     def file(self, name: str) -> Path:
         """The path of a file of the run directory."""
@@ -296,7 +368,7 @@ class RunDir:
             )
         keep = sum(len(line) for line in complete[: 1 + state.csv_rows]) if state.csv_rows else 0
         if keep != len(data):
-            with open(path, "r+b") as file:
+            with writing(path), open(path, "r+b") as file:
                 file.truncate(keep)
                 file.flush()
                 os.fsync(file.fileno())
@@ -307,23 +379,47 @@ class RunDir:
         """Append ``row`` (if any) to the CSV durably, then write the checkpoint atomically.
 
         ``state_json`` must already count the row (``csv_rows``). ``header`` is written before
-        the first row.
+        the first row. A line the log could not take since is raised first
+        (:class:`FileWriteError`), so a run stops when its disk is full even if the commit itself
+        would still fit.
         """
+        if self._log is not None and self._log.error is not None:
+            raise self._log.error
         if row is not None:
-            if self._csv is None:
-                self._csv = open(self.file(EVALUATIONS), "a", encoding="utf-8", newline="")  # noqa: SIM115
-            if self._csv.tell() == 0:
-                self._csv.write(",".join(header) + "\n")
-            self._csv.write(row)
-            self._csv.flush()
-            os.fsync(self._csv.fileno())
+            with writing(self.file(EVALUATIONS)):
+                self._append_row(row, header)
         write_atomic(self.file(CHECKPOINT), json.dumps(state_json).encode("utf-8"))
+
+    def _append_row(self, row: str, header: Sequence[str]) -> None:
+        if self._csv is None:
+            self._csv = open(self.file(EVALUATIONS), "a", encoding="utf-8", newline="")  # noqa: SIM115
+        if self._csv.tell() == 0:
+            self._csv.write(",".join(header) + "\n")
+        self._csv.write(row)
+        self._csv.flush()
+        os.fsync(self._csv.fileno())
 
     def close(self) -> None:
         """Close the CSV file if open."""
         if self._csv is not None:
-            self._csv.close()
-            self._csv = None
+            csv_file, self._csv = self._csv, None
+            # What a full disk refused is flushed once more; a torn row is past the checkpoint's
+            # count, and resume cuts it.
+            with contextlib.suppress(OSError):
+                csv_file.close()
+
+    def open_log(self, logger: logging.Logger) -> RunLog:
+        """Write ``logger``'s lines to ``master.log`` (appending) until :meth:`close_log`."""
+        self._log = RunLog(self.file(LOG))
+        logger.addHandler(self._log)
+        return self._log
+
+    def close_log(self, logger: logging.Logger) -> None:
+        """Stop writing ``logger``'s lines to ``master.log`` and close it."""
+        if self._log is not None:
+            logger.removeHandler(self._log)
+            self._log.close()
+            self._log = None
 
     # -- artefacts ---------------------------------------------------------------------------
 
@@ -332,7 +428,10 @@ class RunDir:
     ) -> None:
         """Write ``best_genome.json``: genome (repr floats, bit-exact), fitness, evaluation, spec.
 
-        Not fsynced: the checkpoint holds the same genome and it is rewritten on resume.
+        ``evaluation`` is the counted evaluation that found the genome (its row in
+        ``evaluations.csv``), not how many have been counted; ``fitness`` is its current one,
+        re-evaluations included. Not fsynced: the checkpoint holds the same genome and it is
+        rewritten on resume.
         """
         data = {
             "evaluation": evaluation,
@@ -362,7 +461,8 @@ class RunDir:
     ) -> None:
         """Write every robot's trace to ``traces/<robot>.npz`` and the summary JSON."""
         traces = self.file(TRACES)
-        traces.mkdir(exist_ok=True)
+        with writing(traces):
+            traces.mkdir(exist_ok=True)
         robots: dict[str, Any] = {}
         for robot_id, result in results.items():
             entry: dict[str, Any] = {

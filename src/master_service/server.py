@@ -12,10 +12,13 @@ Failed messages to callbacks, and offers :meth:`RobotServer.send` for already en
 a genome sent to a hundred robots is encoded once and only tagged per session.
 
 Connections that have not authenticated cost the master as little as possible and can never
-starve it: at most ``max_pending_connections`` handshakes run at once (a connection beyond that is
-accepted and closed at once, with no handshake work, so its file descriptor is free again); the
-whole handshake, TLS included, has one deadline; its frames are small and every field in them is
-bounded; and what goes wrong with such connections is logged through a :class:`ThrottledLog`.
+starve it: at most ``max_pending_connections`` handshakes run at once, and when one more arrives
+one connection is closed at once, from the source address that holds the most
+(:mod:`master_service.handshakes`): a flood from one address keeps no robot of another address
+out, and a silent connection beyond the limit is closed before any handshake work, so its file
+descriptor is free again; the whole handshake, TLS included, has one deadline; its frames are small
+and every field in them is bounded; and what goes wrong with such connections is logged through a
+:class:`ThrottledLog`.
 """
 
 from __future__ import annotations
@@ -24,10 +27,12 @@ import asyncio
 import contextlib
 import functools
 import logging
+import socket
 import ssl
 from collections.abc import Callable, Iterable, Sequence
 from typing import Any, Final
 
+from master_service.handshakes import HandshakeTable, source_of
 from master_service.throttled_log import ThrottledLog
 from surprise.errors import AuthenticationError, ConnectionClosedError, ProtocolError
 from surprise.session import FrameAuth, master_proof, new_nonce, proof_matches, robot_proof
@@ -82,27 +87,59 @@ class _Refusal(Exception):
 
 
 class _Slot:
-    """One unauthenticated connection counted against ``max_pending_connections``; given back
-    exactly once, when its handshake ends or its connection is lost, whichever comes first."""
+    """One unauthenticated connection in the server's table of handshakes, from the moment it is
+    accepted until its handshake ends or its connection is lost, whichever comes first."""
 
-    __slots__ = ("_server", "released")
+    __slots__ = ("evicted", "server", "source", "spoke", "transport")
+
+    def __init__(self, server: RobotServer, transport: asyncio.BaseTransport) -> None:
+        self.server = server
+        self.transport = transport
+        self.source = source_of(transport.get_extra_info("peername"))
+        #: something was received from the peer
+        self.spoke = False
+        #: closed by the server to make room for a newer connection
+        self.evicted = False
+
+    @property
+    def peer(self) -> str:
+        return _peer_name(self.transport)
+
+    def received(self) -> None:
+        if not self.spoke:
+            self.spoke = True
+            self.server.handshakes.spoke(self)
+
+    def release(self) -> None:
+        self.server.handshakes.remove(self)
+
+    def evict(self) -> None:
+        self.evicted = True
+        self.transport.abort()  # type: ignore[attr-defined]
+
+
+class _Arrival(asyncio.Protocol):
+    """A connection just accepted. Only once its address is known can the server tell whether it
+    gets a place among the handshakes; only then is it given a stream (:class:`_PendingProtocol`),
+    so that a connection closed at once costs next to nothing."""
 
     def __init__(self, server: RobotServer) -> None:
         self._server = server
-        self.released = False
 
-    def release(self) -> None:
-        if not self.released:
-            self.released = True
-            self._server.pending_connections -= 1
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self._server.arrived(transport)
 
 
 class _PendingProtocol(asyncio.StreamReaderProtocol):
-    """A stream protocol whose connection holds a handshake slot until it ends."""
+    """A stream protocol whose connection holds a place among the handshakes until it ends."""
 
     def __init__(self, reader: asyncio.StreamReader, handler: Any, slot: _Slot) -> None:
         super().__init__(reader, handler)
         self._slot = slot
+
+    def data_received(self, data: bytes) -> None:
+        self._slot.received()
+        super().data_received(data)
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._slot.release()
@@ -110,15 +147,10 @@ class _PendingProtocol(asyncio.StreamReaderProtocol):
 
 
 class _Refuse(asyncio.Protocol):
-    """A connection beyond ``max_pending_connections``: closed the moment it is accepted."""
-
-    def __init__(self, on_refused: Callable[[str], None]) -> None:
-        self._on_refused = on_refused
+    """A connection accepted while the server is closing: closed the moment it is accepted."""
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        peer = _peer_name(transport)
         transport.abort()  # type: ignore[attr-defined]
-        self._on_refused(peer)
 
 
 class Session:
@@ -144,7 +176,8 @@ class RobotServer:
     """Accepts robots and keeps their sessions; callbacks tell the owner what happens.
 
     ``handshake_timeout`` bounds a whole handshake (TLS included); ``max_pending_connections``
-    bounds how many run at once. ``admit(robot_id)`` returns None or a ``(code, reason)``
+    bounds how many run at once (:mod:`master_service.handshakes` says which one is closed when
+    one more arrives). ``admit(robot_id)`` returns None or a ``(code, reason)``
     refusal; it is asked after the secret was verified. ``on_join(session)`` and
     ``on_leave(session, reason)`` are called once per session; ``on_message(session, msg)`` gets
     every Result and Failed. Callbacks run in the event loop and must not block.
@@ -188,10 +221,13 @@ class RobotServer:
         self.unauthenticated_log = ThrottledLog(
             logger, "refused or failed connections of unauthenticated peers"
         )
-        #: Connections whose handshake is running now.
-        self.pending_connections = 0
-        #: Connections closed at once because max_pending_connections handshakes were running.
+        #: The connections whose handshake is running now, by source address.
+        self.handshakes: HandshakeTable[_Slot] = HandshakeTable(max_pending_connections)
+        #: New connections closed at once: max_pending_connections handshakes were running, most
+        #: of them from the new connection's address.
         self.refused_connections = 0
+        #: Connections closed in their handshake to make room for a newer one.
+        self.evicted_connections = 0
         #: The live session of each robot id.
         self.sessions: dict[str, Session] = {}
         self._server: asyncio.Server | None = None
@@ -224,6 +260,11 @@ class RobotServer:
         assert self._server is not None, "bind() first"
         await self._server.start_serving()
         self._keepalive = asyncio.create_task(self._keep_alive(), name="keep-alive")
+
+    @property
+    def pending_connections(self) -> int:
+        """Connections whose handshake is running now."""
+        return len(self.handshakes)
 
     @property
     def port(self) -> int:
@@ -306,23 +347,54 @@ class RobotServer:
     # -- one connection ----------------------------------------------------------------------
 
     def _make_protocol(self) -> asyncio.BaseProtocol:
-        """A protocol for a connection just accepted: a handshake, or an immediate close when
-        ``max_pending_connections`` handshakes are running (or the server is closing)."""
-        if self.pending_connections >= self.max_pending_connections or self._closing:
-            return _Refuse(self._refused)
-        self.pending_connections += 1
-        slot = _Slot(self)
-        return _PendingProtocol(asyncio.StreamReader(), functools.partial(self._handle, slot), slot)
+        """A protocol for a connection just accepted: the place among the handshakes is decided
+        when its address is known (:meth:`arrived`); an immediate close if the server is
+        closing."""
+        return _Refuse() if self._closing else _Arrival(self)
 
-    def _refused(self, peer: str) -> None:
+    def arrived(self, transport: asyncio.BaseTransport) -> None:
+        """A connection was accepted: give it a place among the handshakes and a handshake, or
+        close it at once (see :mod:`master_service.handshakes`)."""
+        slot = _Slot(self, transport)
+        if len(self.handshakes) >= self.max_pending_connections:
+            # Only a full table asks whether the newcomer has spoken: one syscall less otherwise.
+            slot.spoke = _input_waiting(transport)
+        victim = self.handshakes.add(slot, slot.source, spoke=slot.spoke)
+        if victim is slot:
+            transport.abort()  # type: ignore[attr-defined]
+            self._refused(slot)
+            return
+        if victim is not None:
+            self._evict(victim, slot)
+        protocol = _PendingProtocol(
+            asyncio.StreamReader(), functools.partial(self._handle, slot), slot
+        )
+        transport.set_protocol(protocol)
+        protocol.connection_made(transport)
+
+    def _refused(self, slot: _Slot) -> None:
         self.refused_connections += 1
         self.unauthenticated_log.log(
             logging.WARNING,
             "refused a connection from %s at once: %d handshakes are running "
-            "(max_pending_connections)",
-            peer,
+            "(max_pending_connections), %d of them from its address",
+            slot.peer,
+            self.pending_connections,
+            self.handshakes.count(slot.source),
+        )
+
+    def _evict(self, victim: _Slot, newcomer: _Slot) -> None:
+        self.evicted_connections += 1
+        self.unauthenticated_log.log(
+            logging.WARNING,
+            "closed the handshake of %s, one of %d from its address, to make room for %s: "
+            "%d handshakes are running (max_pending_connections)",
+            victim.peer,
+            self.handshakes.count(victim.source) + 1,
+            newcomer.peer,
             self.pending_connections,
         )
+        victim.evict()
 
     async def _handle(
         self, slot: _Slot, reader: asyncio.StreamReader, writer: asyncio.StreamWriter
@@ -331,12 +403,12 @@ class RobotServer:
         assert task is not None
         self._handlers.add(task)
         self._handshaking.add(task)
-        peer = _peer_name(writer.transport)
+        peer = slot.peer
         session: Session | None = None
         reason = "connection closed"
         cancelled = False
         try:
-            session = await self._handshake(reader, writer, peer)
+            session = await self._handshake(reader, writer, slot)
             self._handshaking.discard(task)
             slot.release()
             if session is not None:
@@ -362,10 +434,11 @@ class RobotServer:
             self._handshaking.discard(task)
 
     async def _handshake(
-        self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, peer: str
+        self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, slot: _Slot
     ) -> Session | None:
         """Run the handshake under one deadline; returns the new session, or None when the
         connection was refused or lost (and logged)."""
+        peer = slot.peer
         stream: MessageStream | None = None
         robot_id = "?"
         try:
@@ -395,9 +468,10 @@ class RobotServer:
             await self._refuse(stream, robot_id, peer, _Refusal(REFUSED_PROTOCOL, str(exc)))
             return None
         except (ConnectionClosedError, OSError) as exc:  # ssl.SSLError is an OSError
-            self.unauthenticated_log.log(
-                logging.INFO, "connection from %s closed during the handshake: %s", peer, exc
-            )
+            if not slot.evicted:  # an eviction was logged as such
+                self.unauthenticated_log.log(
+                    logging.INFO, "connection from %s closed during the handshake: %s", peer, exc
+                )
             return None
         return self._admit_session(stream, hello, peer)
 
@@ -539,6 +613,24 @@ class RobotServer:
                     self.drop(session, f"link dead: no message for {silent:.1f} s")
                 else:
                     self._write(session, ping)
+
+
+def _input_waiting(transport: asyncio.BaseTransport) -> bool:
+    """Whether bytes from the peer wait on a connection just accepted. A robot sends its Hello
+    (or its TLS ClientHello) as soon as it is connected: under load, before the master accepted
+    the connection, and that is when the master must tell it from a silent one."""
+    trsock = transport.get_extra_info("socket")
+    if trsock is None:
+        return False
+    # A view of the same descriptor (detached again, never closed): asyncio's socket wrapper
+    # offers no recv, and the descriptor is non-blocking, so a peek never waits.
+    sock = socket.socket(fileno=trsock.fileno())
+    try:
+        return bool(sock.recv(1, socket.MSG_PEEK))
+    except OSError:  # nothing yet (BlockingIOError), or already reset
+        return False
+    finally:
+        sock.detach()
 
 
 def _peer_name(transport: asyncio.BaseTransport) -> str:

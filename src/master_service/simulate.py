@@ -156,6 +156,7 @@ class SimulatedSwarm:
             snapshot=self._snapshot,
         )
         self._agents = []
+        failure: Exception | None = None
         async with contextlib.AsyncExitStack() as stack:
             await stack.enter_async_context(master)
             if not resume:
@@ -179,10 +180,16 @@ class SimulatedSwarm:
             ]
             try:
                 summary = await master.run()
+            except Exception as exc:
+                # Raised only once the agents are closed: an error passing through their task
+                # groups would come out wrapped in an exception group per agent.
+                failure = exc
             finally:
                 for task in tasks:
                     task.cancel()
                 await asyncio.gather(*tasks, return_exceptions=True)
+        if failure is not None:
+            raise failure
         self._write_simulation_file(run_dir)
         if self._boxes_before is not None:
             steps = self.experiment.post_evaluation_steps

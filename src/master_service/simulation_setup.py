@@ -16,14 +16,13 @@ from typing import Any, Final
 import numpy as np
 
 from master_service.master import RunSummary
-from master_service.rundir import BOX_TRACK, SIMULATION_FILE, RunDirError
+from master_service.rundir import BOX_TRACK, SIMULATION_FILE, RunDirError, write_atomic
 from sim_stub.engine import robot_ids
 from sim_stub.scenarios import SCENARIOS, WorldConfig, scenario_config
 from sim_stub.settings import check_setting, safety_config, world_overrides
 from sim_stub.world import TooManyRobotsError, World
 from surprise.config import ExperimentConfig, decode_experiment, read_yaml
 from surprise.errors import ConfigError
-from surprise.files import write_atomic
 from surprise.safety import SafetyConfig
 
 __all__ = [

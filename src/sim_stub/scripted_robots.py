@@ -99,6 +99,8 @@ class ScriptedRobot:
 
     ``evaluations`` and ``aborts`` record what the master sent; ``closed`` is set when the
     connection ends. After it ended, :meth:`connect` may be called again (a robot coming back).
+    ``local_address`` binds its connections to that source address (``127.0.0.2``: a robot on
+    another machine, seen from a master on loopback).
     """
 
     def __init__(
@@ -118,6 +120,7 @@ class ScriptedRobot:
         poses: bool = False,
         ssl_context: ssl.SSLContext | None = None,
         verify_master: bool = True,
+        local_address: str | None = None,
     ) -> None:
         self.robot_id = robot_id
         self.secret = secret
@@ -133,6 +136,7 @@ class ScriptedRobot:
         self.poses = poses
         self.ssl_context = ssl_context
         self.verify_master = verify_master
+        self.local_address = local_address
         self.welcome: Welcome | None = None
         self.evaluations: list[Evaluate] = []
         self.aborts: list[Abort] = []
@@ -154,6 +158,7 @@ class ScriptedRobot:
             self.port,
             ssl=self.ssl_context,
             server_hostname=self.host if self.ssl_context else None,
+            local_addr=None if self.local_address is None else (self.local_address, 0),
         )
         stream = MessageStream(reader, writer)
         secret, robot_id, robot_nonce = self.secret, self.robot_id, new_nonce()

@@ -34,6 +34,19 @@ class ConfigError(SurpriseError, ValueError):
         super().__init__(f"{where}: {reason}")
 
 
+class ClusterError(SurpriseError, OSError):
+    """A compute cluster fails a study: its tools are missing, its controller or scheduler does
+    not answer or is lost, or it refuses or ends the workers' jobs (``surprise-study run``)."""
+
+
+class ClusterTimeoutError(ClusterError, TimeoutError):
+    """A cluster did not answer, or start the workers' jobs, within ``timeout`` seconds."""
+
+    def __init__(self, message: str, *, timeout: float) -> None:
+        self.timeout = timeout
+        super().__init__(message)
+
+
 class ProtocolError(SurpriseError, ValueError):
     """Bytes or a message on the wire violate the protocol; the connection should be closed."""
 
@@ -80,3 +93,21 @@ class HardwareTimeoutError(HardwareError, TimeoutError):
 class RobotUnreachableError(HardwareError):
     """The robot cannot be reached: it is switched off or unplugged, or the software that reaches
     it (asebamedulla) ended or lost it. The body must ``recover()`` before it can drive again."""
+
+
+class FileWriteError(SurpriseError, OSError):
+    """A file could not be written: a full disk, a read-only directory. ``path`` is the file
+    meant (not the temporary name an atomic write used); ``errno`` and ``strerror`` are the
+    system's reason."""
+
+    def __init__(self, path: str, errno: int | None, strerror: str | None) -> None:
+        super().__init__(errno, strerror, path)
+        self.path = path
+
+    @classmethod
+    def from_os_error(cls, path: str, exc: OSError) -> FileWriteError:
+        """The error of writing ``path`` that failed with ``exc``."""
+        return cls(path, exc.errno, exc.strerror or str(exc))
+
+    def __str__(self) -> str:
+        return f"cannot write {self.path}: {self.strerror}"

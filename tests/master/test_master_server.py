@@ -8,6 +8,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import socket
 import ssl
 import struct
 import subprocess
@@ -350,6 +351,101 @@ async def test_a_flood_of_refused_connections_logs_a_bounded_number_of_lines(tmp
     # The other 30 (and the holder's end) are counted, in one line.
     (count,) = [line for line in lines if "more refused or failed connections" in line]
     assert int(count.split(" more ")[0].rsplit(" ", 1)[-1]) >= 30
+
+
+Connection = tuple[asyncio.StreamReader, asyncio.StreamWriter]
+
+
+async def silent_connections(port: int, count: int, source: str = "127.0.0.1") -> list[Connection]:
+    """Connections from ``source`` that say nothing."""
+    return [
+        await asyncio.open_connection("127.0.0.1", port, local_addr=(source, 0))
+        for _ in range(count)
+    ]
+
+
+async def hello_connections(port: int, count: int) -> list[Connection]:
+    """Connections that said Hello and wait in the handshake (they have their Challenge)."""
+    connections = []
+    for _ in range(count):
+        reader, writer = await asyncio.open_connection("127.0.0.1", port)
+        writer.write(frame(hello_payload()))
+        decoder = FrameDecoder()
+        while not decoder.feed(await reader.read(65536)):
+            pass
+        connections.append((reader, writer))
+    return connections
+
+
+async def speaking_at_once(port: int) -> Connection:
+    """A connection whose Hello is there before the master accepts it, as a robot's is under
+    load: it is connected and written without giving the event loop (the master's) a turn."""
+    sock = socket.create_connection(("127.0.0.1", port))
+    sock.sendall(frame(hello_payload()))
+    sock.setblocking(False)
+    return await asyncio.open_connection(sock=sock)
+
+
+async def closed_at_once(connection: Connection) -> bool:
+    """Whether the master closes the connection without a word, long before the handshake
+    timeout (5 s in these tests)."""
+    reader, _ = connection
+    try:
+        async with asyncio.timeout(1.0):
+            return await reader.read() == b""
+    except ConnectionResetError:
+        return True  # an abort, which is how the master closes it
+
+
+async def wait_for_pending(master: Master, count: int) -> None:
+    async with asyncio.timeout(2.0):
+        while master.server.pending_connections != count:
+            await asyncio.sleep(0.01)
+
+
+def close_all(connections: list[Connection]) -> None:
+    for _, writer in connections:
+        writer.close()
+
+
+async def test_a_connection_from_another_address_takes_the_place_of_a_silent_one(tmp_path):
+    config = master_config(max_pending_connections=3, handshake_timeout=5.0)
+    async with Master(config, tmp_path / "run", secret=SECRET) as master:
+        flood = await silent_connections(master.port, 3)
+        await wait_for_pending(master, 3)
+        # Silent itself, but its address holds nothing: the flooding address gives one up.
+        other = await silent_connections(master.port, 1, source="127.0.0.2")
+        assert await closed_at_once(flood[0])  # the oldest
+        await wait_for_pending(master, 3)
+        assert master.server.handshakes.count("127.0.0.2") == 1
+        assert master.server.evicted_connections == 1
+        assert master.server.refused_connections == 0
+        close_all(flood + other)
+        await wait_for_pending(master, 0)
+        await still_serving(master)
+    log = (tmp_path / "run" / "master.log").read_text()
+    assert "closed the handshake of 127.0.0.1:" in log and "to make room for 127.0.0.2:" in log
+
+
+async def test_a_connection_that_speaks_at_once_takes_the_place_of_a_silent_one(tmp_path):
+    # A robot behind the flooding address: its Hello is there when the master accepts it.
+    config = master_config(max_pending_connections=3, handshake_timeout=5.0)
+    async with Master(config, tmp_path / "run", secret=SECRET) as master:
+        speaking = await hello_connections(master.port, 2)
+        silent = await silent_connections(master.port, 1)
+        await wait_for_pending(master, 3)
+        robot = await speaking_at_once(master.port)
+        assert await closed_at_once(silent[0])
+        await wait_for_pending(master, 3)
+        assert not any(writer.transport.is_closing() for _, writer in [*speaking, robot])
+        assert master.server.evicted_connections == 1
+        # With no silent one left, the next one that speaks at once is refused: robots halfway
+        # through their handshakes stay.
+        late = await speaking_at_once(master.port)
+        assert await closed_at_once(late)
+        assert master.server.refused_connections == 1
+        close_all([*speaking, robot, late])
+        await wait_for_pending(master, 0)
 
 
 async def test_the_whole_handshake_has_one_deadline(tmp_path):
