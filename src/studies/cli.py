@@ -2,7 +2,7 @@
 
 ::
 
-    surprise-study run STUDY.yaml --out DIR [--workers N | --scheduler ADDRESS]
+    surprise-study run STUDY.yaml --out DIR [--workers N | --scheduler ADDRESS | --slurm]
     surprise-study report DIR
     surprise-study status DIR
     surprise-study list
@@ -10,10 +10,13 @@
 ``run`` runs every run of the study that has not finished yet (a killed study run again goes
 on where it stopped), on local worker processes (one per core, or ``--workers``) or on the Dask
 cluster whose scheduler is at ``ADDRESS`` (``tcp://host:8786``; see the README for starting
-``dask scheduler`` and ``dask worker`` on lab machines, or a Slurm cluster). ``report`` writes the
-tables, statistics and figures (docs/studies.md). ``status`` tells where a study stands.
+``dask scheduler`` and ``dask worker`` on lab machines), or on workers in Slurm batch jobs
+(``--slurm``, :mod:`studies.slurm`). ``report`` writes the tables, statistics and figures
+(docs/studies.md). ``status`` tells where a study stands.
 
-Exit codes: 0 done, 1 some runs failed (recorded; run again to retry them), 2 bad input.
+Exit codes: 0 done, 1 some runs failed (recorded; run again to retry them), 2 bad input (or no
+scheduler at the address, or Slurm cannot start the workers), 3 stopped by a lost Dask
+scheduler or a full disk (the runs not finished stay pending: run the same command again).
 """
 
 from __future__ import annotations
@@ -24,7 +27,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from surprise.errors import ConfigError
+from surprise.errors import ClusterError, ConfigError
 from surprise.text import plural
 
 __all__ = ["main"]
@@ -46,6 +49,13 @@ def _parser() -> argparse.ArgumentParser:
         action="store_true",
         help="a Dask LocalCluster on this machine (one worker process per core)",
     )
+    where.add_argument(
+        "--slurm",
+        action="store_true",
+        help="workers in Slurm batch jobs, as the study file's slurm: section and the "
+        "--slurm-* options say (docs/studies.md)",
+    )
+    _slurm_arguments(run)
     run.set_defaults(handler=_run)
     report = sub.add_parser("report", help="tables, statistics and figures of a study")
     report.add_argument("dir", type=Path)
@@ -58,11 +68,52 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: The ``--slurm-*`` options: each overrides the study file's ``slurm:`` key of the same name.
+_SLURM_OPTIONS = {
+    "queue": ("PARTITION", str, "the partition the jobs go to"),
+    "account": ("ACCOUNT", str, "the account the jobs are charged to"),
+    "jobs": ("N", int, "how many batch jobs to submit"),
+    "cores": ("N", int, "cores per job (a one-thread worker process on each)"),
+    "memory": ("SIZE", str, "memory per job, e.g. 8GB"),
+    "walltime": ("TIME", str, "the longest a job may run, e.g. 04:00:00"),
+}
+
+
+def _slurm_arguments(run: argparse.ArgumentParser) -> None:
+    group = run.add_argument_group(
+        "Slurm", "with --slurm; each overrides the key of the study file's slurm: section"
+    )
+    for name, (metavar, type_, text) in _SLURM_OPTIONS.items():
+        group.add_argument(f"--slurm-{name}", metavar=metavar, type=type_, help=text)
+
+
+def _slurm_executor(args: argparse.Namespace):
+    from studies.runner import find_study
+    from studies.slurm import start_slurm, with_overrides
+    from studies.spec import load_study
+
+    given = {name: getattr(args, f"slurm_{name}") for name in _SLURM_OPTIONS}
+    if not args.slurm:
+        for name, value in given.items():
+            if value is not None:
+                raise ConfigError("only with --slurm", key=f"--slurm-{name}")
+        return None
+    path = find_study(args.study)
+    options = with_overrides(load_study(path).slurm, given, file=path)
+    try:
+        return start_slurm(options, args.out, say=print)
+    except KeyboardInterrupt:  # start_slurm has cancelled the jobs
+        raise ClusterError("stopped while waiting for the workers' jobs (cancelled)") from None
+
+
 def _executor(args: argparse.Namespace):
     from studies.executors import DaskCluster, LocalPool
 
     if args.workers is not None and args.workers < 1:
         raise ConfigError(f"expected a positive number, got {args.workers}", key="--workers")
+    slurm = _slurm_executor(args)
+    if slurm is not None:
+        return slurm
     if args.scheduler:
         return DaskCluster(args.scheduler)
     if args.local_cluster:
@@ -71,8 +122,10 @@ def _executor(args: argparse.Namespace):
 
 
 def _run(args: argparse.Namespace) -> int:
+    from studies.executors import SchedulerLostError
     from studies.progress import StudyProgress
-    from studies.runner import prepare, run_study
+    from studies.runner import prepare, run_study, study_status
+    from studies.tasks import DiskFullError
 
     tasks = prepare(args.study, args.out)  # a bad study fails before any worker starts
     executor = _executor(args)
@@ -80,10 +133,17 @@ def _run(args: argparse.Namespace) -> int:
     started = time.monotonic()
     try:
         with StudyProgress() as progress:
-            counts = run_study(args.study, args.out, executor, on_update=progress.update)
+            counts = run_study(
+                args.study, args.out, executor, on_update=progress.update, on_notice=print
+            )
     except KeyboardInterrupt:
         print(f"stopped: run `surprise-study run {args.study} --out {args.out}` to go on")
         return 130
+    except (SchedulerLostError, DiskFullError) as exc:
+        status = study_status(args.out)
+        left = status["runs"] - status["done"]
+        print(f"surprise-study: {exc} ({left} of {status['runs']} runs pending)", file=sys.stderr)
+        return 3
     finally:
         executor.close()
     print(

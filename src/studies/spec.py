@@ -17,6 +17,7 @@
         kind: grid-rerun
         after: [evolved]          # runs once every run of these groups has ended
         params: {genome_run: "evolved/size=16/seed-{seed}"}   # below the study's runs/
+    slurm: {queue: short, jobs: 10}   # with `run --slurm`: the workers' jobs (studies.slurm)
 
 ``params`` is the run kind's own configuration: for the Thymio kinds (``evolved``, ``random``) an
 experiment file's content (docs/simulation.md), for the grid kinds the grid world's
@@ -37,6 +38,7 @@ from typing import Annotated, Any
 
 import msgspec
 
+from studies.slurm import SlurmOptions
 from surprise.config import Strict, decode, read_yaml
 from surprise.errors import ConfigError
 
@@ -116,6 +118,9 @@ class Study(Strict):
     description: str = ""
     #: parameters merged under every group's own (a group's win)
     defaults: dict[str, Any] = msgspec.field(default_factory=dict)
+    #: where ``surprise-study run --slurm`` starts the workers (used only with ``--slurm``,
+    #: whose options override it)
+    slurm: SlurmOptions | None = None
 
     def __post_init__(self) -> None:
         if not self.groups:

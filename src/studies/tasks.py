@@ -8,6 +8,14 @@ with ``status: failed``; it never raises itself, so one broken run cannot stop a
 task gives the same result on whichever machine runs it: every random draw is seeded by the
 task's seed.
 
+A run happens once, whoever asks for it how often. Its task holds the run's lock (``flock`` on
+``.seed-N.lock`` next to the run's directory) while it runs; the kernel releases it when the
+process holding it ends, however it ends. A second task of the same run (a study started again
+while the tasks of a killed one still run on a Dask cluster, or Dask computing again a result
+it lost with a worker) waits for the lock, and then takes the stored summary as its result
+instead of running the run again. Only a full file system raises (:class:`DiskFullError`): that
+is not the run's fault, so the run is left pending rather than failed.
+
 Kinds:
 
 * ``evolved``: an evolved run on the engine (``surprise-master sim --engine fast``), its
@@ -23,16 +31,19 @@ Kinds:
 from __future__ import annotations
 
 import contextlib
+import errno
+import fcntl
 import json
 import logging
 import os
 import shutil
 import time
 import traceback
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, Final
 
-from surprise.errors import ConfigError
+from surprise.errors import ConfigError, FileWriteError
 from surprise.files import write_json
 
 __all__ = [
@@ -41,11 +52,18 @@ __all__ = [
     "KINDS",
     "RUNS",
     "SUMMARY",
+    "DiskFullError",
     "check_task",
+    "disk_full",
     "finished",
     "is_finished",
+    "lock_path",
+    "naming_full_disk",
+    "run_busy",
     "run_dir",
+    "run_lock",
     "run_task",
+    "stored_summary",
 ]
 
 #: The summary a finished run leaves in its directory.
@@ -56,6 +74,59 @@ ERROR = "error.txt"
 FAILED = "failed.json"
 #: Where a study's runs live, below its directory.
 RUNS = "runs"
+
+#: The errors that say a file system cannot take more data: full, or the user's quota used up.
+_FULL_DISK: Final = frozenset({errno.ENOSPC, errno.EDQUOT})
+
+
+class DiskFullError(FileWriteError):
+    """The file system holding ``path`` is full (or the quota is used up), so ``path`` could not
+    be written. Not a run's fault: the runs not finished stay pending, and running the study
+    again once there is room goes on with them."""
+
+    def __init__(
+        self, path: str | Path, errno_: int = errno.ENOSPC, strerror: str | None = None
+    ) -> None:
+        super().__init__(str(path), errno_, strerror or os.strerror(errno_))
+
+    def __str__(self) -> str:
+        return (
+            f"cannot write {self.path}: {str(self.strerror).lower()}; free space on its file "
+            f"system (or raise the quota) and run the same command again"
+        )
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        # Crosses process boundaries (a worker's error, pickled to the study): rebuild it from
+        # its fields, not from OSError's arguments.
+        return type(self), (self.path, self.errno, self.strerror)
+
+
+def disk_full(exc: BaseException, path: str | Path) -> DiskFullError | None:
+    """A :class:`DiskFullError` if ``exc`` or an error it was raised from says the disk is full
+    (naming the file the OS named, else ``path``); None for any other error."""
+    seen: set[int] = set()
+    current: BaseException | None = exc
+    while current is not None and id(current) not in seen:
+        if isinstance(current, DiskFullError):
+            return current
+        if isinstance(current, OSError) and current.errno in _FULL_DISK:
+            return DiskFullError(current.filename or path, current.errno)
+        seen.add(id(current))
+        current = current.__cause__ or current.__context__
+    return None
+
+
+@contextlib.contextmanager
+def naming_full_disk(path: str | Path) -> Iterator[None]:
+    """Turn a full disk met inside the block into a :class:`DiskFullError` naming ``path`` (or
+    the file the OS named): the bare ``OSError`` of a failed ``write()`` names none."""
+    try:
+        yield
+    except Exception as exc:
+        full = disk_full(exc, path)
+        if full is None or full is exc:
+            raise
+        raise full from None
 
 
 def _grid_kinds() -> tuple[str, ...]:
@@ -81,14 +152,70 @@ def is_finished(root: str | Path, task: dict[str, Any]) -> bool:
 
 
 def finished(directory: Path) -> bool:
-    """Whether the run in ``directory`` finished: its summary is this module's, with status
-    done. A grid run writes a summary of its own into the same directory first, so a run killed
-    between the two is not taken for finished."""
+    """Whether the run in ``directory`` finished (see :func:`stored_summary`)."""
+    return stored_summary(directory) is not None
+
+
+def stored_summary(directory: Path) -> dict[str, Any] | None:
+    """The summary of the run in ``directory`` if it finished, else None.
+
+    Finished means this module's summary is there, with status done and the host it ran on
+    (added last). It is written atomically as the run's last file, so a run still running or
+    killed half-way has none. A grid run writes a summary of its own into the same directory
+    first (without either field), so a run killed between the two is not taken for finished."""
     try:
         summary = json.loads((directory / SUMMARY).read_text(encoding="utf-8"))
     except (OSError, ValueError):
-        return False
-    return isinstance(summary, dict) and summary.get("status") == "done"
+        return None
+    if not isinstance(summary, dict) or summary.get("status") != "done" or "host" not in summary:
+        return None
+    return summary
+
+
+def lock_path(directory: Path) -> Path:
+    """The run lock of the run in ``directory``: beside it, not in it, as the run's directory
+    must start empty (a run refuses a directory holding anything) and is wiped when the run
+    starts afresh. It is never removed: removing a lock file others may wait on is racy."""
+    return directory.with_name(f".{directory.name}.lock")
+
+
+@contextlib.contextmanager
+def run_lock(directory: Path, *, wait: bool = True) -> Iterator[bool]:
+    """Hold the run lock of ``directory`` for the block; yields whether it is held.
+
+    ``wait=True`` waits while another process holds it (however long its run takes: that
+    process is running this very run) and always yields True; ``wait=False`` yields False at
+    once instead. ``flock``, not ``fcntl`` record locks: two threads of one Dask worker exclude
+    each other too, as each opens the file for itself. The kernel releases the lock when its
+    holder ends, so a killed worker leaves no run locked.
+    """
+    path = lock_path(directory)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(path, os.O_RDONLY | os.O_CREAT | os.O_CLOEXEC, 0o666)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX if wait else fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            yield False
+            return
+        yield True
+    finally:
+        os.close(fd)  # releases the lock
+
+
+def run_busy(directory: Path) -> bool:
+    """Whether another process holds the run lock of ``directory`` now (is running that run)."""
+    try:
+        fd = os.open(lock_path(directory), os.O_RDONLY | os.O_CLOEXEC)
+    except FileNotFoundError:
+        return False  # never started
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    finally:
+        os.close(fd)
+    return False
 
 
 def check_task(task: dict[str, Any]) -> None:
@@ -103,12 +230,23 @@ def check_task(task: dict[str, Any]) -> None:
 
 
 def run_task(task: dict[str, Any], root: str) -> dict[str, Any]:
-    """Run ``task`` into its directory below ``root``; return (and write) its summary."""
+    """Run ``task`` into its directory below ``root``; return (and write) its summary.
+
+    A run that finished is not run again: its stored summary is the result. Raises only
+    :class:`DiskFullError` (the run stays pending).
+    """
     directory = run_dir(root, task)
+    with naming_full_disk(directory), run_lock(directory):
+        stored = stored_summary(directory)
+        if stored is not None:
+            return stored
+        return _run_afresh(task, directory)
+
+
+def _run_afresh(task: dict[str, Any], directory: Path) -> dict[str, Any]:
     # A directory without a summary is what a killed run left: start it afresh.
-    if directory.exists() and not finished(directory):
+    if directory.exists():
         shutil.rmtree(directory)
-    directory.parent.mkdir(parents=True, exist_ok=True)
     base = {key: task[key] for key in ("group", "kind", "seed", "sweep", "run")}
     started = time.perf_counter()
     try:
@@ -116,14 +254,14 @@ def run_task(task: dict[str, Any], root: str) -> dict[str, Any]:
             result = _KIND_RUNNERS.get(task["kind"], _run_grid)(task, directory)
         summary = {**base, "status": "done", **result}
     except BaseException as exc:
-        if isinstance(exc, KeyboardInterrupt | SystemExit):
-            raise
+        if isinstance(exc, KeyboardInterrupt | SystemExit) or disk_full(exc, directory):
+            raise  # a full disk is not the run's fault: it stays pending, not failed
         directory.mkdir(parents=True, exist_ok=True)
         (directory / ERROR).write_text(traceback.format_exc(), encoding="utf-8")
         summary = {**base, "status": "failed", "error": f"{type(exc).__name__}: {exc}"}
     summary["seconds"] = time.perf_counter() - started
     summary["host"] = os.uname().nodename
-    # the summary marks the run finished: written atomically, never left empty
+    # the summary marks the run finished: written atomically, last, never left empty
     write_json(directory / (SUMMARY if summary["status"] == "done" else FAILED), summary)
     return summary
 

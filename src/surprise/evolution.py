@@ -77,6 +77,9 @@ class OnePlusOne:
         self.rng = np.random.default_rng(seed)
         self.best: np.ndarray | None = None
         self.best_fitness: float | None = None
+        #: The counted evaluation (1-based, as ``evaluations.csv`` numbers them) whose candidate
+        #: is the current best genome: re-evaluations change its fitness, not this.
+        self.best_evaluation: int | None = None
         self.evaluations = 0
         self.failed_rounds = 0
         self._pending: Candidate | None = None
@@ -125,6 +128,7 @@ class OnePlusOne:
         w = self.config.reevaluation_weight
         if candidate.kind == "initial" or self.best_fitness is None:
             self.best, self.best_fitness, accepted = candidate.genome, fitness, True
+            self.best_evaluation = self.evaluations + 1
         elif candidate.kind == "reevaluation":
             self.best_fitness = w * fitness + (1.0 - w) * self.best_fitness
             accepted = True
@@ -132,6 +136,7 @@ class OnePlusOne:
             accepted = fitness >= self.best_fitness
             if accepted:
                 self.best, self.best_fitness = candidate.genome, fitness
+                self.best_evaluation = self.evaluations + 1
         self._pending = None
         self.evaluations += 1
         return Outcome(self.evaluations, candidate.kind, fitness, accepted, self.best_fitness)
@@ -150,6 +155,7 @@ class OnePlusOne:
             "genome_size": self.genome_size,
             "best": None if self.best is None else self.best.tolist(),
             "best_fitness": self.best_fitness,
+            "best_evaluation": self.best_evaluation,
             "evaluations": self.evaluations,
             "failed_rounds": self.failed_rounds,
             "pending": None
@@ -170,6 +176,7 @@ class OnePlusOne:
                 self.best = np.array(state["best"], dtype=np.float64)
             self.best_fitness = state["best_fitness"]
             self.evaluations = int(state["evaluations"])
+            self.best_evaluation = _best_evaluation(state, self.best is not None)
             self.failed_rounds = int(state["failed_rounds"])
             pending = state["pending"]
             if pending is not None:
@@ -177,3 +184,12 @@ class OnePlusOne:
         except (KeyError, TypeError, ValueError) as exc:
             raise EvolutionStateError(f"cannot restore the evolution state: {exc!r}") from None
         return self
+
+
+def _best_evaluation(state: dict[str, Any], has_best: bool) -> int | None:
+    # A checkpoint written before the field existed: the count of evaluations then, which is
+    # what best_genome.json said at the time (the number that found the best is not kept).
+    found = state.get("best_evaluation")
+    if found is None and has_best:
+        return int(state["evaluations"])
+    return None if found is None else int(found)

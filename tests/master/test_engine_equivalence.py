@@ -29,6 +29,15 @@ def rows(run: Path) -> list[dict[str, str]]:
     return [{k: v for k, v in row.items() if k != "duration_s"} for row in RunDir(run).read_rows()]
 
 
+def finder(table: list[dict[str, str]]) -> int:
+    """The evaluation that found the best genome: the last accepted one not a re-evaluation."""
+    return max(
+        int(row["evaluation"])
+        for row in table
+        if row["accepted"] == "true" and row["kind"] != "reevaluation"
+    )
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize(
     ("scenario", "overrides"),
@@ -50,6 +59,9 @@ def test_engine_and_agents_give_the_same_run(tmp_path: Path, scenario: str, over
     fast_rows, agent_rows = rows(fast), rows(agents)
     assert len(fast_rows) == 12
     assert fast_rows == agent_rows
+    best = RunDir(fast).read_json("best_genome.json")
+    assert best == RunDir(agents).read_json("best_genome.json")
+    assert best["evaluation"] == finder(fast_rows), fast_rows
     for robot in [f"sim-{i}" for i in range(config.robots)]:
         a = np.load(fast / "traces" / f"{robot}.npz")
         b = np.load(agents / "traces" / f"{robot}.npz")

@@ -38,3 +38,22 @@ def write_study(tmp_path: Path, text: str = TINY, name: str = "tiny.yaml") -> Pa
     path = tmp_path / name
     path.write_text(text)
     return path
+
+
+#: Columns of runs.csv that depend on where and when a run ran, not on what it computed.
+VOLATILE = ("seconds", "host")
+
+
+def table(out: Path):
+    """The study's runs.csv without the volatile columns, in run order (a pandas DataFrame)."""
+    import pandas as pd
+
+    from studies.report import write_study_report
+
+    write_study_report(out)
+    frame = pd.read_csv(out / "report" / "runs.csv")
+    return (
+        frame.drop(columns=[c for c in VOLATILE if c in frame])
+        .sort_values("run")
+        .reset_index(drop=True)
+    )

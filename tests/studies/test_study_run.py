@@ -7,53 +7,27 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
-import signal
 import subprocess
 import sys
-import time
-from pathlib import Path
 
 import pandas as pd
 import pytest
 import yaml
-from study_helpers import TINY, TINY_RUNS, write_study
+from dask_cluster import LoopbackCluster, listening_addresses, wait_until
+from study_helpers import TINY, TINY_RUNS, table, write_study
 
+from needs import processes
 from studies.cli import main
 from studies.executors import DaskCluster, LocalPool
 from studies.report import write_study_report
 from studies.runner import run_study, study_status
+from studies.spec import expand, load_study
+from studies.tasks import run_dir, run_lock
 
 pytestmark = pytest.mark.slow
 
-#: Columns that depend on where and when a run ran, not on what it computed.
-VOLATILE = ("seconds", "host")
-#: Seconds for a Dask scheduler or worker process to come up (a loaded CI machine).
-DASK_START_TIMEOUT = 60.0
-
-
-def table(out: Path) -> pd.DataFrame:
-    """The study's runs.csv without the volatile columns, in run order."""
-    write_study_report(out)
-    frame = pd.read_csv(out / "report" / "runs.csv")
-    return (
-        frame.drop(columns=[c for c in VOLATILE if c in frame])
-        .sort_values("run")
-        .reset_index(drop=True)
-    )
-
-
-@pytest.fixture(scope="module")
-def local_table(tmp_path_factory) -> pd.DataFrame:
-    """The tiny study on the local pool, the reference for the other executors."""
-    tmp = tmp_path_factory.mktemp("local")
-    pool = LocalPool(2)
-    try:
-        counts = run_study(write_study(tmp), tmp / "study", pool)
-    finally:
-        pool.close()
-    assert counts.done == TINY_RUNS and counts.failed == 0
-    return table(tmp / "study")
+#: Seconds a tiny study may take on a loaded CI machine (it takes a few).
+STUDY_TIMEOUT = 120.0
 
 
 def test_local_pool_runs_every_run_and_reports(local_table, tmp_path):
@@ -72,80 +46,61 @@ def test_a_local_dask_cluster_gives_the_same_table(local_table, tmp_path):
     pd.testing.assert_frame_equal(table(tmp_path / "study"), local_table)
 
 
-def _start(args: list[str], log: Path) -> subprocess.Popen[bytes]:
-    with open(log, "wb") as out:
-        return subprocess.Popen(
-            args, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-            env={**os.environ, "PYTHONUNBUFFERED": "1"},
-        )  # fmt: skip
+def test_a_local_dask_cluster_listens_on_loopback_only(tmp_path):
+    cluster = DaskCluster(None, workers=1)
+    try:
+        ours = {os.getpid()} | {p.pid for p in processes() if p.ppid == os.getpid()}
+        found = [(pid, address) for pid in ours for address in listening_addresses(pid)]
+        assert found and all(loopback for _, (_, loopback) in found), found
+    finally:
+        cluster.close()
 
 
 def test_a_dask_scheduler_and_two_workers_in_their_own_processes(local_table, tmp_path):
-    dask = shutil.which("dask", path=str(Path(sys.executable).parent)) or shutil.which("dask")
-    assert dask is not None, "the dask command comes with distributed"
-    scheduler_file = tmp_path / "scheduler.json"
-    common = ["--no-dashboard"]
-    processes = [
-        _start(
-            [dask, "scheduler", "--host", "127.0.0.1", "--port", "0",
-             "--scheduler-file", str(scheduler_file), *common],
-            tmp_path / "scheduler.log",
-        )
-    ]  # fmt: skip
-    try:
-        deadline = time.monotonic() + DASK_START_TIMEOUT
-        while not scheduler_file.exists():
-            assert time.monotonic() < deadline, (tmp_path / "scheduler.log").read_text()
-            time.sleep(0.1)
-        for i in range(2):
-            processes.append(
-                _start(
-                    [dask, "worker", "--scheduler-file", str(scheduler_file), "--nthreads", "1",
-                     "--nworkers", "1", *common],
-                    tmp_path / f"worker-{i}.log",
-                )
-            )  # fmt: skip
-        address = json.loads(scheduler_file.read_text())["address"]
-        from distributed import Client
-
-        with Client(address) as client:
-            client.wait_for_workers(2, timeout=DASK_START_TIMEOUT)
+    with LoopbackCluster(tmp_path) as cluster:
+        address = cluster.start_scheduler()
+        cluster.start_workers(2)
         code = main(
             ["run", str(write_study(tmp_path)), "--out", str(tmp_path / "study"),
              "--scheduler", address]
         )  # fmt: skip
         assert code == 0
-        workers = {
-            json.loads(p.read_text())["host"] for p in (tmp_path / "study").rglob("summary.json")
-        }
-        assert workers  # ran somewhere, with a host recorded
-        pd.testing.assert_frame_equal(table(tmp_path / "study"), local_table)
-    finally:
-        for process in reversed(processes):
-            process.send_signal(signal.SIGTERM)
-        for process in processes:
-            try:
-                process.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                process.kill()
+        listening = cluster.listening()
+        assert listening and all(loopback for _, _, loopback in listening), listening
+    workers = {
+        json.loads(p.read_text())["host"] for p in (tmp_path / "study").rglob("summary.json")
+    }
+    assert workers  # ran somewhere, with a host recorded
+    pd.testing.assert_frame_equal(table(tmp_path / "study"), local_table)
 
 
 def test_a_study_killed_midway_and_run_again_does_each_run_once(tmp_path):
-    study = write_study(tmp_path, TINY.replace("evaluations: 3", "evaluations: 40"))
+    study = write_study(tmp_path)
     out = tmp_path / "study"
-    process = subprocess.Popen(
-        [sys.executable, "-m", "studies.cli", "run", str(study), "--out", str(out),
-         "--workers", "1"],
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-    )  # fmt: skip
-    deadline = time.monotonic() + 120
-    while len(list(out.rglob("summary.json"))) < 2:
-        assert process.poll() is None and time.monotonic() < deadline
-        time.sleep(0.05)
-    process.kill()  # SIGKILL: no clean-up; a run may be half written
-    process.wait()
+    last = expand(load_study(study))[-1]
+    # What a run killed half-way leaves: a directory without a summary.
+    half = run_dir(out, last)
+    half.mkdir(parents=True)
+    (half / "half-written").write_text("what a killed run left\n")
+    # The last run's lock, held here, keeps the study from ending before it is killed: with one
+    # worker it is the last run started, and its task waits for the lock.
+    with run_lock(half):
+        process = subprocess.Popen(
+            [sys.executable, "-m", "studies.cli", "run", str(study), "--out", str(out),
+             "--workers", "1"],
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        )  # fmt: skip
+        wait_until(
+            lambda: (
+                len(list(out.rglob("summary.json"))) == TINY_RUNS - 1 or process.poll() is not None
+            ),
+            "the study did not finish every run but the held one",
+            STUDY_TIMEOUT,
+        )
+        process.kill()  # SIGKILL: no clean-up; a run may be half written
+        process.wait()
     before = {p: p.stat().st_mtime_ns for p in out.rglob("summary.json")}
-    assert 2 <= len(before) < TINY_RUNS
+    assert len(before) == TINY_RUNS - 1
     pool = LocalPool(2)
     try:
         counts = run_study(study, out, pool)
@@ -156,6 +111,7 @@ def test_a_study_killed_midway_and_run_again_does_each_run_once(tmp_path):
     assert len(after) == TINY_RUNS
     assert all(after[p] == t for p, t in before.items())  # finished runs were not run again
     assert study_status(out)["done"] == TINY_RUNS
+    assert not (half / "half-written").exists()  # started afresh
 
 
 def test_a_run_that_raises_is_recorded_and_the_study_completes(tmp_path, capsys):
@@ -207,3 +163,11 @@ def test_another_study_into_the_same_directory_is_refused(tmp_path, capsys):
     other = write_study(tmp_path, TINY.replace("seeds: 2", "seeds: 3"), "other.yaml")
     assert main(["run", str(other), "--out", str(out)]) == 2
     assert "holds another study" in capsys.readouterr().err
+
+
+def test_a_study_that_changed_only_where_it_runs_goes_on(tmp_path, capsys):
+    out = tmp_path / "study"
+    assert main(["run", str(write_study(tmp_path)), "--out", str(out), "--workers", "1"]) == 0
+    moved = write_study(tmp_path, TINY + "slurm: {jobs: 3}\n# run on the cluster now\n", "b.yaml")
+    assert main(["run", str(moved), "--out", str(out), "--workers", "1"]) == 0
+    assert "from before" in capsys.readouterr().out

@@ -82,6 +82,24 @@ def test_offspring_replaces_best_when_at_least_as_good():
     assert evo.tell(0.5).accepted and evo.best is equal
 
 
+def test_the_best_remembers_the_evaluation_that_found_it():
+    # The number best_genome.json gives: the evaluation whose candidate is the best genome, not
+    # how many have been counted, and not a later re-evaluation of it.
+    evo = OnePlusOne(EvolutionConfig(reevaluation_probability=0.5), 5, seed=6)
+    found = None
+    for fitness in np.linspace(0.1, 0.9, 30):
+        candidate = evo.ask()
+        outcome = evo.tell(fitness if candidate.kind != "offspring" else 1 - fitness)
+        if outcome.accepted and candidate.kind != "reevaluation":
+            found = outcome.evaluation
+        assert evo.best_evaluation == found
+    assert found is not None and found < evo.evaluations  # re-evaluations and rejects since
+    restored = OnePlusOne.from_state(CFG, json.loads(json.dumps(evo.state())))
+    assert restored.best_evaluation == found
+    older = {key: value for key, value in evo.state().items() if key != "best_evaluation"}
+    assert OnePlusOne.from_state(CFG, older).best_evaluation == evo.evaluations  # as it said
+
+
 def test_failed_round_repeats_the_candidate_and_counts_nothing():
     evo = OnePlusOne(CFG, 5, seed=4)
     evo.ask()
