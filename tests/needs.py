@@ -75,6 +75,25 @@ def require_module(name: str, extra: str = "dev") -> ModuleType:
         raise AssertionError("not reached") from None
 
 
+def obeying_modes(directory: Path) -> tuple[str, ...]:
+    """What to run a command under so that it obeys file modes in ``directory``: nothing for a
+    user; for root, ``setpriv`` without the capabilities it writes and reads anywhere with.
+
+    Both capability sets: root's exec keeps what the inheritable set holds, and a container
+    (systemd-nspawn) hands its processes a full one."""
+    probe = directory / ".probe"
+    probe.mkdir()
+    probe.chmod(0o500)
+    try:
+        if not os.access(probe, os.W_OK):
+            return ()
+    finally:
+        probe.chmod(0o700)
+        probe.rmdir()
+    caps = "-dac_override,-dac_read_search"
+    return (require_binary("setpriv"), f"--inh-caps={caps}", f"--bounding-set={caps}", "--")
+
+
 @dataclass(frozen=True)
 class Process:
     """One process as ``/proc`` shows it."""

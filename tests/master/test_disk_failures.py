@@ -39,7 +39,7 @@ from master_helpers import (
 from master_service import Master
 from master_service import rundir as rundir_module
 from master_service.rundir import RunDir, RunLog
-from needs import find_binary, missing, require_binary
+from needs import find_binary, missing, obeying_modes
 from surprise.errors import FileWriteError
 
 pytestmark = pytest.mark.slow
@@ -58,22 +58,6 @@ COMMAND_TIMEOUT = 300
 
 def command(*argv: str) -> list[str]:
     return [sys.executable, "-m", "master_service", *argv]
-
-
-def unwritable_prefix(directory: Path) -> tuple[str, ...]:
-    """What to run a command under so that it cannot write ``directory`` once its mode says so:
-    nothing for a user, ``setpriv`` without the capabilities root writes anywhere with."""
-    probe = directory / ".probe"
-    probe.mkdir()
-    probe.chmod(0o500)
-    try:
-        if not os.access(probe, os.W_OK):
-            return ()
-    finally:
-        probe.chmod(0o700)
-        probe.rmdir()
-    setpriv = require_binary("setpriv")
-    return (setpriv, "--bounding-set=-dac_override,-dac_read_search", "--")
 
 
 def start(argv: list[str], cwd: Path, prefix: tuple[str, ...] = ()) -> subprocess.Popen[bytes]:
@@ -142,7 +126,7 @@ SIM_RUNS = [("agents", 300, 20), ("fast", 2000, 40)]
 def test_sim_in_a_directory_turned_read_only_is_one_line_and_resumes(
     tmp_path: Path, engine: str, evaluations: int, steps: int
 ):
-    prefix = unwritable_prefix(tmp_path)
+    prefix = obeying_modes(tmp_path)
     config = write_experiment(tmp_path / "experiment.yaml", evaluations, steps)
     run = tmp_path / "run"
     argv = command("sim", "--config", str(config), "--engine", engine, "--out", str(run))
@@ -165,7 +149,7 @@ def test_sim_in_a_directory_turned_read_only_is_one_line_and_resumes(
 
 
 def test_a_lab_run_in_a_directory_turned_read_only_is_one_line_and_resumes(tmp_path: Path):
-    prefix = unwritable_prefix(tmp_path)
+    prefix = obeying_modes(tmp_path)
     exp = experiment(evaluations=150)
     (tmp_path / "secret.txt").write_bytes(SECRET)
     config = tmp_path / "master.yaml"

@@ -23,7 +23,7 @@ import pytest
 from master_service.engine_run import FastRun
 from master_service.rundir import RunDir
 from master_service.simulate import SimulatedSwarm, simulation_experiment
-from needs import require_binary
+from needs import obeying_modes
 
 pytestmark = pytest.mark.slow
 
@@ -208,13 +208,7 @@ def test_sim_into_an_unwritable_directory_is_one_clear_line(tmp_path: Path):
     locked = tmp_path / "locked"
     locked.mkdir()
     locked.chmod(0o500)
-    prefix: tuple[str, ...] = ()
-    if os.access(locked, os.W_OK):
-        # Root writes anywhere through these capabilities; without them it obeys the mode bits.
-        # Both sets: root's exec keeps what the inheritable set holds, and a container (nspawn)
-        # hands its processes a full one.
-        caps = "-dac_override,-dac_read_search"
-        prefix = (require_binary("setpriv"), f"--inh-caps={caps}", f"--bounding-set={caps}", "--")
+    prefix = obeying_modes(tmp_path)
     try:
         argv = ["sim", "--evaluations", "2", "--out", str(locked / "run")]
         process = start(argv, tmp_path, prefix)
