@@ -17,10 +17,8 @@ import errno
 import os
 import pickle
 import shutil
-import signal
 import socket
 import subprocess
-import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -30,6 +28,16 @@ import pandas as pd
 import pytest
 from dask_cluster import LOOPBACK, LoopbackCluster, wait_until
 from study_helpers import TINY_RUNS, table, write_study
+from study_process import (
+    STUDY_TIMEOUT,
+    Study,
+    assert_each_run_once,
+    one_run_held,
+    record,
+    summaries,
+    surprise_study,
+    wait_under_way,
+)
 
 import studies.tasks as tasks_module
 from needs import missing
@@ -40,10 +48,6 @@ from studies.tasks import DiskFullError, finished, run_dir, run_lock, run_task
 
 pytestmark = pytest.mark.slow
 
-#: Seconds a tiny study may take on a loaded CI machine (it takes a few).
-STUDY_TIMEOUT = 120.0
-#: Summaries to wait for before the fault: the study is under way, not just started.
-UNDER_WAY = 3
 #: What a study stopped by a lost scheduler or a full disk exits with.
 STOPPED = 3
 #: The size of the small file system of the full-disk test (room for the tiny study).
@@ -55,102 +59,13 @@ SMALL_DISK = "16m"
 
 def study_command(study: Path, out: Path, address: str) -> list[str]:
     """``surprise-study run STUDY --out OUT --scheduler ADDRESS``, as a user types it."""
-    command = Path(sys.executable).parent / "surprise-study"
-    assert command.exists(), "surprise-study comes with the project (pip install -e '.[dev]')"
-    return [str(command), "run", str(study), "--out", str(out), "--scheduler", address]
-
-
-class Study:
-    """``surprise-study run`` in a process of its own, its output in ``folder``."""
-
-    def __init__(self, command: list[str], folder: Path, name: str) -> None:
-        self.stdout = folder / f"{name}.out"
-        self.stderr = folder / f"{name}.err"
-        with open(self.stdout, "wb") as out, open(self.stderr, "wb") as err:
-            self.process = subprocess.Popen(
-                command, stdout=out, stderr=err, stdin=subprocess.DEVNULL,
-                env={**os.environ, "PYTHONUNBUFFERED": "1"},
-            )  # fmt: skip
-
-    def wait(self) -> int:
-        """Its exit code, once it has ended (it must within :data:`STUDY_TIMEOUT`)."""
-        try:
-            return self.process.wait(timeout=STUDY_TIMEOUT)
-        except subprocess.TimeoutExpired:
-            self.process.kill()
-            raise AssertionError(
-                f"the study did not end within {STUDY_TIMEOUT:.0f} s\n{self}"
-            ) from None
-
-    def kill(self) -> None:
-        """SIGKILL: no clean-up of any kind."""
-        self.process.send_signal(signal.SIGKILL)
-        self.process.wait()
-
-    def out(self) -> str:
-        """What it printed on stdout so far."""
-        return self.stdout.read_text(errors="replace")
-
-    def err(self) -> str:
-        """What it printed on stderr so far."""
-        return self.stderr.read_text(errors="replace")
-
-    def __str__(self) -> str:
-        return f"stdout:\n{self.out()}\nstderr:\n{self.err()}"
-
-
-def summaries(out: Path) -> dict[Path, tuple[int, int]]:
-    """Every run's summary.json with its inode and time: a run written again changes both."""
-    found = {}
-    for path in out.rglob("summary.json"):
-        stat = path.stat()
-        found[path] = (stat.st_ino, stat.st_mtime_ns)
-    return found
-
-
-def wait_under_way(out: Path, study: Study) -> None:
-    """Wait until :data:`UNDER_WAY` runs have finished (the study must still run)."""
-    wait_until(
-        lambda: len(summaries(out)) >= UNDER_WAY or study.process.poll() is not None,
-        f"{UNDER_WAY} runs did not finish",
-        STUDY_TIMEOUT,
-    )
-    assert study.process.poll() is None, f"the study ended before its fault\n{study}"
-
-
-@contextlib.contextmanager
-def one_run_held(study: Path, out: Path) -> Iterator[Path]:
-    """Hold the last run's lock: its task waits, so the study cannot end before the fault."""
-    held = run_dir(out, expand(load_study(study))[-1])
-    with run_lock(held):
-        yield held
-
-
-def assert_each_run_once(
-    out: Path, before: dict[Path, tuple[int, int]], local_table: pd.DataFrame
-) -> None:
-    """Every run ended once, with the local pool's values: no failure recorded anywhere, the
-    summaries there after the fault untouched, the same runs.csv."""
-    leftovers = sorted(out.rglob("failed.json")) + sorted(out.rglob("error.txt"))
-    assert not leftovers, leftovers
-    after = summaries(out)
-    assert len(after) == TINY_RUNS
-    rewritten = [path for path, stamp in before.items() if after[path] != stamp]
-    assert not rewritten, f"finished runs were run again: {rewritten}"
-    assert study_status(out)["done"] == TINY_RUNS
-    pd.testing.assert_frame_equal(table(out), local_table)
+    return surprise_study("run", str(study), "--out", str(out), "--scheduler", address)
 
 
 def assert_loopback_only(cluster: LoopbackCluster) -> None:
     """Nothing of the cluster listens beyond loopback."""
     listening = cluster.listening()
     assert listening and all(loopback for _, _, loopback in listening), listening
-
-
-def record(fault: str, started: float, study: Study) -> None:
-    """Print, for the record, what the study printed and how long it took after the fault."""
-    print(f"\n[{fault}] ended {time.monotonic() - started:.1f} s after the fault, exit "
-          f"{study.process.returncode}\n{study}")  # fmt: skip
 
 
 def free_port() -> int:
@@ -276,13 +191,15 @@ def test_a_scheduler_killed_leaves_the_runs_pending_and_the_same_command_finishe
             killed = time.monotonic()
             assert first.wait() == STOPPED, first
             record("scheduler killed", killed, first)
+            # Still holding the lock: the workers outlive their scheduler, and the held run's
+            # task, let go, would finish behind the study's back.
+            status = study_status(out)
+            assert status["failed"] == 0 and status["done"] < TINY_RUNS  # pending, not failed
+            assert not list(out.rglob("failed.json")), "runs taken for failed"
         lines = [line for line in first.err().splitlines() if line.startswith("surprise-study")]
         assert len(lines) == 1, first
         assert f"lost the Dask scheduler at {address}" in lines[0]
         assert "run the same command again" in lines[0]
-        status = study_status(out)
-        assert status["failed"] == 0 and status["done"] < TINY_RUNS  # pending, not failed
-        assert not list(out.rglob("failed.json")), "runs taken for failed"
         before = summaries(out)
         # A scheduler back on the same port, with workers: the very same command finishes.
         cluster.start_scheduler(cluster.port)
