@@ -101,7 +101,9 @@ def _slurm_executor(args: argparse.Namespace):
     path = find_study(args.study)
     options = with_overrides(load_study(path).slurm, given, file=path)
     try:
-        return start_slurm(options, args.out, say=print)
+        # Flushed: a study's output often goes to a file (nohup, tmux logs), where a line about
+        # its jobs would otherwise wait in a buffer for hours.
+        return start_slurm(options, args.out, say=lambda line: print(line, flush=True))
     except KeyboardInterrupt:  # start_slurm has cancelled the jobs
         raise ClusterError("stopped while waiting for the workers' jobs (cancelled)") from None
 

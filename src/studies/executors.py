@@ -96,6 +96,10 @@ class Executor(Protocol):
     def cancel(self, futures: Iterable[Any]) -> None:
         """Give up the tasks of ``futures`` that have not started (running ones may go on)."""
 
+    def runs_left(self, count: int) -> None:
+        """Hear how many runs the study still waits for (the Slurm executor keeps its jobs only
+        while there are some)."""
+
     def close(self) -> None:
         """Release the workers."""
 
@@ -135,6 +139,9 @@ class LocalPool:
         """Give up the tasks that have not started."""
         for future in futures:
             future.cancel()
+
+    def runs_left(self, count: int) -> None:
+        """Nothing to do: the pool's workers stay until :meth:`close`."""
 
     def close(self) -> None:
         """Stop the workers (running tasks are abandoned)."""
@@ -204,6 +211,9 @@ class DaskCluster:
         if futures and not self.scheduler_lost():
             with contextlib.suppress(Exception):  # it may go at any moment: nothing to save
                 self.client.cancel(futures)
+
+    def runs_left(self, count: int) -> None:
+        """Nothing to do: the workers are the cluster's (a Slurm executor keeps its jobs)."""
 
     def close(self) -> None:
         """Disconnect (and stop the local cluster if this started one)."""

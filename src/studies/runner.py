@@ -177,9 +177,11 @@ def run_study(
 
     def update() -> None:
         counts.running = min(counts.left, executor.workers)
+        executor.runs_left(counts.left)
         if on_update is not None:
             on_update(counts, time.monotonic() - started)
 
+    executor.runs_left(counts.left)
     if on_update is not None:
         on_update(counts, 0.0)
     # A group that uses other groups' runs (``after``) starts once they have all ended.

@@ -12,7 +12,13 @@ from study_helpers import TINY, write_study
 
 from needs import require_binary, require_module
 from studies.cli import main
-from studies.slurm import SlurmOptions, cluster_options, with_overrides
+from studies.slurm import (
+    SlurmOptions,
+    cluster_options,
+    renewal_line,
+    walltime_seconds,
+    with_overrides,
+)
 from studies.spec import load_study
 from surprise.errors import ConfigError
 
@@ -47,6 +53,8 @@ def test_the_study_file_s_slurm_section_decodes_and_options_override_it(tmp_path
         ("  walltime: 2h\n", "slurm.walltime", "Slurm's time"),
         ("  cores: 4\n  processes: 3\n", "slurm.processes", "divisor of `cores`"),
         ("  directives: [qos=x]\n", "slurm.directives", "an sbatch option"),
+        ("  walltime: '10'\n  walltime_margin: 600\n", "slurm.walltime_margin", "nothing of"),
+        ("  walltime_margin: 0\n", "slurm.walltime_margin", "> 0"),
     ],
 )
 def test_a_bad_slurm_key_is_one_line_naming_file_and_key(tmp_path, capsys, section, key, reason):
@@ -60,6 +68,71 @@ def test_a_bad_slurm_key_is_one_line_naming_file_and_key(tmp_path, capsys, secti
     (line,) = capsys.readouterr().err.splitlines()
     assert line.startswith(f"surprise-study: {path}: key '{key}'")
     assert not (tmp_path / "out" / "runs").exists()
+
+
+@pytest.mark.parametrize(
+    ("walltime", "seconds"),
+    [
+        ("90", 5400), ("5:30", 330), ("04:00:00", 14400), ("2-0", 172800), ("1-2:03", 93780),
+        ("1-02:03:04", 93784), ("0", 0),
+    ],
+)  # fmt: skip
+def test_a_walltime_in_each_of_slurm_s_formats_is_its_seconds(walltime, seconds):
+    assert walltime_seconds(walltime) == seconds
+
+
+@pytest.mark.parametrize(
+    ("walltime", "margin", "lifetime"),
+    [
+        ("08:00:00", None, 8 * 3600 - 300),  # 5 minutes before the walltime
+        ("01:00:00", None, 3300),
+        ("20", None, 20 * 60 - 120),  # a tenth of a short walltime
+        ("1", 55, 5),  # as the tests ask
+        ("02:00:00", 900, 6300),
+        ("0", None, None),  # no walltime: the workers stay
+    ],
+)
+def test_the_workers_leave_a_margin_before_the_walltime(tmp_path, walltime, margin, lifetime):
+    options = SlurmOptions(walltime=walltime, walltime_margin=margin)
+    assert options.lifetime == lifetime
+    worker = _worker_command(options, tmp_path)
+    if lifetime is None:
+        assert "--lifetime" not in worker
+    else:
+        assert f" --lifetime {lifetime:g}s" in worker
+    assert "--lifetime-stagger" not in worker
+
+
+def test_the_line_that_says_jobs_were_replaced():
+    line = renewal_line({"41": "walltime", "42": "walltime"}, ["43", "44"], wanted=2, runs_left=9)
+    assert line == "slurm: 2 jobs ended (walltime: 41, 42); submitted 2 new ones (43, 44)"
+    line = renewal_line({"41": "walltime", "42": "cancelled"}, ["43"], wanted=1, runs_left=1)
+    assert line == (
+        "slurm: 2 jobs ended (walltime: 41; cancelled: 42); submitted 1 new one (43), enough for "
+        "the 1 run left"
+    )
+    line = renewal_line({"41": "node failure"}, [], wanted=0, runs_left=2)
+    assert line == (
+        "slurm: 1 job ended (node failure: 41); no new ones: the other jobs are enough for the "
+        "2 runs left"
+    )
+    refused = "sbatch: error: Batch job submission failed: Job violates accounting/QOS policy"
+    line = renewal_line({"41": "walltime"}, [], wanted=1, refused=refused, runs_left=5)
+    assert line == (
+        f"slurm: 1 job ended (walltime: 41); sbatch refused 1 new one ({refused}); "
+        "trying again soon"
+    )
+    assert renewal_line({}, ["45"], wanted=1) == "slurm: submitted 1 new job (45)"
+
+
+def _worker_command(options: SlurmOptions, logs: Path) -> str:
+    """The line of the job script that starts the workers."""
+    require_module("dask_jobqueue", "studies")
+    from dask_jobqueue.slurm import SLURMJob
+
+    kwargs = cluster_options(options, logs)
+    kwargs.pop("scheduler_options")  # the scheduler's, not a job's
+    return SLURMJob("tcp://127.0.0.1:1", name="w", **kwargs).job_script().splitlines()[-1]
 
 
 def test_a_bad_slurm_option_is_named(tmp_path, capsys):

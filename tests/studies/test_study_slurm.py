@@ -1,5 +1,6 @@
 """``surprise-study run --slurm`` against a real single-node Slurm (slurm_helpers): the workers
-are Slurm batch jobs, a study gives the same table as on the local pool, and jobs that Slurm
+are Slurm batch jobs, a study gives the same table as on the local pool, jobs that end mid-study
+(their walltime, ``scancel``) are replaced and every run still ends once, and jobs that Slurm
 refuses, that end early or that never start are one line each, with no job left behind."""
 
 from __future__ import annotations
@@ -7,11 +8,23 @@ from __future__ import annotations
 import re
 import time
 from collections.abc import Iterator
+from pathlib import Path
 
 import pandas as pd
 import pytest
+from dask_cluster import wait_until
 from slurm_helpers import PARTITION, SingleNodeSlurm
 from study_helpers import TINY, table, write_study
+from study_process import (
+    STUDY_TIMEOUT,
+    Study,
+    assert_each_run_once,
+    record,
+    runs_held,
+    summaries,
+    surprise_study,
+    wait_under_way,
+)
 
 from needs import require_module
 from studies.cli import main
@@ -26,6 +39,11 @@ WORKERS_TIMEOUT = 120.0
 JOB_END_TIMEOUT = 30.0
 #: The slurm: section of the tests' studies: everything on loopback, small jobs.
 SECTION = f"slurm:\n  interface: lo\n  memory: 1GB\n  start_timeout: {WORKERS_TIMEOUT:g}\n"
+#: Jobs whose workers leave 5 s after they start: a walltime of one minute (Slurm's least)
+#: less a margin of 55 s. The tiny study sees its jobs end, and replaced, again and again.
+SHORT_LIVED = "  walltime: '1'\n  walltime_margin: 55\n"
+#: What the study prints when jobs ended and new ones were submitted in their place.
+REPLACED = re.compile(r"^slurm: \d+ jobs? ended \((?P<why>[^)]*)\); submitted (?P<new>.*)$", re.M)
 
 
 @pytest.fixture(scope="module")
@@ -94,6 +112,137 @@ def test_the_workers_run_in_the_slurm_jobs_and_end_with_the_study(slurm, tmp_pat
     finally:
         executor.close()
     assert set(wait_until_ended(slurm, sorted(jobs)).values()) <= {"CANCELLED", "COMPLETED"}
+
+
+def slurm_study(study: Path, out: Path) -> list[str]:
+    """``surprise-study run STUDY --out OUT --slurm``, as a user types it."""
+    return surprise_study("run", str(study), "--out", str(out), "--slurm")
+
+
+def replaced(printed: str) -> tuple[dict[str, str], list[str]]:
+    """What a study said of its jobs' replacement (REPLACED lines): the jobs that ended, by id,
+    with why, and the jobs submitted in their place."""
+    ended, new = {}, []
+    for line in REPLACED.finditer(printed):
+        for part in line["why"].split("; "):
+            why, jobs = part.split(": ")
+            ended |= dict.fromkeys(jobs.split(", "), why)
+        new += re.findall(r"\d+", re.match(r"[^(]*\(([\d, ]+)\)", line["new"])[1])
+    return ended, new
+
+
+@pytest.mark.parametrize(
+    ("jobs", "cores"),
+    # Two jobs of one worker each, and one job of two worker processes (named <job>-0, <job>-1:
+    # the jobs dask-jobqueue's adapt() would never replace).
+    [(2, 1), (1, 2)],
+)
+def test_jobs_at_their_walltime_are_replaced_and_each_run_ends_once(
+    slurm, local_table, tmp_path, jobs, cores
+):
+    earlier = set(slurm.jobs())
+    section = SECTION + f"  jobs: {jobs}\n  cores: {cores}\n" + SHORT_LIVED
+    study, out = write_study(tmp_path, TINY + section), tmp_path / "s"
+    # The held runs keep the study going (and both jobs wanted) until they have been replaced.
+    with runs_held(study, out, 2):
+        running = Study(slurm_study(study, out), tmp_path, "study")
+        wait_until(
+            lambda: replaced(running.out())[1] or running.process.poll() is not None,
+            "no job was replaced",
+            STUDY_TIMEOUT,
+            running.stdout,
+        )
+        assert running.process.poll() is None, running
+        before = summaries(out)
+        released = time.monotonic()
+    assert running.wait() == 0, running
+    record("jobs at their walltime", released, running)
+    assert_each_run_once(out, before, local_table)
+    ended, new = replaced(running.out())
+    assert set(ended.values()) == {"walltime"}, running
+    # The held runs wanted a job each: as many new ones as ended (both jobs at once, or not).
+    first = REPLACED.search(running.out())[0]
+    assert re.fullmatch(
+        r"slurm: (\d) jobs? ended \(walltime: [\d, ]+\); submitted \1 new ones? \([\d, ]+\)", first
+    ), first
+    # More jobs than it started with, each one the study named; none left at the end.
+    ours = sorted(set(slurm.jobs()) - earlier)
+    assert len(ours) > jobs and set(ended) | set(new) <= set(ours), (ours, running)
+    assert set(wait_until_ended(slurm, ours).values()) <= {"CANCELLED", "COMPLETED", "TIMEOUT"}
+
+
+def test_jobs_cancelled_mid_study_are_replaced_and_each_run_ends_once(slurm, local_table, tmp_path):
+    study, out = write_study(tmp_path, TINY + SECTION + "  jobs: 2\n"), tmp_path / "s"
+    with runs_held(study, out, 2):
+        running = Study(slurm_study(study, out), tmp_path, "study")
+        wait_under_way(out, running)
+        (first,) = re.findall(r"slurm: submitted 2 jobs \((\d+), (\d+)\)", running.out())
+        before = summaries(out)
+        slurm.run("scancel", *first)  # as an administrator would, or a node's failure
+        cancelled = time.monotonic()
+        wait_until(
+            lambda: (
+                set(replaced(running.out())[0]) >= set(first) or running.process.poll() is not None
+            ),
+            "the cancelled jobs were not replaced",
+            STUDY_TIMEOUT,
+            running.stdout,
+        )
+        assert running.process.poll() is None, running
+    assert running.wait() == 0, running
+    record("jobs cancelled", cancelled, running)
+    assert_each_run_once(out, before, local_table)
+    ended, new = replaced(running.out())
+    assert ended == dict.fromkeys(first, "cancelled") and len(new) == 2, running
+    assert set(wait_until_ended(slurm, [*first, *new]).values()) <= {"CANCELLED", "COMPLETED"}
+
+
+def test_new_jobs_that_sbatch_refuses_are_submitted_once_it_takes_them(
+    slurm, local_table, tmp_path
+):
+    study, out = write_study(tmp_path, TINY + SECTION + "  jobs: 2\n"), tmp_path / "s"
+    partition = f"PartitionName={PARTITION}"
+    with runs_held(study, out, 2):
+        running = Study(slurm_study(study, out), tmp_path, "study")
+        wait_under_way(out, running)
+        (first,) = re.findall(r"slurm: submitted 2 jobs \((\d+), (\d+)\)", running.out())
+        before = summaries(out)
+        # A drained partition takes no new jobs: the jobs' end comes with none to replace them.
+        slurm.run("scontrol", "update", partition, "State=DRAIN")
+        try:
+            slurm.run("scancel", *first)
+            wait_until(
+                lambda: "sbatch refused" in running.out() or running.process.poll() is not None,
+                "sbatch did not refuse the new jobs",
+                STUDY_TIMEOUT,
+                running.stdout,
+            )
+        finally:
+            slurm.run("scontrol", "update", partition, "State=UP")
+        reopened = time.monotonic()
+        again = re.compile(r"^slurm: submitted (\d+) new jobs? \(([\d, ]+)\)$", re.M)
+        wait_until(
+            lambda: again.search(running.out()) or running.process.poll() is not None,
+            "no new job once the partition took them again",
+            STUDY_TIMEOUT,
+            running.stdout,
+        )
+        assert running.process.poll() is None, running
+    assert running.wait() == 0, running
+    record("sbatch refused, then took the jobs", reopened, running)
+    assert_each_run_once(out, before, local_table)
+    # As many as the runs left need (the two held), refused, then submitted.
+    printed = running.out()
+    (refusal,) = re.findall(
+        r"^slurm: 2 jobs ended \(cancelled: \d+, \d+\); sbatch refused (\d+) new ones? "
+        r"\((sbatch: error: .*)\); trying again soon$",
+        printed,
+        re.M,
+    )
+    (submitted,) = again.findall(printed)
+    assert submitted[0] == refusal[0], printed
+    new = submitted[1].split(", ")
+    assert set(wait_until_ended(slurm, [*first, *new]).values()) <= {"CANCELLED", "COMPLETED"}
 
 
 def test_jobs_that_never_start_end_the_study_after_the_start_timeout(slurm, tmp_path, capsys):
