@@ -15,10 +15,10 @@ from studies.cli import main
 from studies.slurm import (
     SlurmOptions,
     cluster_options,
-    renewal_line,
     walltime_seconds,
     with_overrides,
 )
+from studies.slurm_jobs import renewal_line
 from studies.spec import load_study
 from surprise.errors import ConfigError
 
