@@ -13,10 +13,12 @@ from __future__ import annotations
 import importlib
 import os
 import shutil
+import subprocess
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
+from typing import Any
 
 import pytest
 
@@ -92,6 +94,18 @@ def obeying_modes(directory: Path) -> tuple[str, ...]:
         probe.rmdir()
     caps = "-dac_override,-dac_read_search"
     return (require_binary("setpriv"), f"--inh-caps={caps}", f"--bounding-set={caps}", "--")
+
+
+def end_process(process: subprocess.Popen[Any] | None, timeout: float) -> None:
+    """End ``process`` if it still runs: SIGTERM, then SIGKILL after ``timeout`` seconds."""
+    if process is None or process.poll() is not None:
+        return
+    process.terminate()
+    try:
+        process.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()
 
 
 @dataclass(frozen=True)

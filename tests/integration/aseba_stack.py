@@ -27,7 +27,7 @@ import time
 from pathlib import Path
 from typing import Final
 
-from needs import missing
+from needs import end_process, missing
 from sim_stub.fake_medulla import bus_config
 
 _TESTS = Path(__file__).resolve().parent.parent
@@ -88,14 +88,7 @@ def _listening(port: int) -> bool:
 
 
 def _end(process: subprocess.Popen[bytes] | None) -> None:
-    if process is None or process.poll() is not None:
-        return
-    process.terminate()
-    try:
-        process.wait(timeout=STOP_TIMEOUT)
-    except subprocess.TimeoutExpired:
-        process.kill()
-        process.wait()
+    end_process(process, STOP_TIMEOUT)
 
 
 class Bus:

@@ -153,3 +153,14 @@ async def run_with(master: Master, robots: list[ScriptedRobot], timeout: float =
     await connect(robots)
     async with asyncio.timeout(timeout):
         return await task
+
+
+def write_experiment(path: Path, evaluations: int, steps: int) -> Path:
+    """An experiment file at ``path`` for a command-line run: the paper's basic scenario with 3
+    robots, ``evaluations`` of ``steps`` steps and a short post-evaluation."""
+    path.write_text(
+        "scenario: basic\nsetting: paper\nrobots: 3\nseed: 3\n"
+        f"evaluation_steps: {steps}\npost_evaluation_steps: 50\n"
+        f"evolution:\n  evaluations: {evaluations}\n"
+    )
+    return path

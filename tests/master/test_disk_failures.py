@@ -34,6 +34,7 @@ from master_helpers import (
     make_robots,
     master_config,
     robot_ids,
+    write_experiment,
 )
 
 from master_service import Master
@@ -86,15 +87,6 @@ def assert_one_line(err: str, run: Path, reason: str, remedy: str) -> None:
         rf"{re.escape(remedy)} and run `surprise-master resume {re.escape(str(run))}`"
     )
     assert len(lines) == 1 and re.fullmatch(pattern, lines[0]), err
-
-
-def write_experiment(path: Path, evaluations: int, steps: int) -> Path:
-    path.write_text(
-        "scenario: basic\nsetting: paper\nrobots: 3\nseed: 3\n"
-        f"evaluation_steps: {steps}\npost_evaluation_steps: 50\n"
-        f"evolution:\n  evaluations: {evaluations}\n"
-    )
-    return path
 
 
 def wait_for(predicate, process: subprocess.Popen[bytes], what: str, timeout: float = 120) -> None:

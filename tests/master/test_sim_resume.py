@@ -19,6 +19,7 @@ from pathlib import Path
 import msgspec
 import numpy as np
 import pytest
+from master_helpers import write_experiment
 
 from master_service.engine_run import FastRun
 from master_service.rundir import RunDir
@@ -120,15 +121,6 @@ def test_a_cancelled_agents_run_resumes_to_the_uninterrupted_result(tmp_path: Pa
 
 
 # -- the command line ------------------------------------------------------------------------------
-
-
-def write_experiment(path: Path, evaluations: int, steps: int) -> Path:
-    path.write_text(
-        "scenario: basic\nsetting: paper\nrobots: 3\nseed: 3\n"
-        f"evaluation_steps: {steps}\npost_evaluation_steps: 50\n"
-        f"evolution:\n  evaluations: {evaluations}\n"
-    )
-    return path
 
 
 def start(argv: list[str], cwd: Path, prefix: tuple[str, ...] = ()) -> subprocess.Popen[str]:

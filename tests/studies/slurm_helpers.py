@@ -30,7 +30,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import Self
 
-from needs import missing, require_binary
+from needs import end_process, missing, require_binary
 
 __all__ = ["PARTITION", "SingleNodeSlurm"]
 
@@ -271,13 +271,5 @@ PartitionName={PARTITION} Nodes={self.node} Default=YES MaxTime=INFINITE State=U
                 ):
                     time.sleep(0.2)
         for name in ("slurmd", "slurmctld", "munged"):
-            process = self._processes.pop(name, None)
-            if process is None:
-                continue
-            process.terminate()
-            try:
-                process.wait(timeout=STOP_TIMEOUT)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait()
+            end_process(self._processes.pop(name, None), STOP_TIMEOUT)
         shutil.rmtree(self.dir, ignore_errors=True)

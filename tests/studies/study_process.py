@@ -10,7 +10,7 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pandas as pd
@@ -69,6 +69,14 @@ class Study:
                 f"the study did not end within {STUDY_TIMEOUT:.0f} s\n{self}"
             ) from None
 
+    def wait_for(self, condition: Callable[[], object], what: str) -> None:
+        """Wait until ``condition()`` holds while the study still runs; fail saying ``what`` if it
+        does not within :data:`STUDY_TIMEOUT`, or if the study ended first."""
+        wait_until(
+            lambda: condition() or self.process.poll() is not None, what, STUDY_TIMEOUT, self.stdout
+        )
+        assert self.process.poll() is None, f"the study ended first ({what})\n{self}"
+
     def kill(self) -> None:
         """SIGKILL: no clean-up of any kind."""
         self.process.send_signal(signal.SIGKILL)
@@ -97,12 +105,7 @@ def summaries(out: Path) -> dict[Path, tuple[int, int]]:
 
 def wait_under_way(out: Path, study: Study) -> None:
     """Wait until :data:`UNDER_WAY` runs have finished (the study must still run)."""
-    wait_until(
-        lambda: len(summaries(out)) >= UNDER_WAY or study.process.poll() is not None,
-        f"{UNDER_WAY} runs did not finish",
-        STUDY_TIMEOUT,
-    )
-    assert study.process.poll() is None, f"the study ended before its fault\n{study}"
+    study.wait_for(lambda: len(summaries(out)) >= UNDER_WAY, f"{UNDER_WAY} runs did not finish")
 
 
 @contextlib.contextmanager

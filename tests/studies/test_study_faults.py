@@ -26,7 +26,7 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
-from dask_cluster import LOOPBACK, LoopbackCluster, wait_until
+from dask_cluster import LOOPBACK, LoopbackCluster
 from study_helpers import TINY_RUNS, table, write_study
 from study_process import (
     STUDY_TIMEOUT,
@@ -114,16 +114,10 @@ def test_the_study_killed_and_run_again_waits_for_its_orphans(local_table, tmp_p
             again = Study(command(address), tmp_path, "again")
             # The held run is running (its task waits for the lock): the study started again
             # says so and waits for it rather than running it a second time.
-            wait_until(
-                lambda: (
-                    "still running from an earlier start" in again.out()
-                    or again.process.poll() is not None
-                ),
+            again.wait_for(
+                lambda: "still running from an earlier start" in again.out(),
                 "the study started again did not say it waits for the earlier one's runs",
-                STUDY_TIMEOUT,
-                again.stdout,
             )
-            assert again.process.poll() is None, again
             assert held.name in again.out() or "..." in again.out(), again
         assert again.wait() == 0, again
         record("client killed, then the same command again", killed, again)

@@ -12,11 +12,9 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
-from dask_cluster import wait_until
 from slurm_helpers import PARTITION, SingleNodeSlurm
 from study_helpers import TINY, table, write_study
 from study_process import (
-    STUDY_TIMEOUT,
     Study,
     assert_each_run_once,
     record,
@@ -146,13 +144,7 @@ def test_jobs_at_their_walltime_are_replaced_and_each_run_ends_once(
     # The held runs keep the study going (and both jobs wanted) until they have been replaced.
     with runs_held(study, out, 2):
         running = Study(slurm_study(study, out), tmp_path, "study")
-        wait_until(
-            lambda: replaced(running.out())[1] or running.process.poll() is not None,
-            "no job was replaced",
-            STUDY_TIMEOUT,
-            running.stdout,
-        )
-        assert running.process.poll() is None, running
+        running.wait_for(lambda: replaced(running.out())[1], "no job was replaced")
         before = summaries(out)
         released = time.monotonic()
     assert running.wait() == 0, running
@@ -180,15 +172,10 @@ def test_jobs_cancelled_mid_study_are_replaced_and_each_run_ends_once(slurm, loc
         before = summaries(out)
         slurm.run("scancel", *first)  # as an administrator would, or a node's failure
         cancelled = time.monotonic()
-        wait_until(
-            lambda: (
-                set(replaced(running.out())[0]) >= set(first) or running.process.poll() is not None
-            ),
+        running.wait_for(
+            lambda: set(replaced(running.out())[0]) >= set(first),
             "the cancelled jobs were not replaced",
-            STUDY_TIMEOUT,
-            running.stdout,
         )
-        assert running.process.poll() is None, running
     assert running.wait() == 0, running
     record("jobs cancelled", cancelled, running)
     assert_each_run_once(out, before, local_table)
@@ -211,23 +198,16 @@ def test_new_jobs_that_sbatch_refuses_are_submitted_once_it_takes_them(
         slurm.run("scontrol", "update", partition, "State=DRAIN")
         try:
             slurm.run("scancel", *first)
-            wait_until(
-                lambda: "sbatch refused" in running.out() or running.process.poll() is not None,
-                "sbatch did not refuse the new jobs",
-                STUDY_TIMEOUT,
-                running.stdout,
+            running.wait_for(
+                lambda: "sbatch refused" in running.out(), "sbatch did not refuse the new jobs"
             )
         finally:
             slurm.run("scontrol", "update", partition, "State=UP")
         reopened = time.monotonic()
         again = re.compile(r"^slurm: submitted (\d+) new jobs? \(([\d, ]+)\)$", re.M)
-        wait_until(
-            lambda: again.search(running.out()) or running.process.poll() is not None,
-            "no new job once the partition took them again",
-            STUDY_TIMEOUT,
-            running.stdout,
+        running.wait_for(
+            lambda: again.search(running.out()), "no new job once the partition took them again"
         )
-        assert running.process.poll() is None, running
     assert running.wait() == 0, running
     record("sbatch refused, then took the jobs", reopened, running)
     assert_each_run_once(out, before, local_table)
