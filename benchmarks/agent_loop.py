@@ -24,12 +24,12 @@ import numpy as np
 
 from drivers.body import Body, SensorFrame
 from drivers.clock import Clock, MonotonicClock
+from minimize_surprise.network import GenomeLayout, NetworkSpec
+from minimize_surprise.sensors import GROUND_SENSORS, IR_SENSORS
+from minimize_surprise.wire import Evaluate, Result, genome_to_bytes
 from robot_agent.config import LoopConfig
 from robot_agent.runner import EvaluationRunner
 from robot_agent.watchdog import Watchdog
-from surprise.network import GenomeLayout, NetworkSpec
-from surprise.sensors import GROUND_SENSORS, IR_SENSORS
-from surprise.wire import Evaluate, Result, genome_to_bytes
 
 PERIOD = 0.1
 SENSORS = IR_SENSORS + GROUND_SENSORS

@@ -2,13 +2,13 @@
 robot-step, against Enki's bare world in the same run.
 
 One run: the ``paper`` setting's ``basic`` experiment (10 robots, 1000-step evaluations of 10 ms
-steps) evolved for ``--evaluations`` evaluations with :class:`master_service.engine_run.FastRun`'s
-loop (ask, evaluate on the engine, tell), no files written. Many runs: ``--runs`` independent
-swarms (seeds 1..runs) in one process, each evaluation round evaluating every run's candidate.
-Enki: its bare world (no networks, no evolution) stepping 10 Thymio II in the same arena at the same
-10 ms step, measured by ``benchmarks/sim.py``'s Enki probe in the system python. CPU time of
-this process pinned to one core. Prints ``name: value unit`` lines. Run:
-``python benchmarks/engine.py [--evaluations 50] [--runs 4] [--repeats 3]``
+steps) evolved for ``--evaluations`` evaluations with
+:class:`master_service.experiments.engine_run.FastRun`'s loop (ask, evaluate on the engine, tell),
+no files written. Many runs: ``--runs`` independent swarms (seeds 1..runs) in one process, each
+evaluation round evaluating every run's candidate. Enki: its bare world (no networks, no evolution)
+stepping 10 Thymio II in the same arena at the same 10 ms step, measured by ``benchmarks/sim.py``'s
+Enki probe in the system python. CPU time of this process pinned to one core. Prints ``name: value
+unit`` lines. Run: ``python benchmarks/engine.py [--evaluations 50] [--runs 4] [--repeats 3]``
 
 Target (issue 11): a whole paper-setting run at least as fast per robot-step as Enki's bare world,
 i.e. the paper's 10-million-robot-step experiment in about a minute on one core.
@@ -27,15 +27,15 @@ import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-from master_service.simulation_setup import (  # noqa: E402
+from master_service.experiments.simulation_setup import (  # noqa: E402
     simulated_safety,
     simulation_experiment,
     world_config,
 )
+from minimize_surprise.evolution import OnePlusOne  # noqa: E402
+from minimize_surprise.fitness import swarm_fitness  # noqa: E402
+from minimize_surprise.network import GenomeLayout, spec_from_config  # noqa: E402
 from sim_stub.engine import Swarm  # noqa: E402
-from surprise.evolution import OnePlusOne  # noqa: E402
-from surprise.fitness import swarm_fitness  # noqa: E402
-from surprise.network import GenomeLayout, spec_from_config  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from sim import enki_python, measure_enki, pin_to_one_core  # noqa: E402

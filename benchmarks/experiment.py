@@ -13,7 +13,7 @@ import os
 import tempfile
 import time
 
-from master_service.simulate import SimulatedSwarm, quiet_agents, simulation_experiment
+from master_service.experiments.simulate import SimulatedSwarm, quiet_agents, simulation_experiment
 
 
 def main() -> None:

@@ -47,7 +47,7 @@ import numpy as np  # noqa: E402
 from gridworld.config import GridRunConfig  # noqa: E402
 from gridworld.evolve import evaluator_of, generation_noise_key, generation_starts  # noqa: E402
 from gridworld.world import HEADINGS, Poses, Torus  # noqa: E402
-from surprise.genetic import GeneticAlgorithm  # noqa: E402
+from minimize_surprise.genetic import GeneticAlgorithm  # noqa: E402
 
 AGENT_STEPS_PER_GENERATION = 50 * 10 * 500 * 100
 
@@ -85,7 +85,7 @@ def parts(seed: int = 1, repeats: int = 3) -> dict[str, float]:
     predictor (every prediction fixed) and with the predictor partly fixed: where the time goes."""
     from gridworld.evaluate import GridEvaluator
     from gridworld.world import Torus, draw_starts
-    from surprise.gridnet import GridGenomeLayout, GridNetSpec
+    from minimize_surprise.gridnet import GridGenomeLayout, GridNetSpec
 
     torus = Torus(15, 15)
     rng = np.random.default_rng(seed)

@@ -87,7 +87,7 @@ def hostile_hello() -> bytes:
 def largest_hello() -> bytes:
     """The largest Hello protocol version 2 accepts (every field at its bound): the most an
     unauthenticated peer can make the master hold for a whole handshake."""
-    from surprise.wire import MAX_NAME_LENGTH, MAX_SENSORS, PROTOCOL_VERSION
+    from minimize_surprise.wire import MAX_NAME_LENGTH, MAX_SENSORS, PROTOCOL_VERSION
 
     payload = msgspec.msgpack.encode(
         {
@@ -118,7 +118,7 @@ def _rss(pid: int) -> int:
 
 def _master_config(robots: int, evaluations: int, max_pending: int | None) -> Any:
     from master_service import MasterConfig
-    from surprise.config import EvolutionConfig, ExperimentConfig
+    from minimize_surprise.config import EvolutionConfig, ExperimentConfig
 
     experiment = ExperimentConfig(
         robots=robots,

@@ -5,9 +5,9 @@ msgpack). A decoder that builds the rows before checking them holds one Python l
 that checks shape and size as it decodes refuses the frame before building anything.
 
 Each figure comes from a fresh child process that feeds the frame to the master's decoder
-(``surprise.wire.FrameDecoder``, the path every received frame takes after its length header):
-the growth of its peak resident memory, the peak of Python allocations (tracemalloc, in a second
-child, since tracing slows decoding down) and the wall-clock time until the decoder answered
+(``minimize_surprise.wire.FrameDecoder``, the path every received frame takes after its length
+header): the growth of its peak resident memory, the peak of Python allocations (tracemalloc, in a
+second child, since tracing slows decoding down) and the wall-clock time until the decoder answered
 (with messages or an error). Works on any version of the codec that has ``FrameDecoder`` and
 ``MAX_FRAME_SIZE``, so the same script measures before and after a change.
 
@@ -45,7 +45,7 @@ def hostile_payload(limit: int) -> bytes:
 
 
 def _decode(queue: Any, trace_allocations: bool) -> None:
-    from surprise.wire import MAX_FRAME_SIZE, FrameDecoder
+    from minimize_surprise.wire import MAX_FRAME_SIZE, FrameDecoder
 
     payload = hostile_payload(MAX_FRAME_SIZE)
     frame = struct.pack(">I", len(payload)) + payload

@@ -27,8 +27,8 @@ from pathlib import Path
 from master_service import Master, MasterConfig
 from master_service.config import DEFAULT_MAX_PENDING_CONNECTIONS
 from master_service.rundir import RunDir, format_row
+from minimize_surprise.config import EvolutionConfig, ExperimentConfig
 from sim_stub.scripted_robots import ScriptedRobot
-from surprise.config import EvolutionConfig, ExperimentConfig
 
 SECRET = b"benchmark-secret"
 #: Rounds per swarm size: enough for a stable median, few enough for 1,000 robots to stay quick.
@@ -83,7 +83,7 @@ async def _measure(robots: int, rounds: int) -> list[float]:
 def _commit_time(repeats: int = 200) -> float:
     """Median time of one commit (CSV row + checkpoint, both fsynced) of a 100-robot run."""
     from master_service.rundir import RunState
-    from surprise.evolution import OnePlusOne
+    from minimize_surprise.evolution import OnePlusOne
 
     with tempfile.TemporaryDirectory() as tmp:
         run = RunDir(tmp)

@@ -11,8 +11,8 @@ import time
 
 import numpy as np
 
-from surprise.network import GenomeLayout, NetworkPair, NetworkSpec
-from surprise.sensors import GROUND_SENSORS, IR_SENSORS
+from minimize_surprise.network import GenomeLayout, NetworkPair, NetworkSpec
+from minimize_surprise.sensors import GROUND_SENSORS, IR_SENSORS
 
 SPEC = NetworkSpec(sensors=IR_SENSORS + GROUND_SENSORS, actor_hidden=8, predictor_hidden=10)
 

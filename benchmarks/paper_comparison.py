@@ -22,9 +22,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from master_service.baseline import run_baseline
-from master_service.engine_run import FastRun
-from master_service.simulation_setup import simulation_experiment
+from master_service.experiments.baseline import run_baseline
+from master_service.experiments.engine_run import FastRun
+from master_service.experiments.simulation_setup import simulation_experiment
 
 
 def compare(

@@ -25,7 +25,7 @@ copy_source() {
 }
 
 # Install the package from the checkout $2, with the robot extra, into the virtual environment
-# $1. pip builds inside the tree it is given (build/, src/*.egg-info): given the checkout, as root,
+# $1. pip builds inside the tree it is given (build/, *.egg-info): given the checkout, as root,
 # it would leave root-owned files in the pi user's tree, and the next `git pull` or install there
 # would fail. So it builds from a throw-away copy.
 install_package() {

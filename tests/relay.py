@@ -12,9 +12,9 @@ import contextlib
 import struct
 from collections.abc import Callable
 
-from surprise.errors import ProtocolError
-from surprise.session import TAG_SIZE
-from surprise.wire import Message, decode_payload
+from minimize_surprise.errors import ProtocolError
+from minimize_surprise.session import TAG_SIZE
+from minimize_surprise.wire import Message, decode_payload
 
 _HEADER = struct.Struct(">I")
 

@@ -14,12 +14,11 @@ import numpy as np
 
 from drivers.body import Body, SensorFrame
 from drivers.clock import Clock
-from robot_agent.config import AgentConfig, BackoffConfig, MasterConfig
-from surprise.errors import ConnectionClosedError, HardwareError
-from surprise.network import GenomeLayout, NetworkSpec
-from surprise.sensors import GROUND_SENSORS, IR_SENSORS
-from surprise.session import FrameAuth, master_proof, new_nonce, proof_matches, robot_proof
-from surprise.wire import (
+from minimize_surprise.errors import ConnectionClosedError, HardwareError
+from minimize_surprise.network import GenomeLayout, NetworkSpec
+from minimize_surprise.sensors import GROUND_SENSORS, IR_SENSORS
+from minimize_surprise.session import FrameAuth, master_proof, new_nonce, proof_matches, robot_proof
+from minimize_surprise.wire import (
     REFUSED_BAD_SECRET,
     Authenticate,
     Challenge,
@@ -28,6 +27,7 @@ from surprise.wire import (
     Refused,
     Welcome,
 )
+from robot_agent.config import AgentConfig, BackoffConfig, MasterConfig
 from transport.stream import MessageStream
 
 #: What the fake body carries by default: a plain Thymio.

@@ -15,6 +15,8 @@ import msgspec
 import pytest
 from agent_fakes import SECRET, FakeBody, FakeClock, ScriptedMaster, genome, spec
 
+from minimize_surprise.errors import ConfigError, ConnectionClosedError, HardwareError
+from minimize_surprise.wire import DEFAULT_PORT, Bye, Evaluate, Failed, Result, genome_to_bytes
 from robot_agent import cli
 from robot_agent.config import (
     AgentConfig,
@@ -23,8 +25,6 @@ from robot_agent.config import (
     read_secret,
 )
 from sim_stub.fake_medulla import StaticThymioModel, serve_fake_medulla
-from surprise.errors import ConfigError, ConnectionClosedError, HardwareError
-from surprise.wire import DEFAULT_PORT, Bye, Evaluate, Failed, Result, genome_to_bytes
 
 MINIMAL = """
 robot_id: thymio-01

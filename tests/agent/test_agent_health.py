@@ -10,12 +10,12 @@ import random
 import pytest
 from agent_fakes import FakeBody, FakeClock, genome, spec
 
+from minimize_surprise.backoff import BackoffConfig
+from minimize_surprise.errors import HardwareError, RobotUnreachableError
+from minimize_surprise.wire import Evaluate, Failed, Result, genome_to_bytes
 from robot_agent.config import LoopConfig
 from robot_agent.health import FAILED_UNREACHABLE, RobotHealth
 from robot_agent.runner import EvaluationRunner
-from surprise.backoff import BackoffConfig
-from surprise.errors import HardwareError, RobotUnreachableError
-from surprise.wire import Evaluate, Failed, Result, genome_to_bytes
 
 QUICK = BackoffConfig(initial=0.01, max=0.02, jitter=0.0)
 

@@ -23,14 +23,11 @@ from agent_fakes import (
     spec,
 )
 
-import surprise
-from relay import Relay, tagged_message
-from robot_agent.agent import Agent
-from robot_agent.config import BackoffConfig
-from surprise.backoff import Backoff
-from surprise.errors import ConnectionClosedError
-from surprise.session import NONCE_SIZE, master_proof, new_nonce
-from surprise.wire import (
+import minimize_surprise
+from minimize_surprise.backoff import Backoff
+from minimize_surprise.errors import ConnectionClosedError
+from minimize_surprise.session import NONCE_SIZE, master_proof, new_nonce
+from minimize_surprise.wire import (
     LOGGED_TEXT_LIMIT,
     MAX_REASON_LENGTH,
     PROTOCOL_VERSION,
@@ -50,6 +47,9 @@ from surprise.wire import (
     encode,
     genome_to_bytes,
 )
+from relay import Relay, tagged_message
+from robot_agent.agent import Agent
+from robot_agent.config import BackoffConfig
 from transport.stream import MessageStream
 
 LONG = 30_000  # steps of an evaluation that only ends when stopped
@@ -118,7 +118,7 @@ async def test_handshake_introduces_the_robot_and_answers_the_challenge(master):
         _, hello = await connect(master, run_id="run-7", heartbeat=2.0)
         assert hello == Hello(
             robot_id="r1",
-            software_version=surprise.__version__,
+            software_version=minimize_surprise.__version__,
             protocol_version=PROTOCOL_VERSION,
             sensors=THYMIO,
             nonce=hello.nonce,

@@ -14,7 +14,7 @@ from sim_stub.fake_medulla import StaticThymioModel, serve_fake_medulla
 
 #: Modules the stop path must not import: each takes seconds to import on a slow Pi (numpy alone
 #: 1.7 s on an emulated one), and the agent's own side (the safety layer, the agent) brings them.
-HEAVY = ("numpy", "numba", "llvmlite", "scipy", "matplotlib", "pandas", "surprise.safety")
+HEAVY = ("numpy", "numba", "llvmlite", "scipy", "matplotlib", "pandas", "minimize_surprise.safety")
 
 # Runs the command line, then names on stderr the heavy modules it imported.
 _RUN_CLI = f"""

@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 from agent_fakes import THYMIO, FakeBody, FakeClock, PosedBody, genome, spec
 
+from minimize_surprise.network import NetworkPair
+from minimize_surprise.wire import Evaluate, Failed, Result, genome_to_bytes
 from robot_agent.config import LoopConfig
 from robot_agent.loop import Deadlines, MissingSensorsError, sensor_index
 from robot_agent.runner import EvaluationRunner, finish, stop_motors
 from robot_agent.watchdog import Watchdog
-from surprise.network import NetworkPair
-from surprise.wire import Evaluate, Failed, Result, genome_to_bytes
 
 ALL_PREDEFINED = 0.25
 

@@ -9,9 +9,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from surprise.config import decode
-from surprise.errors import ConfigError
-from surprise.safety import (
+from minimize_surprise.config import decode
+from minimize_surprise.errors import ConfigError
+from minimize_surprise.safety import (
     REASON_BACKWARD_LIMIT,
     REASON_CLAMP,
     REASON_ESCAPE,
@@ -30,7 +30,7 @@ from surprise.safety import (
     SafetyState,
     apply_safety,
 )
-from surprise.sensors import ALL_SENSORS, GROUND_SENSORS, IR_SENSORS
+from minimize_surprise.sensors import ALL_SENSORS, GROUND_SENSORS, IR_SENSORS
 
 BASIC = IR_SENSORS + GROUND_SENSORS  # the basic-behaviour robot
 FULL = ALL_SENSORS  # the extended robot: + force + two light sensors

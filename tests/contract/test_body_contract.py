@@ -8,7 +8,7 @@ from collections.abc import Awaitable, Callable
 import numpy as np
 import pytest
 
-from surprise.sensors import ALL_SENSORS, check_sensor_names
+from minimize_surprise.sensors import ALL_SENSORS, check_sensor_names
 
 from .bodies import BodyUnderTest
 

@@ -164,7 +164,7 @@ for arg in "$@"; do
       tree=${{arg%"[robot]"}}
       echo "$tree" > {where}
       (cd "$tree" && find . -mindepth 1 | sort) > {seen}
-      mkdir -p "$tree/build/lib" "$tree/src/minimize_surprise.egg-info"
+      mkdir -p "$tree/build/lib" "$tree/minimize_surprise.egg-info"
       ;;
   esac
 done
@@ -196,7 +196,7 @@ def checkout(tmp_path: Path) -> Path:
         ".venv/bin/python",
         "runs/real-1/state.json",
         "build/lib/x.py",
-        "src/minimize_surprise.egg-info/PKG-INFO",
+        "minimize_surprise.egg-info/PKG-INFO",
     ):
         (root / junk).parent.mkdir(parents=True, exist_ok=True)
         (root / junk).write_text("")
@@ -230,7 +230,7 @@ def test_the_package_is_built_outside_the_checkout(tmp_path, checkout):
     assert not tree.is_relative_to(checkout)
     assert not tree.exists()  # the copy is gone with the script
     copied = set(seen.read_text().splitlines())
-    assert {"./pyproject.toml", "./README.md", "./src/robot_agent/cli.py"} <= copied
-    assert "./src/drivers/failsafe.aesl" in copied  # package data
-    for excluded in (".git", ".venv", "runs", "build", "src/minimize_surprise.egg-info"):
+    assert {"./pyproject.toml", "./README.md", "./robot_agent/cli.py"} <= copied
+    assert "./drivers/failsafe.aesl" in copied  # package data
+    for excluded in (".git", ".venv", "runs", "build", "minimize_surprise.egg-info"):
         assert f"./{excluded}" not in copied

@@ -5,9 +5,9 @@ from __future__ import annotations
 import pytest
 
 from drivers.config import BodyConfig, ThymioConfig
-from surprise.config import decode
-from surprise.errors import ConfigError
-from surprise.sensors import ALL_SENSORS, GROUND_SENSORS, IR_SENSORS
+from minimize_surprise.config import decode
+from minimize_surprise.errors import ConfigError
+from minimize_surprise.sensors import ALL_SENSORS, GROUND_SENSORS, IR_SENSORS
 
 
 def test_defaults_are_a_bare_thymio():

@@ -12,10 +12,10 @@ import pytest
 from drivers.compose import RobotBody, build_body
 from drivers.config import BodyConfig, ForceSensorConfig, LightSensorConfig, MuxConfig
 from drivers.thymio import ThymioConfig
+from minimize_surprise.errors import HardwareError, HardwareTimeoutError
+from minimize_surprise.sensors import ALL_SENSORS
 from sim_stub.fake_i2c import FakeADS1115, FakeI2C, FakeTCA9548A, FakeTSL45315
 from sim_stub.fake_medulla import FakeMedulla, StaticThymioModel
-from surprise.errors import HardwareError, HardwareTimeoutError
-from surprise.sensors import ALL_SENSORS
 
 ConfigFactory = Callable[..., ThymioConfig]
 

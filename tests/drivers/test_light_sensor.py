@@ -11,8 +11,8 @@ import pytest
 from drivers.config import LightSensorConfig, MuxConfig
 from drivers.i2c import I2CBuses, I2CDevice
 from drivers.light import LightSensor
+from minimize_surprise.errors import HardwareError
 from sim_stub.fake_i2c import FakeI2C, FakeSMBus, FakeTCA9548A, FakeTSL45315
-from surprise.errors import HardwareError
 
 
 def _sensor(i2c: FakeI2C, config: LightSensorConfig, name: str = "light.0", buses=None):

@@ -25,8 +25,8 @@ from drivers.thymio import (
     ThymioBase,
     end_process,
 )
+from minimize_surprise.errors import HardwareError, HardwareTimeoutError, RobotUnreachableError
 from sim_stub.fake_medulla import FakeMedulla, StaticThymioModel, serve_fake_medulla, vm_of
-from surprise.errors import HardwareError, HardwareTimeoutError, RobotUnreachableError
 
 ConfigFactory = Callable[..., ThymioConfig]
 HANG_TIMEOUT = 0.05

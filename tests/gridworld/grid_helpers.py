@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from gridworld.world import HEADINGS, SENSOR_OFFSETS, sensor_cell_offset
-from surprise.gridnet import GridGenomeLayout, actor_reference, predictor_reference
+from minimize_surprise.gridnet import GridGenomeLayout, actor_reference, predictor_reference
 
 
 def forced_genome(layout: GridGenomeLayout, action: str) -> np.ndarray:

@@ -8,9 +8,9 @@ import json
 import numpy as np
 import pytest
 
-from surprise.evolution import EvolutionStateError
-from surprise.genetic import GeneticAlgorithm, GeneticConfig, reduce_repetitions
-from surprise.novelty import NoveltyArchive, knn_novelty
+from minimize_surprise.evolution import EvolutionStateError
+from minimize_surprise.genetic import GeneticAlgorithm, GeneticConfig, reduce_repetitions
+from minimize_surprise.novelty import NoveltyArchive, knn_novelty
 
 
 def test_roulette_wheel_picks_in_proportion_to_fitness():

@@ -10,7 +10,7 @@ from grid_helpers import forced_genome, reference_run
 
 from gridworld.evaluate import GridEvaluator, noise_threshold
 from gridworld.world import HEADINGS, SENSOR_OFFSETS, Poses, Torus, draw_starts, heading_index
-from surprise.gridnet import GridGenomeLayout, GridNetSpec
+from minimize_surprise.gridnet import GridGenomeLayout, GridNetSpec
 
 # Sensor cells written out for heading east (x right, y up: right of east is -y), from the
 # authors' sensorModelSTDL, sensorModelSTD and sensorModelSTDSL.

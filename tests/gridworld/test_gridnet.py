@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from gridworld.kernels import actor_decision, prefix_sums, tanh_fast
-from surprise.errors import GenomeError
-from surprise.gridnet import (
+from minimize_surprise.errors import GenomeError
+from minimize_surprise.gridnet import (
     GridGenomeLayout,
     GridNetSpec,
     activation,

@@ -11,7 +11,7 @@ from gridworld.cli import main
 from gridworld.config import GridRunConfig
 from gridworld.evolve import RunFinished, run_evolution
 from gridworld.tasks import GRID_KINDS, run_task
-from surprise.errors import ConfigError
+from minimize_surprise.errors import ConfigError
 
 TINY = {"size": 7, "agents": 12, "repetitions": 2, "steps": 30}
 KEYS = {"kind", "seed", "size", "best_fitness", "fitness", "pattern", "quality", "scores",
@@ -143,7 +143,7 @@ def test_replay_and_classify(tmp_path, capsys, evolved):
 def test_a_runs_best_genome_loads_with_its_spec(tmp_path):
     # an actor-only (novelty) genome is shorter than a full pair: its spec must come back whole
     from gridworld.evolve import load_best, write_best, write_final_grid
-    from surprise.gridnet import GridGenomeLayout, GridNetSpec
+    from minimize_surprise.gridnet import GridGenomeLayout, GridNetSpec
 
     spec = GridNetSpec(14, None, True)
     genome = np.arange(GridGenomeLayout(spec).size, dtype=np.float64)

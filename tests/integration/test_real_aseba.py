@@ -43,8 +43,8 @@ import drivers.thymio as thymio_module
 from drivers.config import ThymioConfig
 from drivers.medulla_locale import LOCALE_FIX
 from drivers.thymio import ThymioBase
-from surprise.errors import HardwareError
-from surprise.wire import Evaluate, Failed, Result, genome_to_bytes
+from minimize_surprise.errors import HardwareError
+from minimize_surprise.wire import Evaluate, Failed, Result, genome_to_bytes
 
 pytestmark = pytest.mark.slow
 
@@ -265,7 +265,7 @@ async def test_a_missing_locale_is_named_with_the_command_that_installs_it(tmp_p
             "import asyncio, sys\n"
             "from drivers.config import ThymioConfig\n"
             "from drivers.thymio import ThymioBase\n"
-            "from surprise.errors import HardwareError\n"
+            "from minimize_surprise.errors import HardwareError\n"
             "async def main():\n"
             "    base = ThymioBase(ThymioConfig(bus=sys.argv[1], failsafe=True))\n"
             "    try:\n"

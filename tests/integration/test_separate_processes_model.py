@@ -14,6 +14,7 @@ import pytest
 
 from drivers.config import SPEED_SCALE, ThymioConfig
 from drivers.thymio import ThymioBase
+from minimize_surprise.errors import HardwareError
 from sim_stub import serve
 from sim_stub.body import SimSwarm
 from sim_stub.medulla_model import (
@@ -24,7 +25,6 @@ from sim_stub.medulla_model import (
 )
 from sim_stub.scenarios import scenario_config
 from sim_stub.serve import servable_scenarios
-from surprise.errors import HardwareError
 
 #: A driver timeout longer than the medulla's bounded wait, so the bound is what a test sees.
 DRIVER_TIMEOUT = 2.0

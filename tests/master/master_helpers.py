@@ -16,11 +16,11 @@ from typing import Any
 
 from master_service import Master, MasterConfig, Progress
 from master_service.rundir import format_row
+from minimize_surprise.config import EvolutionConfig, ExperimentConfig
+from minimize_surprise.evolution import OnePlusOne
+from minimize_surprise.fitness import swarm_fitness
+from minimize_surprise.network import GenomeLayout, spec_from_config
 from sim_stub.scripted_robots import ScriptedRobot, deterministic_fitness
-from surprise.config import EvolutionConfig, ExperimentConfig
-from surprise.evolution import OnePlusOne
-from surprise.fitness import swarm_fitness
-from surprise.network import GenomeLayout, spec_from_config
 
 SECRET = b"test-secret"
 

@@ -40,8 +40,8 @@ from master_helpers import (
 from master_service import Master
 from master_service import rundir as rundir_module
 from master_service.rundir import RunDir, RunLog
+from minimize_surprise.errors import FileWriteError
 from needs import find_binary, missing, obeying_modes
-from surprise.errors import FileWriteError
 
 pytestmark = pytest.mark.slow
 

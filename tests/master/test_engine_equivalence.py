@@ -10,9 +10,9 @@ import msgspec
 import numpy as np
 import pytest
 
-from master_service.engine_run import FastRun
+from master_service.experiments.engine_run import FastRun
+from master_service.experiments.simulate import SimulatedSwarm, simulation_experiment
 from master_service.rundir import RunDir
-from master_service.simulate import SimulatedSwarm, simulation_experiment
 
 TRACE_ARRAYS = ("sensors", "predictions", "actions", "commands", "safety", "poses")
 

@@ -11,10 +11,10 @@ from pathlib import Path
 import msgspec
 import pytest
 
-from master_service.engine_run import FastRun
-from master_service.simulation_setup import simulation_experiment
+from master_service.experiments.engine_run import FastRun
+from master_service.experiments.simulation_setup import simulation_experiment
+from minimize_surprise.files import PRIVATE_MODE, write_atomic
 from sim_stub.serve import SECRET_FILE, _secret_file
-from surprise.files import PRIVATE_MODE, write_atomic
 
 
 @pytest.fixture

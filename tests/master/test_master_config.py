@@ -16,8 +16,8 @@ from master_service.config import (
     load_master_config,
     load_secret,
 )
-from surprise.errors import ConfigError
-from surprise.wire import DEFAULT_PORT
+from minimize_surprise.errors import ConfigError
+from minimize_surprise.wire import DEFAULT_PORT
 from transport.tls import ServerTlsConfig
 
 

@@ -17,9 +17,7 @@ from master_helpers import (
 )
 
 from master_service import Master
-from relay import Relay, tagged_message
-from sim_stub.scripted_robots import ScriptedRobot
-from surprise.wire import (
+from minimize_surprise.wire import (
     Evaluate,
     EvaluationStats,
     Ping,
@@ -27,6 +25,8 @@ from surprise.wire import (
     Result,
     encode,
 )
+from relay import Relay, tagged_message
+from sim_stub.scripted_robots import ScriptedRobot
 
 
 @pytest.fixture

@@ -29,7 +29,7 @@ from master_helpers import (
 
 from master_service import Master
 from master_service.rundir import RunDir, RunDirError
-from surprise.errors import ConfigError
+from minimize_surprise.errors import ConfigError
 
 
 def ids_of(robots) -> list[int]:

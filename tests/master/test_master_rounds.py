@@ -27,6 +27,7 @@ from master_helpers import (
 )
 
 from master_service import Master
+from minimize_surprise.wire import MAX_FRAME_SIZE, Evaluate
 from sim_stub.scripted_robots import (
     DISCONNECT,
     DUPLICATE,
@@ -37,7 +38,6 @@ from sim_stub.scripted_robots import (
     ScriptedRobot,
     deterministic_fitness,
 )
-from surprise.wire import MAX_FRAME_SIZE, Evaluate
 
 
 def on(count: int, action: str):

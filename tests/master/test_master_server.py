@@ -18,11 +18,9 @@ import pytest
 from master_helpers import SECRET, master_config
 
 from master_service import Master
-from needs import require_binary
-from sim_stub.scripted_robots import RobotRefusedError, ScriptedRobot
-from surprise.sensors import ALL_SENSORS, IR_SENSORS
-from surprise.session import FrameAuth, master_proof, new_nonce, proof_matches, robot_proof
-from surprise.wire import (
+from minimize_surprise.sensors import ALL_SENSORS, IR_SENSORS
+from minimize_surprise.session import FrameAuth, master_proof, new_nonce, proof_matches, robot_proof
+from minimize_surprise.wire import (
     MAX_FRAME_SIZE,
     PROTOCOL_VERSION,
     REFUSED_BAD_SECRET,
@@ -41,6 +39,8 @@ from surprise.wire import (
     encode,
     frame,
 )
+from needs import require_binary
+from sim_stub.scripted_robots import RobotRefusedError, ScriptedRobot
 from transport.stream import MessageStream
 from transport.tls import ServerTlsConfig
 

@@ -13,10 +13,10 @@ import json
 import msgspec
 import pytest
 
-from master_service.baseline import run_baseline
 from master_service.cli import main
-from master_service.simulate import SimulatedSwarm, simulation_experiment
-from surprise.errors import ConfigError
+from master_service.experiments.baseline import run_baseline
+from master_service.experiments.simulate import SimulatedSwarm, simulation_experiment
+from minimize_surprise.errors import ConfigError
 
 
 def small(scenario: str = "basic", evaluations: int = 60, **kw):

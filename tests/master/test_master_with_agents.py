@@ -17,7 +17,7 @@ import sim_stub.body as sim_body
 import sim_stub.scenarios as scenarios
 import sim_stub.world as world_module
 from master_service import Master
-from master_service.report import write_report
+from master_service.reporting.report import write_report
 
 ROBOTS = 3
 

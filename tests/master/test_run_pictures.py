@@ -10,10 +10,10 @@ import msgspec
 import numpy as np
 import pytest
 
-from master_service import pictures
 from master_service.cli import main
-from master_service.engine_run import FastRun
-from master_service.simulate import simulation_experiment
+from master_service.experiments.engine_run import FastRun
+from master_service.experiments.simulate import simulation_experiment
+from master_service.reporting import pictures
 from needs import require_module
 
 require_module("matplotlib")
@@ -108,7 +108,7 @@ def test_a_floor_as_light_as_the_edge_is_reported_as_the_safety_layer_driving(tm
     shares = [float(r.split(",")[header.index("safety_share")]) for r in rows[1:]]
     assert min(shares) > 0.9
 
-    from master_service.simulate import summary_text
+    from master_service.experiments.simulate import summary_text
 
     text = summary_text(result.metrics, run, 1.0)
     assert "warning: in the post-evaluation the safety layer overrode" in text

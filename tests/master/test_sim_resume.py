@@ -21,9 +21,9 @@ import numpy as np
 import pytest
 from master_helpers import write_experiment
 
-from master_service.engine_run import FastRun
+from master_service.experiments.engine_run import FastRun
+from master_service.experiments.simulate import SimulatedSwarm, simulation_experiment
 from master_service.rundir import RunDir
-from master_service.simulate import SimulatedSwarm, simulation_experiment
 from needs import obeying_modes
 
 pytestmark = pytest.mark.slow

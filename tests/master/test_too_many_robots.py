@@ -8,8 +8,8 @@ import re
 import pytest
 
 from master_service.cli import main
-from master_service.simulation_setup import simulation_experiment
-from surprise.errors import ConfigError
+from master_service.experiments.simulation_setup import simulation_experiment
+from minimize_surprise.errors import ConfigError
 
 LIMIT = re.compile(r"at most about (\d+) robots fit on a ([\d.]+) m carpet \((\d+) asked for\)")
 

@@ -33,11 +33,11 @@ import subprocess
 import numpy as np
 import pytest
 
+from minimize_surprise.safety import SafetyConfig
 from needs import missing
 from sim_stub.physics import GROUND_POSITIONS, IR_POSITIONS
 from sim_stub.scenarios import scenario_config
 from sim_stub.world import World
-from surprise.safety import SafetyConfig
 
 SYSTEM_PYTHON = "/usr/bin/python3"
 LAB = scenario_config("basic")  # the lab setting: 1 m carpet, walls 10 cm beyond it

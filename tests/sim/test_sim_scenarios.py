@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import pytest
 
+from minimize_surprise.errors import ConfigError
+from minimize_surprise.sensors import FORCE_SENSORS, GROUND_SENSORS, IR_SENSORS, LIGHT_SENSORS
 from sim_stub.scenarios import SCENARIOS, WorldConfig, scenario_config
 from sim_stub.world import TooManyRobotsError, World
-from surprise.errors import ConfigError
-from surprise.sensors import FORCE_SENSORS, GROUND_SENSORS, IR_SENSORS, LIGHT_SENSORS
 
 
 def test_the_three_scenarios_are_named():

@@ -8,9 +8,9 @@ import math
 import numpy as np
 import pytest
 
+from minimize_surprise.sensors import ALL_SENSORS
 from sim_stub.scenarios import scenario_config
 from sim_stub.world import World
-from surprise.sensors import ALL_SENSORS
 
 IR_F2 = 2
 

@@ -10,11 +10,11 @@ import pandas as pd
 import pytest
 from study_helpers import write_study
 
+from minimize_surprise.errors import ConfigError
 from studies.executors import LocalPool
 from studies.report import write_study_report
 from studies.runner import run_study
 from studies.spec import expand, load_study, task_stages
-from surprise.errors import ConfigError
 
 pytestmark = pytest.mark.slow
 

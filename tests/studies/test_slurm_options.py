@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 from study_helpers import TINY, write_study
 
+from minimize_surprise.errors import ConfigError
 from needs import require_binary, require_module
 from studies.cli import main
 from studies.slurm import (
@@ -20,7 +21,6 @@ from studies.slurm import (
 )
 from studies.slurm_jobs import renewal_line
 from studies.spec import load_study
-from surprise.errors import ConfigError
 
 
 def _slurm_study(tmp_path: Path, section: str) -> Path:

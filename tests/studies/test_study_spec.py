@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 from study_helpers import TINY_RUNS, write_study
 
+from minimize_surprise.errors import ConfigError
 from studies.spec import expand, load_study, run_name
-from surprise.errors import ConfigError
 
 
 def test_a_study_expands_into_one_task_per_group_sweep_value_and_seed(tmp_path):

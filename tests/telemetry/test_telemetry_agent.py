@@ -25,10 +25,10 @@ from agent_fakes import (
 )
 from telemetry_helpers import eventually
 
+from minimize_surprise.backoff import BackoffConfig
+from minimize_surprise.wire import Evaluate, Failed, Result, genome_to_bytes
 from robot_agent.agent import Agent
 from robot_agent.runner import EvaluationRunner
-from surprise.backoff import BackoffConfig
-from surprise.wire import Evaluate, Failed, Result, genome_to_bytes
 from telemetry.config import TelemetryConfig
 from telemetry.publisher import TelemetryPublisher
 from telemetry.robot import RobotTelemetry

@@ -6,8 +6,8 @@ from __future__ import annotations
 import pytest
 
 from master_service.config import load_master_config
+from minimize_surprise.errors import ConfigError
 from robot_agent.config import load_agent_config
-from surprise.errors import ConfigError
 from telemetry.config import (
     BrokerAddress,
     TelemetryConfig,

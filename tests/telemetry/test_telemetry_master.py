@@ -22,7 +22,7 @@ from rich.console import Console
 from telemetry_helpers import eventually
 
 from master_service import Master, Progress
-from master_service.watch import SwarmState, render
+from master_service.reporting.watch import SwarmState, render
 from robot_agent.agent import Agent
 from robot_agent.config import AgentConfig, BackoffConfig
 from robot_agent.config import MasterConfig as LinkConfig

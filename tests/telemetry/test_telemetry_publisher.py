@@ -10,7 +10,7 @@ import sys
 
 from telemetry_helpers import WAIT, eventually
 
-from surprise.backoff import BackoffConfig
+from minimize_surprise.backoff import BackoffConfig
 from telemetry.config import TelemetryConfig
 from telemetry.payloads import ClientStatus, RunStatus
 from telemetry.publisher import TelemetryPublisher

@@ -15,7 +15,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from surprise.backoff import Backoff
+from minimize_surprise.backoff import Backoff
 from telemetry.config import TelemetryConfig
 from telemetry.payloads import (
     ClientStatus,
@@ -192,7 +192,7 @@ async def test_closing_an_unstarted_publisher_is_a_no_op_and_later_messages_are_
 def test_backoff_doubles_up_to_the_cap_with_jitter_below_it():
     from random import Random
 
-    from surprise.backoff import BackoffConfig
+    from minimize_surprise.backoff import BackoffConfig
 
     backoff = Backoff(BackoffConfig(initial=1.0, max=8.0, jitter=0.5), Random(1))
     delays = [backoff.next_delay() for _ in range(8)]

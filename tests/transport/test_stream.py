@@ -10,15 +10,15 @@ from collections.abc import Awaitable, Callable
 import numpy as np
 import pytest
 
-from surprise.errors import (
+from minimize_surprise.errors import (
     AuthenticationError,
     ConnectionClosedError,
     FrameTooLargeError,
     ProtocolError,
     SurpriseError,
 )
-from surprise.session import TAG_SIZE, FrameAuth
-from surprise.wire import (
+from minimize_surprise.session import TAG_SIZE, FrameAuth
+from minimize_surprise.wire import (
     MAX_FRAME_SIZE,
     Bye,
     EvaluationStats,

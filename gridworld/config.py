@@ -1,0 +1,118 @@
+"""Configuration of a grid-world run, decoded strictly: a bad key is a ConfigError naming it.
+
+Defaults are the paper's (Table I): a 15 x 15 torus, 100 agents, 14 sensors, population 50,
+100 generations, 10 repetitions of 500 steps scored by their minimum, mutation 0.1 of +-0.4.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import msgspec
+
+from minimize_surprise.config import Probability, Strict, decode
+from minimize_surprise.genetic import GeneticConfig
+from minimize_surprise.gridnet import GridNetSpec
+
+__all__ = ["GridRunConfig", "GridWorldParams", "PositiveInt", "decode_run_config"]
+
+PositiveInt = Annotated[int, msgspec.Meta(ge=1)]
+
+
+class GridWorldParams(Strict):
+    """The world and the scoring every grid task shares: the torus, the agents, their sensors
+    and fixed predictions, sensor noise, and how a genome is scored.
+
+    ``size`` is the torus side (``height`` makes it a rectangle: size wide, height tall);
+    ``predefined`` names fixed predictions (``minimize_surprise.gridnet``: e.g. ``line``,
+    ``line-partial``); ``noise`` is the probability of flipping each sensor reading; a genome's
+    fitness is ``fitness_of`` its ``repetitions`` runs of ``steps`` steps; random genomes are
+    drawn uniformly from +-``initial_range``.
+    """
+
+    #: the torus side L (its width)
+    size: PositiveInt = 15
+    #: the torus height for a rectangle (default: L)
+    height: PositiveInt | None = None
+    #: agents N, one per cell
+    agents: PositiveInt = 100
+    #: the sensor model: how many cells around an agent it senses (14, 6 or 8)
+    sensors: Literal[14, 6, 8] = 14
+    #: fixed predictions (e.g. `line`, `line-partial`; docs/gridworld.md), or none
+    predefined: str | None = None
+    #: the probability of flipping each sensor reading (the networks and the fitness see it;
+    #: moves are blocked by true occupancy)
+    noise: Probability = 0.0
+    #: runs per genome, each from its own start configuration
+    repetitions: PositiveInt = 10
+    #: steps T per run
+    steps: PositiveInt = 500
+    #: genes of a random or initial genome are uniform in +- this
+    initial_range: Annotated[float, msgspec.Meta(ge=0.0)] = 0.5
+    #: a genome's fitness from its runs: the worst (the paper), the mean or the best
+    fitness_of: Literal["min", "mean", "max"] = "min"
+
+    def __post_init__(self) -> None:
+        if self.agents > self.size * self.grid_height:
+            raise ValueError(
+                f"`agents`: {self.agents} agents do not fit on {self.size} x {self.grid_height}"
+            )
+        try:
+            GridNetSpec(self.sensors, self.predefined)
+        except ValueError as exc:
+            raise ValueError(f"`predefined`: {exc}") from None
+
+    @property
+    def grid_height(self) -> int:
+        """The torus height (``height`` or ``size``)."""
+        return self.height or self.size
+
+
+class GridRunConfig(GridWorldParams):
+    """One evolution run in the grid world: the world's parameters and the GA's.
+
+    ``novelty`` evolves the actor alone by novelty search (no elitism; ``novelty_k`` nearest
+    neighbours, archive probability ``archive_probability``).
+    """
+
+    #: genomes per generation
+    population: PositiveInt = 50
+    #: generations of the run
+    generations: PositiveInt = 100
+    #: the probability of mutating each gene
+    mutation_rate: Probability = 0.1
+    #: a mutation adds a uniform value in +- this
+    mutation_range: Annotated[float, msgspec.Meta(ge=0.0)] = 0.4
+    #: novelty search: the actor alone, selected on novelty, no elitism
+    novelty: bool = False
+    #: nearest neighbours in behaviour space whose mean distance is an individual's novelty
+    novelty_k: PositiveInt = 10
+    #: the probability that an evaluated individual joins the novelty archive
+    archive_probability: Probability = 0.02
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.novelty and self.predefined is not None:
+            raise ValueError("`predefined`: novelty search evolves the actor alone")
+
+    def net_spec(self) -> GridNetSpec:
+        """The network shape this run evolves."""
+        return GridNetSpec(self.sensors, self.predefined, actor_only=self.novelty)
+
+    def genetic(self) -> GeneticConfig:
+        """The GA's parameters."""
+        return GeneticConfig(
+            population=self.population,
+            generations=self.generations,
+            mutation_probability=self.mutation_rate,
+            mutation_range=self.mutation_range,
+            initial_range=self.initial_range,
+            elitism=0 if self.novelty else 1,
+            fitness_of=self.fitness_of,
+        )
+
+
+def decode_run_config(data: Any, *, file: str | Path | None = None) -> GridRunConfig:
+    """Decode plain data into :class:`GridRunConfig` (ConfigError naming file and key)."""
+    return decode(data, GridRunConfig, file=file)

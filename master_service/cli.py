@@ -1,0 +1,528 @@
+"""``surprise-master``: run, resume, report on and inspect experiments with real robots.
+
+Subcommands::
+
+    surprise-master run --config FILE [--out DIR]   start a run (DIR: runs/<time>-<scenario>)
+    surprise-master resume DIR                      continue a run from its checkpoint
+    surprise-master report DIR                      write metrics.json and plots/
+    surprise-master status DIR                      where a run stands
+    surprise-master sim [--scenario S] [--robots N] [--evaluations N] [--seed S] [--out DIR]
+                        [--realtime] [--config FILE]
+                                                    a whole experiment on a simulated swarm
+    surprise-master baseline --scenario S --random N [--out DIR] [--seed S] [--config FILE]
+                                                    random network pairs in the same arena
+    surprise-master report DIR --baseline BASE      ... and evolved against random
+    surprise-master watch --broker URL [--prefix P] [--once]
+                                                    live view of a run's MQTT telemetry
+
+Exit status: 0 done; 1 the run stopped on an error (a busy port, a full disk: one line naming the
+file and what to do, the run can be resumed); 2 bad configuration or run directory (one message
+naming the file and key; nothing was started); 128 + N stopped by signal N (SIGINT, SIGTERM), the
+run can be resumed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import errno
+import logging
+import signal
+import sys
+import time
+from collections.abc import Awaitable, Iterator, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Final, TypeVar
+
+from master_service.config import MasterConfig, load_master_config, load_secret
+from master_service.master import Master
+from master_service.progress import ProgressDisplay
+from master_service.rundir import CONFIG_SNAPSHOT, SIMULATION_FILE, RunDir, RunDirError
+from minimize_surprise.config import ExperimentConfig
+from minimize_surprise.errors import ConfigError, FileWriteError
+from minimize_surprise.text import plural
+
+if TYPE_CHECKING:
+    from master_service.experiments.simulation_setup import SimulatedRun
+
+__all__ = ["main"]
+
+_log = logging.getLogger("master_service.cli")
+
+#: The signals that stop a run cleanly (it can be resumed).
+_STOP_SIGNALS: Final = (signal.SIGINT, signal.SIGTERM)
+#: Reasons a file cannot be written that space, or a writable directory, puts right.
+_NO_SPACE: Final = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG})
+_NOT_WRITABLE: Final = frozenset({errno.EACCES, errno.EPERM, errno.EROFS})
+
+T = TypeVar("T")
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="surprise-master",
+        description="Online evolution by minimizing surprise on a swarm of Thymio II robots.",
+    )
+    parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages too")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    run = sub.add_parser("run", help="start an experiment with real robots")
+    run.add_argument("--config", required=True, type=Path, help="master configuration (YAML)")
+    run.add_argument("--out", type=Path, help="run directory (must not exist or be empty)")
+    run.set_defaults(handler=_run)
+
+    resume = sub.add_parser("resume", help="continue a run from its checkpoint")
+    resume.add_argument("dir", type=Path, metavar="DIR", help="the run directory")
+    resume.set_defaults(handler=_resume)
+
+    report = sub.add_parser("report", help="write metrics.json and plots of a run")
+    report.add_argument("dir", type=Path, metavar="DIR", help="the run directory")
+    report.set_defaults(handler=_report)
+
+    report.add_argument(
+        "--baseline",
+        type=Path,
+        metavar="BASE",
+        help="a `surprise-master baseline` directory: compare evolved against random pairs",
+    )
+    report.add_argument(
+        "--animate",
+        action="store_true",
+        help="also animate the post-evaluation of a simulated run (plots/post_evaluation.gif)",
+    )
+
+    sim = sub.add_parser("sim", help="run an experiment on a simulated swarm (no robots needed)")
+    _experiment_options(sim)
+    sim.add_argument("--evaluations", type=int, help="evaluations to count (default: 1000)")
+    sim.add_argument("--out", type=Path, help="run directory (default: runs/<time>-sim-<scenario>)")
+    sim.add_argument(
+        "--engine",
+        choices=("fast", "agents"),
+        default="fast",
+        help="fast: the compiled engine (default); agents: the master and one real agent per "
+        "robot over loopback TCP, as in a lab",
+    )
+    sim.add_argument(
+        "--realtime", action="store_true", help="pace the world in real time (--engine agents)"
+    )
+    sim.set_defaults(handler=_sim)
+
+    baseline = sub.add_parser("baseline", help="evaluate random network pairs in an arena")
+    _experiment_options(baseline)
+    baseline.add_argument(
+        "--random", type=int, required=True, metavar="N", help="number of random pairs"
+    )
+    baseline.add_argument(
+        "--out", type=Path, help="output directory (default: runs/<time>-baseline-<scenario>)"
+    )
+    baseline.set_defaults(handler=_baseline)
+
+    status = sub.add_parser("status", help="show where a run stands")
+    status.add_argument("dir", type=Path, metavar="DIR", help="the run directory")
+    status.set_defaults(handler=_status)
+
+    watch = sub.add_parser("watch", help="live view of a swarm's MQTT telemetry")
+    watch.add_argument("--broker", required=True, metavar="URL", help="mqtt://host[:port]")
+    watch.add_argument("--prefix", default="surprise", help="topic prefix (default: surprise)")
+    watch.add_argument("--once", action="store_true", help="print one snapshot and exit")
+    watch.set_defaults(handler=_watch)
+    return parser
+
+
+def _experiment_options(parser: argparse.ArgumentParser) -> None:
+    from minimize_surprise.settings import SETTINGS
+    from sim_stub.scenarios import SCENARIOS
+
+    parser.add_argument(
+        "--scenario", choices=SCENARIOS, help="arena and robots (default: basic, or the file's)"
+    )
+    parser.add_argument(
+        "--setting",
+        choices=SETTINGS,
+        help="paper: the authors' Webots simulation; lab: the real robots (default: the file's, "
+        "else paper)",
+    )
+    parser.add_argument(
+        "--arena", type=float, metavar="SIDE", help="side of the carpet in metres (basic: 0.7-1.5)"
+    )
+    parser.add_argument("--robots", type=int, help="number of robots (default: the scenario's)")
+    parser.add_argument("--seed", type=int, help="seed of every random draw (default: 0)")
+    parser.add_argument(
+        "--config", type=Path, help="an experiment file (YAML) overriding the scenario's defaults"
+    )
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``surprise-master``; returns the exit status."""
+    args = _parser().parse_args(argv)
+    try:
+        return args.handler(args)
+    except (ConfigError, RunDirError) as exc:
+        print(f"surprise-master: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        # A directory that cannot be written, a full disk: one line, no traceback. A run that
+        # had started keeps its checkpoint and can be resumed.
+        print(f"surprise-master: {_os_error_text(exc)}", file=sys.stderr)
+        return 1
+
+
+def _os_error_text(exc: OSError) -> str:
+    if isinstance(exc, FileWriteError):
+        return str(exc)
+    if exc.filename is not None and exc.strerror:
+        return f"{exc.filename}: {exc.strerror}"
+    return str(exc)
+
+
+def _secret(config: MasterConfig, source: Path) -> bytes:
+    if config.secret_file is None:
+        raise ConfigError(
+            "the robots' shared secret is needed: name its file",
+            file=str(source),
+            key="secret_file",
+        )
+    return load_secret(config.secret_file)
+
+
+def _run(args: argparse.Namespace) -> int:
+    config = load_master_config(args.config)
+    assert config.experiment is not None
+    secret = _secret(config, args.config)
+    out = args.out
+    if out is None:
+        out = Path("runs") / f"{time.strftime('%Y%m%d-%H%M%S')}-{config.experiment.scenario}"
+    RunDir(out).check_new()
+    return _serve(Master(config, out, secret=secret), args)
+
+
+def _resume(args: argparse.Namespace) -> int:
+    from master_service.experiments.simulation_setup import read_simulation_file
+
+    run = RunDir(args.dir)
+    config = run.load_config()
+    checkpoint = run.read_checkpoint_data()
+    if checkpoint is not None and checkpoint.get("phase") == "done":
+        print(f"run {args.dir} is complete; nothing to resume")
+        return 0
+    simulation = read_simulation_file(args.dir)
+    if simulation is not None:
+        # A simulated run restarts its own simulated robots: no secret, no lab.
+        assert config.experiment is not None
+        return _simulate(
+            config.experiment,
+            args.dir,
+            simulation.get("engine", "agents"),
+            bool(simulation.get("realtime", False)),
+            args.verbose,
+            resume=True,
+        )
+    secret = _secret(config, run.file("config.yaml"))
+    return _serve(Master(config, args.dir, secret=secret, resume=True), args)
+
+
+def _serve(master: Master, args: argparse.Namespace) -> int:
+    level = logging.DEBUG if args.verbose else logging.INFO
+    try:
+        with ProgressDisplay(level=level) as display:
+            master.add_progress_listener(display.update)
+            try:
+                return asyncio.run(_serve_async(master))
+            except FileWriteError:
+                raise
+            except OSError as exc:
+                # Typically a busy port: nothing was created (the port is bound before the run
+                # directory is touched).
+                _log.error("surprise-master: %s", exc)
+                return 1
+    except FileWriteError as exc:
+        return _write_failed(exc, master.run_dir.path, simulated=False)
+
+
+def _write_failed(exc: FileWriteError, run_dir: Path, *, simulated: bool) -> int:
+    """Say in one line (after the progress display is gone) which file could not be written,
+    why, and how to go on; the exit status."""
+    print(f"surprise-master: {exc}; {_next_step(exc, run_dir, simulated)}", file=sys.stderr)
+    return 1
+
+
+def _next_step(exc: FileWriteError, run_dir: Path, simulated: bool) -> str:
+    if exc.errno in _NO_SPACE:
+        remedy = "free some space"
+    elif exc.errno in _NOT_WRITABLE:
+        remedy = f"make {run_dir} writable"
+    else:
+        remedy = "put that right"
+    run = RunDir(run_dir)
+    needed = (CONFIG_SNAPSHOT, SIMULATION_FILE) if simulated else (CONFIG_SNAPSHOT,)
+    if not all(run.file(name).is_file() for name in needed):
+        # It stopped before it could be resumed.
+        return f"{remedy} and start the run again (its --out must be empty)"
+    with contextlib.suppress(OSError, RunDirError):
+        checkpoint = run.read_checkpoint_data()
+        if checkpoint is not None and checkpoint.get("phase") == "done":
+            # Every evaluation is in; what failed was the report at the end.
+            return f"{remedy} and run `surprise-master report {run_dir}`"
+    return f"{remedy} and run `surprise-master resume {run_dir}`"
+
+
+async def _serve_async(master: Master) -> int:
+    loop = asyncio.get_running_loop()
+    task = asyncio.current_task()
+    assert task is not None
+    received: list[int] = []
+
+    def stop(signum: int) -> None:
+        # The first signal stops the run cleanly (Bye to the robots, files closed); the
+        # checkpoint is always current, so nothing is lost.
+        if not received:
+            received.append(signum)
+            task.cancel()
+
+    for signum in _STOP_SIGNALS:
+        loop.add_signal_handler(signum, stop, signum)
+    summary = None
+    try:
+        async with master:
+            try:
+                summary = await master.run()
+            except asyncio.CancelledError:
+                if not received:
+                    raise
+                task.uncancel()
+                # Logged before the master closes, so that it lands in the run's log file too.
+                master.log.warning(
+                    "stopped by %s; continue with `surprise-master resume %s`",
+                    signal.Signals(received[0]).name,
+                    master.run_dir.path,
+                )
+    finally:
+        for signum in _STOP_SIGNALS:
+            loop.remove_signal_handler(signum)
+    if summary is None:
+        return 128 + received[0]
+    best = "-" if summary.best_fitness is None else f"{summary.best_fitness:.4f}"
+    print(
+        f"run {summary.run_dir} done: {plural(summary.evaluations, 'evaluation')}, best fitness "
+        f"{best}; "
+        f"see `surprise-master report {summary.run_dir}`"
+    )
+    return 0
+
+
+def _sim_experiment(args: argparse.Namespace, evaluations: int | None = None):
+    from master_service.experiments.simulation_setup import simulation_experiment
+
+    for name in ("robots", "evaluations", "random"):
+        value = getattr(args, name, None)
+        if value is not None and value < 1:
+            raise ConfigError(f"expected a positive number, got {value}", key=f"--{name}")
+    return simulation_experiment(
+        args.scenario,
+        setting=args.setting,
+        arena=args.arena,
+        config_file=args.config,
+        robots=args.robots,
+        evaluations=evaluations,
+        seed=args.seed,
+    )
+
+
+def _default_out(kind: str, scenario: str) -> Path:
+    return Path("runs") / f"{time.strftime('%Y%m%d-%H%M%S')}-{kind}-{scenario}"
+
+
+def _sim(args: argparse.Namespace) -> int:
+    experiment = _sim_experiment(args, args.evaluations)
+    if args.realtime and args.engine != "agents":
+        raise ConfigError("real time needs the agents: add --engine agents", key="--realtime")
+    out = args.out or _default_out("sim", experiment.scenario)
+    RunDir(out).check_new()
+    return _simulate(experiment, out, args.engine, args.realtime, args.verbose, resume=False)
+
+
+def _simulate(
+    experiment: ExperimentConfig,
+    out: Path,
+    engine: str,
+    realtime: bool,
+    verbose: bool,
+    *,
+    resume: bool,
+) -> int:
+    """Run (or resume) a simulated experiment with its progress display; on SIGINT or SIGTERM
+    stop at the next commit and say in one line where the run stands and how to go on."""
+    from master_service.experiments.simulate import summary_text
+
+    display = ProgressDisplay(level=logging.DEBUG if verbose else logging.INFO)
+    if display.live and not verbose:
+        # A simulated run counts dozens of evaluations a second: the panel shows the progress,
+        # master.log keeps every line, the console only what needs a look.
+        display.level = logging.WARNING
+    received: list[int] = []
+    try:
+        result, started = _run_simulation(
+            experiment, out, engine, realtime, display, received, resume=resume
+        )
+    except FileWriteError as exc:
+        return _write_failed(exc, out, simulated=True)
+    if result is None:
+        print(_stopped_text(out, experiment, received[0]), file=sys.stderr)
+        return 128 + received[0]
+    print(summary_text(result.metrics, out, time.perf_counter() - started, resumed=resume))
+    return 0
+
+
+def _run_simulation(
+    experiment: ExperimentConfig,
+    out: Path,
+    engine: str,
+    realtime: bool,
+    display: ProgressDisplay,
+    received: list[int],
+    *,
+    resume: bool,
+) -> tuple[SimulatedRun | None, float]:
+    """The simulated run behind :func:`_simulate` with its display; the run (None when stopped
+    by a signal, which ``received`` names) and when it started (``time.perf_counter``)."""
+    from master_service.experiments.simulate import SimulatedSwarm, quiet_agents
+
+    mode = "real time" if realtime else "lockstep"
+    with display, quiet_agents():
+        print(
+            f"{'resuming' if resume else 'simulating'} {experiment.scenario} "
+            f"({experiment.setting} setting, {engine} engine): {experiment.robots} robots, "
+            f"{plural(experiment.evolution.evaluations, 'evaluation')} of "
+            f"{experiment.evaluation_steps} steps of {experiment.step_period:g} s, seed "
+            f"{experiment.seed}" + (f", {mode}" if engine == "agents" else "")
+        )
+        started = time.perf_counter()
+        if engine == "fast":
+            from master_service.experiments.engine_run import FastRun
+
+            with _stop_flag(received):
+                result = FastRun(experiment, on_progress=display.update).run(
+                    out, resume=resume, should_stop=lambda: bool(received)
+                )
+        else:
+            swarm = SimulatedSwarm(experiment, realtime=realtime, on_progress=display.update)
+            result = asyncio.run(_until_signal(swarm.run(out, resume=resume), received))
+    return result, started
+
+
+@contextlib.contextmanager
+def _stop_flag(received: list[int]) -> Iterator[None]:
+    """While inside, SIGINT and SIGTERM are noted in ``received`` (the run asks between
+    evaluations) instead of raising KeyboardInterrupt in the middle of a write."""
+
+    def note(signum: int, frame: object) -> None:
+        received.append(signum)
+
+    previous = {signum: signal.signal(signum, note) for signum in _STOP_SIGNALS}
+    try:
+        yield
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+
+
+async def _until_signal(work: Awaitable[T], received: list[int]) -> T | None:
+    """Await ``work``; on SIGINT or SIGTERM cancel it (its own clean-up runs) and return None."""
+    loop = asyncio.get_running_loop()
+    task = asyncio.ensure_future(work)
+
+    def stop(signum: int) -> None:
+        if not received:
+            received.append(signum)
+            task.cancel()
+
+    for signum in _STOP_SIGNALS:
+        loop.add_signal_handler(signum, stop, signum)
+    try:
+        return await task
+    except asyncio.CancelledError:
+        if not received:
+            raise
+        return None
+    finally:
+        for signum in _STOP_SIGNALS:
+            loop.remove_signal_handler(signum)
+
+
+def _stopped_text(out: Path, experiment: ExperimentConfig, signum: int) -> str:
+    run = RunDir(out)
+    state = run.read_state(run.load_config())
+    done = 0 if state is None else state.optimizer.evaluations
+    total = experiment.evolution.evaluations
+    where = (
+        f"stopped by {signal.Signals(signum).name} at evaluation {done}/{total}"
+        if state is None or state.phase == "evolution"
+        else f"stopped by {signal.Signals(signum).name} in the post-evaluation"
+    )
+    return f"{where}; continue with `surprise-master resume {out}`"
+
+
+def _baseline(args: argparse.Namespace) -> int:
+    from master_service.experiments.baseline import run_baseline
+
+    experiment = _sim_experiment(args)
+    out = args.out or _default_out("baseline", experiment.scenario)
+    steps = max(experiment.post_evaluation_steps, experiment.evaluation_steps)
+    print(
+        f"evaluating {plural(args.random, 'random pair')} in the {experiment.scenario} arena "
+        f"({experiment.setting} setting, {experiment.robots} robots, {steps} steps each)"
+    )
+    data = run_baseline(experiment, args.random, out)
+    counts = data["behaviour_counts"]
+    print(
+        f"fitness of the random pairs: best {data['best_fitness']:.4f}, median "
+        f"{data['median_fitness']:.4f}"
+    )
+    print(
+        "behaviour counts: "
+        + "; ".join(
+            f"{key} " + ", ".join(f"{n} {name}" for name, n in counts[key].items())
+            for key in counts
+        )
+    )
+    print(f"wrote {Path(out) / 'baseline.json'}")
+    print(f"next: compare an evolved run with `surprise-master report RUN_DIR --baseline {out}`")
+    return 0
+
+
+def _report(args: argparse.Namespace) -> int:
+    from master_service.reporting.report import baseline_text, safety_lines, write_report
+
+    metrics = write_report(args.dir, baseline=args.baseline, animate=args.animate)
+    best = metrics.get("best_fitness")
+    post = (metrics.get("post_evaluation") or {}).get("swarm_fitness")
+    drawn = metrics.get("pictures", [])
+    print(
+        f"wrote {Path(args.dir) / 'metrics.json'} and {plural(len(drawn), 'picture')} in "
+        f"{Path(args.dir) / 'plots'}: {plural(metrics['evaluations'], 'evaluation')}, best "
+        "fitness "
+        + ("-" if best is None else f"{best:.4f}")
+        + ("" if post is None else f", post-evaluation fitness {post:.4f}")
+    )
+    for line in safety_lines(metrics):
+        print(line)
+    comparison = metrics.get("baseline")
+    if comparison:
+        print(baseline_text(comparison))
+    if args.animate:
+        print(f"animation: {Path(args.dir) / 'plots' / 'post_evaluation.gif'}")
+    return 0
+
+
+def _status(args: argparse.Namespace) -> int:
+    from master_service.reporting.report import status_text
+
+    print(status_text(args.dir))
+    return 0
+
+
+def _watch(args: argparse.Namespace) -> int:
+    from master_service.reporting.watch import run_watch  # rich and aiomqtt only for this command
+
+    return run_watch(args.broker, prefix=args.prefix, once=args.once)

@@ -1,0 +1,269 @@
+"""``surprise-master sim``: the whole system on one machine, on a simulated swarm.
+
+The master and N real agents (:class:`robot_agent.agent.Agent`, the code that runs on a robot's Pi)
+run in one event loop and talk over loopback TCP exactly as in a lab; the agents drive simulated
+Thymios (:mod:`sim_stub`) that share one world. In lockstep (the default) the world advances one
+step once every robot has sent its command, so a run goes as fast as the CPU allows and repeats
+exactly for a seed; ``realtime`` paces the world at 10 Hz of wall-clock time instead.
+
+Before the post-evaluation the arena is reset (new random start poses, or the centre, and freshly
+scattered boxes), as the paper does; the boxes' positions before and after it are kept in
+``simulation.json`` so that the report can measure the box displacement d_B.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import random
+import secrets
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from master_service.config import MasterConfig
+from master_service.experiments.simulation_setup import (
+    SimulatedRun,
+    robot_ids,
+    simulated_safety,
+    simulation_experiment,
+    world_config,
+    write_box_track,
+    write_simulation_file,
+)
+from master_service.master import Master, Progress
+from master_service.rundir import SIMULATION_FILE, RunDir
+from minimize_surprise.backoff import BackoffConfig
+from minimize_surprise.config import ExperimentConfig
+from minimize_surprise.safety import SafetyState
+from robot_agent.agent import Agent
+from robot_agent.config import AgentConfig, LoopConfig
+from robot_agent.config import MasterConfig as AgentMasterConfig
+from sim_stub.body import SimSwarm
+from sim_stub.scenarios import SCENARIOS
+from sim_stub.world import World, box_frame_steps
+
+__all__ = [
+    "SCENARIOS",
+    "SIMULATION_FILE",
+    "SimulatedRun",
+    "SimulatedSwarm",
+    "quiet_agents",
+    "robot_ids",
+    "simulated_loop",
+    "simulated_safety",
+    "simulation_experiment",
+    "summary_text",
+    "world_config",
+]
+
+#: In-process agents reconnect at once: the master is on the same machine and never far away.
+_RECONNECT = BackoffConfig(initial=0.05, max=0.5, jitter=0.5)
+
+
+class SimulatedSwarm:
+    """A master and ``experiment.robots`` agents on simulated Thymios in one shared world.
+
+    ``await run(run_dir)`` evolves, post-evaluates and writes the report; ``on_progress`` sees the
+    master's progress.
+    """
+
+    def __init__(
+        self,
+        experiment: ExperimentConfig,
+        *,
+        realtime: bool = False,
+        on_progress: Callable[[Progress], None] | None = None,
+    ) -> None:
+        self.experiment = experiment
+        self.realtime = realtime
+        self.on_progress = on_progress
+        self.world = World(world_config(experiment), seed=experiment.seed)
+        self.ids = robot_ids(experiment.robots)
+        # Nobody outside this process talks to this master: a fresh random secret per run.
+        self._secret = secrets.token_bytes(32)
+        self._boxes_before: list[list[float]] | None = None
+        self._agents: list[Agent] = []
+
+    def master_config(self) -> MasterConfig:
+        """The master's configuration: loopback, any free port, only the simulated robots."""
+        return MasterConfig(
+            experiment=self.experiment,
+            host="127.0.0.1",
+            port=0,
+            allowed_robots=self.ids,
+        )
+
+    def agent_config(self, robot_id: str, port: int) -> AgentConfig:
+        """One in-process agent's configuration (the secret is handed over directly).
+
+        A simulated body's sensors have no update rate: the agents run whatever period the
+        experiment gives (``loop.min_period`` is the experiment's own).
+        """
+        return AgentConfig(
+            robot_id=robot_id,
+            master=AgentMasterConfig(host="127.0.0.1", port=port, secret_file="(in-process)"),
+            safety=simulated_safety(self.experiment),
+            loop=simulated_loop(self.experiment),
+            reconnect=_RECONNECT,
+        )
+
+    async def _reset_arena(self) -> None:
+        # Every robot is idle between two rounds, so nobody is inside a step of the world.
+        self.world.reset(seed=self.experiment.seed + 1)
+        self._boxes_before = self.world.box_positions.tolist()
+        self.world.start_recording()  # the boxes' track, for the report's animation
+
+    def _snapshot(self) -> dict[str, Any]:
+        # The master commits between rounds, while every robot is idle: a consistent state.
+        # Same shape as the engine's (sim_stub.engine.Swarm.snapshot).
+        return {
+            "world": self.world.snapshot(),
+            "safety": [agent.runner.safety_state.to_array().tolist() for agent in self._agents],
+        }
+
+    def _restore(self, snapshot: dict[str, Any]) -> None:
+        self.world.restore(snapshot["world"])
+        for agent, state in zip(self._agents, snapshot["safety"], strict=True):
+            agent.runner.safety_state = SafetyState.from_array(np.array(state, dtype=np.int64))
+
+    async def run(self, run_dir: str | Path, *, resume: bool = False) -> SimulatedRun:
+        """Run the experiment into ``run_dir`` and report; the run and its metrics.
+
+        A new run needs ``run_dir`` new or empty. With ``resume`` it continues the run there
+        from its checkpoint, the world and the robots' safety layers as they were at that
+        commit, to the result it would have reached without the stop. Cancelled (Ctrl-C), the
+        run stops with its checkpoint current and the robots' motors stopped.
+        """
+        from master_service.reporting.report import write_report  # matplotlib: only when reporting
+
+        run_dir = Path(run_dir)
+        checkpoint = None
+        if resume:
+            directory = RunDir(run_dir)
+            checkpoint = directory.read_state(directory.load_config())
+        swarm = SimSwarm(self.world, realtime=self.realtime, attach_all=True)
+        master = Master(
+            self.master_config(),
+            run_dir,
+            secret=self._secret,
+            resume=resume,
+            on_progress=self.on_progress,
+            before_post_evaluation=self._reset_arena,
+            snapshot=self._snapshot,
+        )
+        self._agents = []
+        failure: Exception | None = None
+        async with contextlib.AsyncExitStack() as stack:
+            await stack.enter_async_context(master)
+            if not resume:
+                self._write_simulation_file(run_dir)
+            if self.realtime:
+                await stack.enter_async_context(swarm)
+            for index, robot_id in enumerate(self.ids):
+                body = await stack.enter_async_context(swarm.body(index))
+                agent = Agent(
+                    self.agent_config(robot_id, master.port),
+                    body,
+                    body.clock,
+                    self._secret,
+                    rng=random.Random(self.experiment.seed * 1000 + index),
+                )
+                self._agents.append(await stack.enter_async_context(agent))
+            if checkpoint is not None and checkpoint.simulation is not None:
+                self._restore(checkpoint.simulation)
+            tasks = [
+                asyncio.create_task(a.run(), name=f"agent-{i}") for i, a in enumerate(self._agents)
+            ]
+            try:
+                summary = await master.run()
+            except Exception as exc:
+                # Raised only once the agents are closed: an error passing through their task
+                # groups would come out wrapped in an exception group per agent.
+                failure = exc
+            finally:
+                for task in tasks:
+                    task.cancel()
+                await asyncio.gather(*tasks, return_exceptions=True)
+        if failure is not None:
+            raise failure
+        self._write_simulation_file(run_dir)
+        if self._boxes_before is not None:
+            steps = self.experiment.post_evaluation_steps
+            write_box_track(
+                run_dir, self.world.recorded_boxes(steps), box_frame_steps(self.world.config.dt)
+            )
+            self.world.stop_recording()
+        metrics = await asyncio.to_thread(write_report, run_dir)
+        return SimulatedRun(summary, metrics)
+
+    def _write_simulation_file(self, run_dir: Path) -> None:
+        write_simulation_file(
+            run_dir,
+            self.experiment,
+            self.world,
+            engine="agents",
+            realtime=self.realtime,
+            boxes_before=self._boxes_before,
+        )
+
+
+def simulated_loop(experiment: ExperimentConfig) -> LoopConfig:
+    """The control loop's limits for a simulated body: the experiment's period is the shortest
+    (a simulated sensor has no update rate) and its longest evaluation fits."""
+    longest = max(experiment.evaluation_steps, experiment.post_evaluation_steps)
+    return LoopConfig(
+        min_period=min(experiment.step_period, LoopConfig().min_period),
+        max_steps=max(longest, LoopConfig().max_steps),
+    )
+
+
+def summary_text(
+    metrics: dict[str, Any], out: Path, seconds: float, *, resumed: bool = False
+) -> str:
+    """What ``surprise-master sim`` prints at the end: where, how good, which behaviour, how much
+    of it the safety layer drove."""
+    from master_service.reporting.report import safety_lines
+
+    best = metrics.get("best_fitness")
+    lines = [
+        f"run directory: {out}",
+        f"evaluations: {metrics['evaluations']} "
+        + (f"(resumed; {seconds:.1f} s since)" if resumed else f"in {seconds:.1f} s"),
+        f"best fitness: {'-' if best is None else f'{best:.4f}'}",
+    ]
+    post = metrics.get("post_evaluation") or {}
+    if post.get("swarm_fitness") is not None:
+        lines.append(
+            f"post-evaluation fitness: {post['swarm_fitness']:.4f} ({post['steps']} steps)"
+        )
+    b = post.get("behaviour")
+    if b:
+        kind = f"{b['motion']}, {b['grouping']}"
+        figures = (
+            f"rotation c_o {b['rotation']:.1f} rad, mean cluster size "
+            f"{b['mean_cluster_size']:.2f}, distance d_R {b['distance_covered']:.2f} m"
+        )
+        if b.get("box_displacement") is not None:
+            kind += ", pushing" if b["pushing"] else ", not pushing"
+            figures += f", box displacement d_B {b['box_displacement']:.3f} m"
+        lines.append(f"behaviour: {kind} ({figures})")
+    lines += safety_lines(metrics)
+    lines.append(f"plots: {out / 'plots'}")
+    return "\n".join(lines)
+
+
+@contextlib.contextmanager
+def quiet_agents() -> Iterator[None]:
+    """While inside, the in-process agents log only warnings: their connections, at INFO, stay
+    out of the progress display (the level is put back afterwards)."""
+    logger = logging.getLogger("robot_agent")
+    level = logger.level
+    logger.setLevel(logging.WARNING)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)

@@ -1,0 +1,251 @@
+"""How a simulated experiment is set up: the experiment, the world, the simulated robots' safety.
+
+Shared by ``surprise-master sim`` with either engine (:mod:`master_service.experiments.simulate`,
+:mod:`master_service.experiments.engine_run`), ``baseline`` and the studies; it knows nothing of how
+the robots are run.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Final
+
+import numpy as np
+
+from master_service.master import RunSummary
+from master_service.rundir import BOX_TRACK, SIMULATION_FILE, RunDirError, write_atomic
+from minimize_surprise.config import ExperimentConfig, decode_experiment, read_yaml
+from minimize_surprise.errors import ConfigError
+from minimize_surprise.safety import SafetyConfig
+from sim_stub.engine import robot_ids
+from sim_stub.scenarios import SCENARIOS, WorldConfig, scenario_config
+from sim_stub.settings import check_setting, safety_config, world_overrides
+from sim_stub.world import TooManyRobotsError, World
+
+__all__ = [
+    "ENGINES",
+    "SimulatedRun",
+    "read_simulation_file",
+    "robot_ids",
+    "simulated_safety",
+    "simulation_experiment",
+    "world_config",
+    "write_box_track",
+    "write_simulation_file",
+]
+
+#: The two ways of running a simulated swarm: the compiled engine, or real agents over TCP.
+ENGINES: Final = ("fast", "agents")
+
+
+@dataclass(frozen=True)
+class SimulatedRun:
+    """What a simulated run leaves: the master's summary and the report's metrics."""
+
+    summary: RunSummary
+    metrics: dict[str, Any]
+
+
+def simulation_experiment(
+    scenario: str | None = None,
+    *,
+    setting: str | None = None,
+    arena: float | None = None,
+    config_file: str | Path | None = None,
+    robots: int | None = None,
+    evaluations: int | None = None,
+    seed: int | None = None,
+    data: dict[str, Any] | None = None,
+) -> ExperimentConfig:
+    """The experiment of a simulated run.
+
+    Layers, each overriding the one before: the setting's defaults (``paper`` unless the file or
+    ``setting`` names another; see ``sim_stub.settings``), the scenario's robots and sensors, the
+    experiment file ``config_file`` (or the experiment ``data`` given), then the arguments given
+    (``arena``: the carpet's side in metres). A bad file or value raises :class:`ConfigError`
+    naming the file and key.
+    """
+    if data is None:
+        data = {} if config_file is None else read_yaml(config_file)
+    data = dict(data)
+    if scenario is not None:
+        data["scenario"] = scenario
+    if setting is not None:
+        data["setting"] = setting
+    data.setdefault("setting", "paper")
+    if arena is not None:
+        if not arena > 0:
+            raise ConfigError(f"expected a positive side in metres, got {arena}", key="--arena")
+        data["simulation"] = {**(data.get("simulation") or {}), "arena_side": arena}
+    name = data.get("scenario", "basic")
+    world = _world(data.get("setting"), name, data.get("simulation"), config_file)
+    robots_in_file = "robots" in data
+    data.setdefault("robots", world.robots)
+    data.setdefault("sensors", list(world.sensors))
+    for key, value in (("robots", robots), ("seed", seed)):
+        if value is not None:
+            data[key] = value
+    if evaluations is not None:
+        data["evolution"] = {**(data.get("evolution") or {}), "evaluations": evaluations}
+    experiment = decode_experiment(data, file=config_file)
+    missing = [s for s in experiment.sensors if s not in world.sensors]
+    if missing:
+        raise ConfigError(
+            f"the {name} scenario's robots do not carry {', '.join(missing)} "
+            f"(they carry {', '.join(world.sensors)})",
+            file=str(config_file) if config_file else None,
+            key="sensors",
+        )
+    simulated_safety(experiment, file=config_file)  # a bad safety key fails now, by name
+    _check_robots_fit(
+        experiment,
+        world_config(experiment, file=config_file),
+        given="--robots" if robots is not None else "robots" if robots_in_file else None,
+        arena_given=arena is not None,
+        file=config_file,
+    )
+    return experiment
+
+
+def _check_robots_fit(
+    experiment: ExperimentConfig,
+    world: WorldConfig,
+    *,
+    given: str | None,
+    arena_given: bool,
+    file: str | Path | None,
+) -> None:
+    """Raise :class:`ConfigError` naming the limit and the option or key to change unless the
+    robots fit at the start of the run and of its post-evaluation (each arena seeded apart)."""
+    short: list[TooManyRobotsError] = []
+    for seed in (experiment.seed, experiment.seed + 1):
+        try:
+            World(world, seed=seed)
+        except TooManyRobotsError as exc:
+            short.append(exc)
+    if not short:
+        return
+    # Fewer than the fewest either start placed fit both (see World._place_robots).
+    error = min(short, key=lambda exc: exc.fit)
+    if error.larger == "start_ring":
+        larger = "a wider start ring (simulation.start_ring)"
+    elif arena_given or given == "--robots":
+        larger = "a larger --arena"
+    else:
+        larger = "a larger carpet (simulation.arena_side)"
+    on_command_line = given == "--robots" or (given is None and arena_given)
+    fewer = "fewer with --robots" if on_command_line else "fewer robots"
+    if given is not None:
+        key = given
+    elif arena_given:
+        key = "--arena"
+    else:
+        key = f"simulation.{error.larger}"
+    raise ConfigError(
+        f"{error.reason}; ask for {fewer} or {larger}",
+        key=key,
+        file=str(file) if file and not key.startswith("--") else None,
+    ) from None
+
+
+def _world(setting: Any, scenario: str, overrides: Any, file: str | Path | None) -> WorldConfig:
+    check_setting(setting, file)
+    if overrides is not None and not isinstance(overrides, dict):
+        raise ConfigError(
+            "expected a mapping of world parameters",
+            file=str(file) if file else None,
+            key="simulation",
+        )
+    if scenario not in SCENARIOS:
+        return scenario_config(scenario, file=file)  # raises, naming the scenario
+    return scenario_config(
+        scenario, {**world_overrides(setting, scenario), **(overrides or {})}, file=file
+    )
+
+
+def world_config(experiment: ExperimentConfig, *, file: str | Path | None = None) -> WorldConfig:
+    """The world an experiment runs in: its scenario in its setting with its ``simulation``
+    overrides, stepping at the experiment's step period (one world step per control step)."""
+    given = experiment.simulation.get("dt")
+    if given is not None and given != experiment.step_period:
+        raise ConfigError(
+            f"the world steps once per control step: simulation.dt ({given}) must equal "
+            f"step_period ({experiment.step_period}), or be left out",
+            file=str(file) if file else None,
+            key="simulation.dt",
+        )
+    overrides = {
+        **experiment.simulation,
+        "robots": experiment.robots,
+        "dt": experiment.step_period,
+    }
+    return _world(experiment.setting, experiment.scenario, overrides, file)
+
+
+def simulated_safety(
+    experiment: ExperimentConfig, *, file: str | Path | None = None
+) -> SafetyConfig:
+    """The simulated robots' safety layer: the setting's for the scenario, with the experiment's
+    ``safety`` overrides."""
+    return safety_config(experiment.setting, experiment.scenario, experiment.safety, file=file)
+
+
+def write_simulation_file(
+    run_dir: str | Path,
+    experiment: ExperimentConfig,
+    world: World,
+    *,
+    engine: str,
+    realtime: bool = False,
+    boxes_before: list[list[float]] | None = None,
+) -> None:
+    """Write ``simulation.json``: the run is simulated, on which engine, in which world; with
+    ``boxes_before`` (the boxes when the post-evaluation began) also where the boxes went.
+
+    Written when the run starts, so that ``surprise-master resume`` knows to restart the
+    simulated robots, and again at its end, for the report's box displacement.
+    """
+    data: dict[str, Any] = {
+        "scenario": experiment.scenario,
+        "setting": experiment.setting,
+        "engine": engine,
+        "realtime": realtime,
+        "world": {
+            "arena_side": world.config.arena_side,
+            "robots": world.config.robots,
+            "boxes": len(world.box_positions),
+        },
+    }
+    if boxes_before is not None and len(world.box_positions):
+        data["post_evaluation_boxes"] = {
+            "start": boxes_before,
+            "end": world.box_positions.tolist(),
+        }
+    write_atomic(Path(run_dir) / SIMULATION_FILE, json.dumps(data).encode("utf-8"))
+
+
+def read_simulation_file(run_dir: str | Path) -> dict[str, Any] | None:
+    """``simulation.json`` of ``run_dir``, or None for a run of real robots."""
+    path = Path(run_dir) / SIMULATION_FILE
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        return None
+    except ValueError as exc:
+        raise RunDirError(f"{path} is not valid JSON: {exc}") from None
+    if not isinstance(data, dict) or data.get("engine", "agents") not in ENGINES:
+        raise RunDirError(f"{path}: 'engine' must be one of {', '.join(ENGINES)}")
+    return data
+
+
+def write_box_track(run_dir: str | Path, positions: np.ndarray, every: int) -> None:
+    """Write ``box_track.npz``: the boxes' positions during the post-evaluation, a frame every
+    ``every`` steps (nothing when the arena has no boxes)."""
+    if positions.size == 0:
+        return
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, positions=positions.astype(np.float32), every=np.int64(every))
+    write_atomic(Path(run_dir) / BOX_TRACK, buffer.getvalue())

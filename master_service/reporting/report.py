@@ -1,0 +1,513 @@
+"""What a run amounts to: ``metrics.json``, pictures, and the one-screen status.
+
+Metrics: the evolution's (best, mean, offspring accepted, attempts), the share of steps in which
+the safety layer changed the networks' commands (per evaluation in ``evaluations.csv``; here its
+mean over the run, over its last tenth and over the post-evaluation, with a warning when it
+dominates), and from the post-evaluation traces each sensor's mean prediction and reading; when
+the traces hold poses (simulation) the behaviour metrics of docs/method.md (d_R, c_o, mean
+cluster size and their classes, the box displacement d_B from ``simulation.json``) and per robot
+its path length and rotation.
+
+Pictures (``plots/``, each as PNG and PDF; :mod:`master_service.reporting.pictures`): ``fitness``,
+``robot_fitness``, ``predictions``, in simulation ``trajectories`` on the arena, with a baseline
+``evolved_vs_random``; with ``animate`` also ``post_evaluation.gif``.
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Final
+
+import msgspec
+import numpy as np
+
+from master_service.master import LIVE_INTERVAL, format_duration
+from master_service.reporting import pictures
+from master_service.rundir import (
+    BOX_TRACK,
+    LIVE,
+    METRICS,
+    PLOTS,
+    POST_EVALUATION,
+    SIMULATION_FILE,
+    RunDir,
+    RunDirError,
+    write_atomic,
+    writing,
+)
+from minimize_surprise.config import ExperimentConfig
+from minimize_surprise.errors import ConfigError
+from minimize_surprise.safety import dominance_warning, intervention_reasons, intervention_share
+from minimize_surprise.text import plural
+from sim_stub import metrics as sim_metrics
+
+__all__ = ["baseline_text", "compute_metrics", "safety_lines", "status_text", "write_report"]
+
+
+#: A live.json older than this many refresh periods means the master is gone.
+_STALE_PERIODS: Final = 5
+
+
+def _rows(run: RunDir, limit: int | None) -> tuple[list[dict[str, Any]], list[str]]:
+    # Rows past the checkpoint's count belong to an unfinished commit (resume drops them); the
+    # last of them may be torn, so they are cut before being parsed.
+    rows = run.read_rows()[:limit]
+    robots = []
+    if rows:
+        robots = [key[len("fitness_") :] for key in rows[0] if key.startswith("fitness_")]
+    typed = []
+    for row in rows:
+        typed.append(
+            {
+                "evaluation": int(row["evaluation"]),
+                "kind": row["kind"],
+                "fitness": float(row["fitness"]),
+                "best_fitness": float(row["best_fitness"]),
+                "accepted": row["accepted"] == "true",
+                "attempts": int(row["attempts"]),
+                "duration_s": float(row["duration_s"]),
+                # Runs written before the column existed have none.
+                "safety_share": (
+                    float(row["safety_share"])
+                    if row.get("safety_share") not in (None, "")
+                    else None
+                ),
+                "robots": {robot: float(row[f"fitness_{robot}"]) for robot in robots},
+            }
+        )
+    return typed, robots
+
+
+def _traces(run: RunDir, post: dict[str, Any] | None) -> dict[str, dict[str, np.ndarray]]:
+    traces: dict[str, dict[str, np.ndarray]] = {}
+    if post is None:
+        return traces
+    for robot, entry in post.get("robots", {}).items():
+        if entry.get("trace"):
+            with np.load(run.path / entry["trace"]) as data:
+                traces[robot] = {key: data[key] for key in data.files}
+    return traces
+
+
+def _post_metrics(
+    post: dict[str, Any],
+    traces: dict[str, dict[str, np.ndarray]],
+    sensors: list[str],
+    simulation: dict[str, Any] | None,
+    dt: float,
+) -> dict[str, Any]:
+    robots: dict[str, Any] = {}
+    predicted: list[np.ndarray] = []
+    real: list[np.ndarray] = []
+    poses: dict[str, np.ndarray] = {}
+    for robot, entry in post.get("robots", {}).items():
+        info: dict[str, Any] = {"fitness": entry["fitness"], "stats": entry["stats"]}
+        trace = traces.get(robot)
+        if trace is not None:
+            steps = len(trace["sensors"])
+            info["steps"] = steps
+            info["safety_steps"] = int(np.count_nonzero(trace["safety"] != ""))
+            if steps >= 2:
+                # The prediction made at t is for the reading at t + 1.
+                predicted.append(trace["predictions"][:-1])
+                real.append(trace["sensors"][1:])
+            if "poses" in trace and steps >= 2:
+                poses[robot] = trace["poses"]
+                one = trace["poses"][:, None, :]  # the metrics take (T, N, 3)
+                info["path_length"] = sim_metrics.distance_covered(one)
+                info["rotation"] = sim_metrics.rotation(one, sim_metrics.default_window(one, dt))
+        robots[robot] = info
+    metrics: dict[str, Any] = {
+        "steps": post.get("steps"),
+        "genome_fitness": post.get("genome_fitness"),
+        "swarm_fitness": post.get("swarm_fitness"),
+        "robots": robots,
+    }
+    if predicted:
+        p = np.concatenate(predicted)
+        s = np.concatenate(real)
+        metrics["sensors"] = {
+            name: {
+                "mean_predicted": float(p[:, i].mean()),
+                "mean_real": float(s[:, i].mean()),
+                "mean_abs_error": float(np.abs(p[:, i] - s[:, i]).mean()),
+            }
+            for i, name in enumerate(sensors)
+            if i < p.shape[1]
+        }
+    if poses:
+        steps = min(len(p) for p in poses.values())
+        stacked = np.stack([p[:steps] for p in poses.values()], axis=1)
+        boxes = (simulation or {}).get("post_evaluation_boxes") or {}
+        behaviour = sim_metrics.behaviour_metrics(
+            stacked, boxes.get("start"), boxes.get("end"), dt=dt
+        )
+        metrics["behaviour"] = msgspec.to_builtins(behaviour)
+    return metrics
+
+
+def _safety_metrics(
+    rows: list[dict[str, Any]], post: dict[str, Any] | None
+) -> dict[str, Any] | None:
+    """How much the safety layer drove: over the run, its last tenth and the post-evaluation."""
+    metrics: dict[str, Any] = {}
+    shares = [r["safety_share"] for r in rows if r["safety_share"] is not None]
+    if shares:
+        tail = shares[-max(1, len(shares) // 10) :]
+        metrics["evolution_mean_share"] = float(np.mean(shares))
+        metrics["last_tenth_share"] = float(np.mean(tail))
+    counts: list[dict[str, int]] = []
+    if post is not None and post.get("robots"):
+        stats = {robot: entry["stats"] for robot, entry in post["robots"].items()}
+        counts = [e["interventions"] for e in stats.values()]
+        metrics["post_evaluation_share"] = intervention_share(
+            counts, sum(e["steps_run"] for e in stats.values())
+        )
+        metrics["post_evaluation_reasons"] = dict(intervention_reasons(counts).most_common())
+        metrics["post_evaluation_robots"] = {
+            robot: intervention_share([e["interventions"]], e["steps_run"])
+            for robot, e in stats.items()
+        }
+    if not metrics:
+        return None
+    # The post-evaluation is what the behaviour is judged on, the end of the evolution what the
+    # best genome was selected on: either dominated by the safety layer needs a look.
+    warnings = []
+    if "post_evaluation_share" in metrics:
+        warning = dominance_warning(metrics["post_evaluation_share"], counts)
+        if warning:
+            warnings.append(f"in the post-evaluation {warning}")
+    if "last_tenth_share" in metrics:
+        warning = dominance_warning(metrics["last_tenth_share"], [])
+        if warning:
+            warnings.append(f"in the last tenth of the evolution {warning}")
+    metrics["warnings"] = warnings
+    return metrics
+
+
+@dataclass
+class _Run:
+    """Everything a report reads from a run directory, read once."""
+
+    run: RunDir
+    experiment: ExperimentConfig
+    checkpoint: dict[str, Any]
+    rows: list[dict[str, Any]]
+    robots: list[str]
+    post: dict[str, Any] | None
+    traces: dict[str, dict[str, np.ndarray]]
+    simulation: dict[str, Any] | None
+
+
+def _load(path: str | Path) -> _Run:
+    run = RunDir(path)
+    config = run.load_config()
+    assert config.experiment is not None
+    checkpoint = run.read_checkpoint_data() or {}
+    rows, robots = _rows(run, checkpoint.get("csv_rows"))
+    post = run.read_json(POST_EVALUATION)
+    simulation = run.read_json(SIMULATION_FILE)
+    return _Run(
+        run, config.experiment, checkpoint, rows, robots, post, _traces(run, post), simulation
+    )
+
+
+def compute_metrics(path: str | Path) -> dict[str, Any]:
+    """The metrics of the run in ``path`` as plain data (what ``metrics.json`` holds)."""
+    return _metrics(_load(path))
+
+
+def _metrics(data: _Run) -> dict[str, Any]:
+    run, checkpoint, rows, robots = data.run, data.checkpoint, data.rows, data.robots
+    metrics: dict[str, Any] = {
+        "run_id": checkpoint.get("run_id", run.path.resolve().name),
+        "phase": checkpoint.get("phase", "evolution"),
+        "evaluations": len(rows),
+        "evaluations_planned": data.experiment.evolution.evaluations,
+        "robots": robots,
+    }
+    if rows:
+        fitness = np.array([r["fitness"] for r in rows])
+        offspring = [r for r in rows if r["kind"] == "offspring"]
+        metrics.update(
+            best_fitness=rows[-1]["best_fitness"],
+            max_fitness=float(fitness.max()),
+            mean_fitness=float(fitness.mean()),
+            offspring=len(offspring),
+            accepted_offspring=sum(r["accepted"] for r in offspring),
+            reevaluations=sum(r["kind"] == "reevaluation" for r in rows),
+            attempts=sum(r["attempts"] for r in rows),
+            failed_attempts=checkpoint.get("failed_attempts"),
+            duration_s=float(sum(r["duration_s"] for r in rows)),
+            robot_fitness={
+                robot: {
+                    "mean": float(np.mean([r["robots"][robot] for r in rows])),
+                    "max": float(np.max([r["robots"][robot] for r in rows])),
+                }
+                for robot in robots
+            },
+        )
+    metrics["safety"] = _safety_metrics(rows, data.post)
+    metrics["warnings"] = list((metrics["safety"] or {}).get("warnings", []))
+    metrics["post_evaluation"] = (
+        None
+        if data.post is None
+        else _post_metrics(
+            data.post,
+            data.traces,
+            list(data.experiment.sensors),
+            data.simulation,
+            data.experiment.step_period,
+        )
+    )
+    return metrics
+
+
+def _baseline_metrics(metrics: dict[str, Any], baseline: dict[str, Any]) -> dict[str, Any]:
+    pairs = baseline["pairs"]
+    random_fitness = [pair["fitness"] for pair in pairs]
+    evolved = metrics.get("best_fitness")
+    post = (metrics.get("post_evaluation") or {}).get("swarm_fitness")
+    return {
+        "scenario": baseline["scenario"],
+        "random_pairs": len(random_fitness),
+        "random_fitness": random_fitness,
+        "random_median_fitness": float(np.median(random_fitness)),
+        "random_best_fitness": float(np.max(random_fitness)),
+        # The random pairs' fitness over the whole post-evaluation length, beside the evolved
+        # genome's post-evaluation.
+        "random_best_post_fitness": max(pair["post_fitness"] for pair in pairs),
+        # Best of a run against best of the random pairs: both are a maximum over many tries.
+        "evolved_best_fitness": evolved,
+        "evolved_post_fitness": post,
+        "random_pairs_below_evolved_best": (
+            None if evolved is None else sum(f < evolved for f in random_fitness)
+        ),
+        "random_behaviour_counts": {
+            key: dict(collections.Counter(pair["behaviour"][key] for pair in pairs).most_common())
+            for key in ("motion", "grouping")
+        },
+    }
+
+
+def write_report(
+    path: str | Path,
+    *,
+    baseline: str | Path | None = None,
+    plots: bool = True,
+    animate: bool = False,
+) -> dict[str, Any]:
+    """Write ``metrics.json`` and (with ``plots``) the pictures of the run in ``path``; return
+    the metrics (``pictures``: the files drawn, relative to ``path``).
+
+    ``baseline`` names a ``surprise-master baseline`` directory: the metrics then compare the
+    evolved best fitness with the random pairs' (``baseline`` key), with a picture. ``animate``
+    also writes an animation of a simulated post-evaluation (``plots/post_evaluation.gif``).
+    """
+    data = _load(path)
+    metrics = _metrics(data)
+    if baseline is not None:
+        from master_service.experiments.baseline import load_baseline
+
+        try:
+            loaded = load_baseline(baseline)
+        except (OSError, ValueError, KeyError) as exc:
+            raise ConfigError(f"not a baseline: {exc}", file=str(baseline)) from None
+        if loaded["scenario"] != data.experiment.scenario:
+            raise ConfigError(
+                f"the baseline is of the {loaded['scenario']} scenario, the run of "
+                f"{data.experiment.scenario}",
+                file=str(baseline),
+                key="scenario",
+            )
+        metrics["baseline"] = _baseline_metrics(metrics, loaded)
+    if plots or animate:
+        drawn = _draw(data, metrics, plots=plots, animate=animate)
+        metrics["pictures"] = [str(p.relative_to(data.run.path)) for p in drawn]
+    write_atomic(data.run.file(METRICS), json.dumps(metrics, indent=2).encode("utf-8"))
+    return metrics
+
+
+def safety_lines(metrics: dict[str, Any]) -> list[str]:
+    """How much the safety layer drove, in a line, and its warning if it dominated."""
+    safety = metrics.get("safety")
+    if not safety:
+        return []
+    parts = []
+    if safety.get("post_evaluation_share") is not None:
+        parts.append(f"{100 * safety['post_evaluation_share']:.0f} % of the post-evaluation steps")
+    if safety.get("evolution_mean_share") is not None:
+        parts.append(
+            f"{100 * safety['evolution_mean_share']:.0f} % of the evolution's "
+            f"({100 * safety['last_tenth_share']:.0f} % in its last tenth)"
+        )
+    lines = [f"safety layer drove: {'; '.join(parts)}"] if parts else []
+    lines += [f"warning: {warning}" for warning in safety.get("warnings", [])]
+    return lines
+
+
+def baseline_text(comparison: dict[str, Any]) -> str:
+    """The evolved run against the random pairs, best of each, in a line."""
+    pairs = comparison["random_pairs"]
+    evolved = comparison["evolved_best_fitness"]
+    text = (
+        f"best random pair {comparison['random_best_fitness']:.4f} (median "
+        f"{comparison['random_median_fitness']:.4f}, {pairs} pairs)"
+    )
+    if evolved is None:
+        return f"no evolved fitness yet; {text}"
+    below = comparison["random_pairs_below_evolved_best"]
+    return (
+        f"evolved best fitness {evolved:.4f} against the {text}: above {below} of {pairs} "
+        "random pairs"
+    )
+
+
+def _title(data: _Run, metrics: dict[str, Any]) -> str:
+    experiment = data.experiment
+    where = f"{experiment.setting} setting" if data.simulation is not None else "robots"
+    return f"{experiment.scenario} ({where}), run {metrics['run_id']}"
+
+
+def _arena(data: _Run) -> pictures.Arena | None:
+    """The simulated world of the run, as the pictures draw it (None for real robots)."""
+    if data.simulation is None:
+        return None
+    from master_service.experiments.simulation_setup import world_config
+
+    config = world_config(data.experiment)
+    boxes = data.simulation.get("post_evaluation_boxes") or {}
+    track, every = None, 1
+    path = data.run.file(BOX_TRACK)
+    if path.is_file():
+        with np.load(path) as stored:
+            track, every = stored["positions"], int(stored["every"])
+    return pictures.Arena(
+        config,
+        boxes_start=np.asarray(boxes["start"]) if boxes.get("start") else None,
+        boxes_end=np.asarray(boxes["end"]) if boxes.get("end") else None,
+        box_track=track,
+        box_every=every,
+    )
+
+
+def _draw(data: _Run, metrics: dict[str, Any], *, plots: bool, animate: bool) -> list[Path]:
+    """Draw the run's pictures into ``plots/``; the paths written."""
+    directory = data.run.file(PLOTS)
+    with writing(directory):
+        directory.mkdir(exist_ok=True)
+    title = _title(data, metrics)
+    post = metrics.get("post_evaluation") or {}
+    poses = {robot: t["poses"] for robot, t in data.traces.items() if "poses" in t}
+    arena = _arena(data) if poses else None
+    drawn: list[Path] = []
+    if plots:
+        if data.rows:
+            drawn += pictures.fitness_picture(
+                directory,
+                data.rows,
+                title,
+                post_fitness=post.get("swarm_fitness"),
+                post_steps=post.get("steps"),
+            )
+            drawn += pictures.robot_fitness_picture(directory, data.rows, data.robots, title)
+        if post.get("sensors"):
+            drawn += pictures.predictions_picture(directory, post["sensors"], title)
+        comparison = metrics.get("baseline")
+        if comparison:
+            drawn += pictures.baseline_picture(directory, comparison, title)
+        if poses:
+            seconds = min(len(p) for p in poses.values()) * data.experiment.step_period
+            drawn += pictures.trajectories_picture(
+                directory,
+                poses,
+                arena,
+                f"{title}\npost-evaluation of the best genome, {seconds:g} s",
+            )
+    if animate:
+        if arena is None:
+            raise RunDirError(
+                f"{data.run.path} holds no simulated post-evaluation with poses to animate"
+            )
+        drawn.append(
+            pictures.animate_post_evaluation(
+                directory / pictures.ANIMATION,
+                poses,
+                arena,
+                title,
+                data.experiment.step_period,
+            )
+        )
+    return drawn
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def status_text(path: str | Path) -> str:
+    """Where the run in ``path`` stands, in a few lines."""
+    run = RunDir(path)
+    config = run.load_config()
+    assert config.experiment is not None
+    planned = config.experiment.evolution.evaluations
+    checkpoint = run.read_checkpoint_data()
+    lines = [f"run {run.path.resolve().name} ({run.path})"]
+    if checkpoint is None:
+        lines.append(f"phase: not started, 0/{planned} evaluations")
+    else:
+        optimizer = checkpoint.get("optimizer", {})
+        best = optimizer.get("best_fitness")
+        lines.append(
+            f"phase: {checkpoint['phase']}, {optimizer.get('evaluations', 0)}/{planned} "
+            f"evaluations counted, "
+            f"{plural(checkpoint.get('failed_attempts', 0), 'failed attempt')}"
+        )
+        lines.append("best fitness: " + ("-" if best is None else f"{best:.4f}"))
+        rows = run.read_rows()[: checkpoint.get("csv_rows", 0)]
+        if rows:
+            last = rows[-1]
+            lines.append(
+                f"last evaluation: {last['evaluation']} {last['kind']}, fitness "
+                f"{float(last['fitness']):.4f}, accepted {last['accepted']}"
+            )
+        lines.append(f"served for {format_duration(float(checkpoint.get('elapsed_s', 0.0)))}")
+    live = run.read_json(LIVE)
+    fresh = (
+        isinstance(live, dict)
+        and live.get("running")
+        and time.time() - float(live.get("updated_at", 0)) < _STALE_PERIODS * LIVE_INTERVAL
+        and _alive(int(live.get("pid", -1)))
+    )
+    if fresh:
+        robots = live.get("robots", [])
+        lines.append(
+            f"master: running (pid {live['pid']}, {live['host']}:{live['port']}), "
+            f"robots connected {len(robots)}/{config.robot_count}: {', '.join(robots) or '-'}"
+        )
+        if live.get("time_left_s") is not None:
+            lines.append(f"time left: ~{format_duration(live['time_left_s'])}")
+    elif checkpoint is None or checkpoint.get("phase") != "done":
+        lines.append(f"master: not running; continue with `surprise-master resume {run.path}`")
+    else:
+        lines.append("master: not running; the run is complete")
+    post = run.read_json(POST_EVALUATION)
+    if post is not None:
+        fitness = post.get("swarm_fitness")
+        lines.append(
+            "post-evaluation: done, swarm fitness "
+            + ("-" if fitness is None else f"{fitness:.4f}")
+            + f", traces of {len(post.get('robots', {}))} robots"
+        )
+    return "\n".join(lines)

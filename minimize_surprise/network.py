@@ -1,0 +1,296 @@
+"""The actor-predictor network pair and the exact mapping between a flat genome and its weights.
+
+Layout of a genome (one flat float64 vector), in this order, each matrix row-major:
+
+====================  =========================  =================================================
+block                 shape                      meaning
+====================  =========================  =================================================
+actor.hidden          (H_a, R + M + 1)           inputs s(t), a(t-1), bias 1 -> tanh
+actor.output          (M, H_a + 1)               hidden, bias 1 -> tanh -> a(t) in [-1, 1]
+predictor.hidden      (H_p, R + M + 1)           inputs s(t), a(t), bias 1 -> sigmoid
+predictor.self        (H_p,)                     one self-weight per hidden neuron (memory)
+predictor.initial     (H_p,)                     hidden state before the first step
+predictor.output      (R_free, H_p + 1)          hidden, bias 1 -> sigmoid -> p(t+1) in [0, 1]
+====================  =========================  =================================================
+
+R is the number of sensors, M = 2 wheel speeds, R_free the sensors whose prediction is not
+predefined. The predictor's hidden layer is h(t) = sigmoid(W [s(t), a(t), 1] + w_self * h(t-1)),
+with h(-1) = ``predictor.initial``. If every prediction is predefined, the predictor blocks are
+absent and the genome holds the actor only.
+"""
+
+from __future__ import annotations
+
+import msgspec
+import numpy as np
+
+from minimize_surprise.config import ExperimentConfig
+from minimize_surprise.errors import GenomeError
+from minimize_surprise.jit import kernel
+from minimize_surprise.sensors import check_sensor_names
+
+#: Number of actions: left and right wheel speed.
+ACTIONS = 2
+
+
+class NetworkSpec(msgspec.Struct, frozen=True, kw_only=True):
+    """Shape of a network pair: all a robot needs besides the genome to run it.
+
+    ``predefined`` maps sensor names to fixed predictions in [0, 1]; ``initial_action`` is the
+    value of every a(-1) fed to the actor at the first step of an evaluation.
+    """
+
+    sensors: tuple[str, ...]
+    actor_hidden: int
+    predictor_hidden: int
+    predefined: dict[str, float] = msgspec.field(default_factory=dict)
+    initial_action: float = 0.0
+
+    def __post_init__(self) -> None:
+        check_sensor_names(self.sensors)
+        if self.actor_hidden < 1 or self.predictor_hidden < 1:
+            raise ValueError("hidden layer sizes must be at least 1")
+        for name, value in self.predefined.items():
+            if name not in self.sensors:
+                raise ValueError(f"predefined prediction for unknown sensor {name!r}")
+            if not 0.0 <= value <= 1.0:
+                raise ValueError(f"predefined prediction for {name!r} must lie in [0, 1]")
+
+
+def spec_from_config(config: ExperimentConfig) -> NetworkSpec:
+    """The network shape an experiment configuration asks for (predictor default: R + 1)."""
+    hidden = config.network.predictor_hidden or len(config.sensors) + 1
+    return NetworkSpec(
+        sensors=tuple(config.sensors),
+        actor_hidden=config.network.actor_hidden,
+        predictor_hidden=hidden,
+        predefined=dict(config.predefined),
+        initial_action=config.network.initial_action,
+    )
+
+
+class GenomeLayout:
+    """Where each weight block lives in a flat genome for a given :class:`NetworkSpec`.
+
+    ``blocks`` maps a block name (see the module docstring) to ``(start, shape)``; ``size`` is the
+    genome length. ``free`` holds the indices of the sensors whose prediction the network makes,
+    ``fixed`` the prediction vector with predefined values filled in (others are 0).
+    """
+
+    def __init__(self, spec: NetworkSpec) -> None:
+        self.spec = spec
+        r, m = len(spec.sensors), ACTIONS
+        self.sensors = r
+        self.free = np.array(
+            [i for i, name in enumerate(spec.sensors) if name not in spec.predefined], dtype=np.intp
+        )
+        self.fixed = np.array([spec.predefined.get(name, 0.0) for name in spec.sensors])
+        self.has_predictor = self.free.size > 0
+        shapes: list[tuple[str, tuple[int, ...]]] = [
+            ("actor.hidden", (spec.actor_hidden, r + m + 1)),
+            ("actor.output", (m, spec.actor_hidden + 1)),
+        ]
+        if self.has_predictor:
+            hp = spec.predictor_hidden
+            shapes += [
+                ("predictor.hidden", (hp, r + m + 1)),
+                ("predictor.self", (hp,)),
+                ("predictor.initial", (hp,)),
+                ("predictor.output", (self.free.size, hp + 1)),
+            ]
+        self.blocks: dict[str, tuple[int, tuple[int, ...]]] = {}
+        start = 0
+        for name, shape in shapes:
+            self.blocks[name] = (start, shape)
+            start += int(np.prod(shape))
+        self.size = start
+
+    def unpack(self, genome: np.ndarray) -> dict[str, np.ndarray]:
+        """Views of ``genome`` per block; raises :class:`GenomeError` if it does not fit."""
+        genome = np.asarray(genome, dtype=np.float64)
+        if genome.shape != (self.size,):
+            raise GenomeError(f"genome has shape {genome.shape}, the layout needs ({self.size},)")
+        if not np.all(np.isfinite(genome)):
+            raise GenomeError("genome holds non-finite values")
+        return {
+            name: genome[start : start + int(np.prod(shape))].reshape(shape)
+            for name, (start, shape) in self.blocks.items()
+        }
+
+
+@kernel
+def network_step(
+    a_in: np.ndarray,
+    a_out: np.ndarray,
+    p_in: np.ndarray,
+    p_self: np.ndarray,
+    p_out: np.ndarray,
+    free: np.ndarray,
+    fixed: np.ndarray,
+    sensors: np.ndarray,
+    previous: np.ndarray,
+    hidden: np.ndarray,
+    work: np.ndarray,
+    action: np.ndarray,
+    prediction: np.ndarray,
+) -> None:
+    """One control step of one robot's network pair: ``action`` = a(t), ``prediction`` = p(t+1).
+
+    The weights are the genome's blocks (see the module docstring; ``p_in`` has no rows when the
+    predictor is dropped). ``previous`` holds a(t-1) and becomes a(t); ``hidden`` is the
+    predictor's state h(t-1) and becomes h(t). ``work`` is scratch space of at least
+    R + M + 1 + H_a values. Sigmoid is written ``(tanh(x / 2) + 1) / 2``: exact, never overflows.
+    """
+    r = sensors.shape[0]
+    inputs = r + 3
+    ha = a_in.shape[0]
+    for i in range(r):
+        work[i] = sensors[i]
+    work[r] = previous[0]
+    work[r + 1] = previous[1]
+    work[r + 2] = 1.0
+    # actor: hidden tanh layer into work[inputs:inputs + ha], then two tanh outputs
+    for j in range(ha):
+        z = 0.0
+        for k in range(inputs):
+            z += a_in[j, k] * work[k]
+        work[inputs + j] = np.tanh(z)
+    for m in range(2):
+        z = a_out[m, ha]
+        for j in range(ha):
+            z += a_out[m, j] * work[inputs + j]
+        action[m] = np.tanh(z)
+    previous[0] = action[0]
+    previous[1] = action[1]
+    for i in range(r):
+        prediction[i] = fixed[i]
+    hp = p_in.shape[0]
+    if hp == 0:
+        return
+    # predictor: inputs s(t), a(t), 1; each hidden neuron also feeds back to itself
+    work[r] = action[0]
+    work[r + 1] = action[1]
+    for j in range(hp):
+        z = p_self[j] * hidden[j]
+        for k in range(inputs):
+            z += p_in[j, k] * work[k]
+        hidden[j] = 0.5 * (np.tanh(0.5 * z) + 1.0)
+    for o in range(free.shape[0]):
+        z = p_out[o, hp]
+        for j in range(hp):
+            z += p_out[o, j] * hidden[j]
+        prediction[free[o]] = 0.5 * (np.tanh(0.5 * z) + 1.0)
+
+
+@kernel
+def network_step_batch(
+    a_in: np.ndarray,
+    a_out: np.ndarray,
+    p_in: np.ndarray,
+    p_self: np.ndarray,
+    p_out: np.ndarray,
+    free: np.ndarray,
+    fixed: np.ndarray,
+    sensors: np.ndarray,
+    previous: np.ndarray,
+    hidden: np.ndarray,
+    work: np.ndarray,
+    action: np.ndarray,
+    prediction: np.ndarray,
+) -> None:
+    """:func:`network_step` for every row of ``sensors`` (robots sharing one genome)."""
+    for i in range(sensors.shape[0]):
+        network_step(
+            a_in, a_out, p_in, p_self, p_out, free, fixed, sensors[i], previous[i], hidden[i],
+            work, action[i], prediction[i],
+        )  # fmt: skip
+
+
+class NetworkPair:
+    """One genome's actor and predictor, run for a batch of ``robots`` at once.
+
+    Each robot has its own previous action and predictor hidden state. Call :meth:`step` once per
+    control step with the sensor readings s(t); it returns the actions a(t) and the predictions
+    p(t+1). Arrays are shaped ``(robots, R)`` and ``(robots, 2)``; with 1-D input (one robot) the
+    results are 1-D too. :meth:`reset` starts a new evaluation. Every step runs
+    :func:`network_step`, the kernel the simulator's engine runs too.
+    """
+
+    def __init__(self, spec: NetworkSpec, genome: np.ndarray, robots: int = 1) -> None:
+        self.layout = GenomeLayout(spec)
+        self.robots = robots
+        self.weights = network_weights(self.layout, genome)
+        r = self.layout.sensors
+        self._r = r
+        self.previous_action = np.empty((robots, ACTIONS))
+        self.hidden = np.empty((robots, self.weights[2].shape[0]))
+        self._work = np.empty(r + ACTIONS + 1 + spec.actor_hidden)
+        self._action = np.empty((robots, ACTIONS))
+        self._prediction = np.empty((robots, r))
+        self.reset()
+
+    def reset(self) -> None:
+        """Start an evaluation: a(-1) = ``initial_action``, hidden state = the learned one."""
+        self.previous_action[:] = self.layout.spec.initial_action
+        self.hidden[:] = self.weights[-1]
+
+    def step(self, sensors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One control step: ``(a(t), p(t+1))`` for the readings ``s(t)`` (fresh arrays)."""
+        one = sensors.ndim == 1
+        batch = sensors.reshape(1, -1) if one else sensors
+        if batch.shape != (self.robots, self._r):
+            raise ValueError(
+                f"sensors have shape {sensors.shape}, expected ({self.robots}, "
+                f"{self._r}) or ({self._r},) for one robot"
+            )
+        batch = np.ascontiguousarray(batch, dtype=np.float64)
+        action, prediction = self._action, self._prediction
+        if one:
+            network_step(
+                *self.weights[:7], batch[0], self.previous_action[0], self.hidden[0], self._work,
+                action[0], prediction[0],
+            )  # fmt: skip
+        else:
+            network_step_batch(
+                *self.weights[:7], batch, self.previous_action, self.hidden, self._work, action,
+                prediction,
+            )  # fmt: skip
+        if one:
+            return action[0].copy(), prediction[0].copy()
+        return action.copy(), prediction.copy()
+
+
+#: The weights of a genome as the kernels take them: ``(a_in, a_out, p_in, p_self, p_out, free,
+#: fixed, p_initial)``; ``p_*`` have no rows when the predictor is dropped.
+Weights = tuple[
+    np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray
+]
+
+
+def network_weights(layout: GenomeLayout, genome: np.ndarray) -> Weights:
+    """Contiguous copies of ``genome``'s blocks for :func:`network_step` (see :data:`Weights`).
+
+    Raises :class:`GenomeError` if the genome does not fit the layout.
+    """
+    w = layout.unpack(genome)
+    r = layout.sensors
+    if layout.has_predictor:
+        p_in = np.ascontiguousarray(w["predictor.hidden"])
+        p_self = w["predictor.self"].copy()
+        p_out = np.ascontiguousarray(w["predictor.output"])
+        p_init = w["predictor.initial"].copy()
+    else:
+        p_in = np.zeros((0, r + ACTIONS + 1))
+        p_self = np.zeros(0)
+        p_out = np.zeros((0, 1))
+        p_init = np.zeros(0)
+    return (
+        np.ascontiguousarray(w["actor.hidden"]),
+        np.ascontiguousarray(w["actor.output"]),
+        p_in,
+        p_self,
+        p_out,
+        layout.free.astype(np.int64),
+        layout.fixed.astype(np.float64),
+        p_init,
+    )

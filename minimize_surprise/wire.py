@@ -1,0 +1,648 @@
+"""The wire protocol between the master and the robot agents.
+
+One codec on both sides: every message is a msgspec Struct in one tagged union (the tag sits in the
+field ``"type"``), encoded as msgpack and sent as a frame: a 4-byte big-endian unsigned length
+followed by that many payload bytes. After the handshake every payload ends with a 16-byte tag
+(:mod:`minimize_surprise.session`) that the receiver checks before it decodes anything. Encoding and
+decoding are pure; :class:`FrameDecoder` is incremental so any transport can feed it whatever
+bytes arrive (the asyncio transport of both the master and the agent is
+:class:`transport.stream.MessageStream`). The protocol's facts that both sides must agree on
+(default port, limits, keep-alive, robot ids) are defined here too.
+
+A session (``docs/protocol.md``)::
+
+    robot  -> Hello(robot_id, software_version, protocol_version, sensors, nonce)
+    master -> Challenge(nonce, proof)             or Refused(code, reason), then close
+    robot  -> Authenticate(proof)                 (only if the master's proof is right)
+    master -> Welcome(run_id, heartbeat_interval) or Refused(code, reason), then close
+              -- from Welcome on, every frame in both directions carries a tag --
+    master -> Evaluate(...)  robot -> Result(...) | Failed(...);   master -> Abort(...) at any time
+    either -> Ping / Pong / Error / Bye
+
+Everything that can arrive before authentication is bounded in its type, so decoding refuses it
+(and a small frame limit, :data:`HANDSHAKE_MAX_FRAME_SIZE`, bounds it first). Decoding ignores
+fields it does not know, so a newer peer may add optional fields without breaking an older one;
+incompatible changes bump :data:`PROTOCOL_VERSION`, which the master checks in Hello.
+"""
+
+from __future__ import annotations
+
+import re
+import struct
+from typing import Annotated, Final
+
+import msgspec
+import numpy as np
+
+from minimize_surprise.config import MAX_RECORDED_STEPS, MAX_STEP_PERIOD
+from minimize_surprise.errors import FrameTooLargeError, GenomeError, ProtocolError
+from minimize_surprise.network import NetworkSpec
+from minimize_surprise.session import NONCE_SIZE, PROOF_SIZE
+
+__all__ = [
+    "DEAD_AFTER_HEARTBEATS",
+    "DEFAULT_PORT",
+    "HANDSHAKE_MAX_FRAME_SIZE",
+    "HEADER_SIZE",
+    "LOGGED_TEXT_LIMIT",
+    "MAX_FRAME_SIZE",
+    "MAX_HEARTBEAT_INTERVAL",
+    "MAX_NAME_LENGTH",
+    "MAX_REASONS",
+    "MAX_REASON_LENGTH",
+    "MAX_SENSORS",
+    "MIN_HEARTBEAT_INTERVAL",
+    "PROTOCOL_VERSION",
+    "REFUSED_BAD_SECRET",
+    "REFUSED_CODES",
+    "REFUSED_MISSING_SENSORS",
+    "REFUSED_PROTOCOL",
+    "REFUSED_UNKNOWN_ROBOT",
+    "REFUSED_VERSION_MISMATCH",
+    "ROBOT_ID_PATTERN",
+    "TRACE_COLUMNS",
+    "Abort",
+    "Authenticate",
+    "Bye",
+    "Challenge",
+    "Error",
+    "Evaluate",
+    "EvaluationStats",
+    "Failed",
+    "FrameDecoder",
+    "Hello",
+    "Message",
+    "Ping",
+    "Pong",
+    "Refused",
+    "Result",
+    "Trace",
+    "Welcome",
+    "decode_payload",
+    "encode",
+    "encode_payload",
+    "frame",
+    "genome_from_bytes",
+    "genome_to_bytes",
+    "is_valid_robot_id",
+    "printable",
+]
+
+#: The master's TCP port unless configured otherwise (the default of both sides' configuration).
+DEFAULT_PORT: Final = 7474
+#: A link is dead when nothing at all arrived for this many heartbeat intervals (either side): one
+#: lost ping is no reason to drop a robot, three in a row on a lab network are.
+DEAD_AFTER_HEARTBEATS: Final = 3
+#: The heartbeat intervals a master may configure and a robot accepts, in seconds. Below 50 ms
+#: the pings alone would keep a Pi busy and one late packet would count as a dead link; above a
+#: minute a dead link would go unnoticed for minutes while the robot waits.
+MIN_HEARTBEAT_INTERVAL: Final = 0.05
+MAX_HEARTBEAT_INTERVAL: Final = 60.0
+#: What a robot id may look like: it names a CSV column and a trace file on the master and goes
+#: into the authentication, so no separators or spaces, and a bounded length.
+ROBOT_ID_PATTERN: Final = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"
+_ROBOT_ID_RE: Final = re.compile(ROBOT_ID_PATTERN)
+
+#: The most sensors a robot may announce or a trace row may hold: the project knows 12
+#: (``minimize_surprise.sensors.ALL_SENSORS``); 16 leaves room for a few more while a trace of
+#: ``MAX_RECORDED_STEPS`` steps still fits one frame.
+MAX_SENSORS: Final = 16
+#: The longest sensor name, safety reason or Refused code, in characters (the project's longest
+#: has 14).
+MAX_NAME_LENGTH: Final = 32
+#: The most distinct safety reasons an evaluation's statistics may count.
+MAX_REASONS: Final = 32
+#: The longest software version a robot may announce, in characters.
+MAX_VERSION_LENGTH: Final = 64
+#: The longest run id, in characters: a run directory's name (file systems allow 255 bytes).
+MAX_RUN_ID_LENGTH: Final = 255
+#: The longest reason a Refused may give, in characters; the master cuts its reasons to it.
+MAX_REASON_LENGTH: Final = 512
+#: How many characters of a text a peer sent (a reason, a message) go into a log line.
+LOGGED_TEXT_LIMIT: Final = 200
+
+#: Version of this protocol; sent in Hello. Bump it for any change an older peer cannot decode.
+#: 2: mutual authentication and tagged frames; the step period in Evaluate; packed traces.
+PROTOCOL_VERSION: Final = 2
+
+#: Default upper bound of one frame's payload, in bytes. A post-evaluation trace of 1000 steps x 12
+#: sensors is about 0.25 MB; 8 MiB leaves ample room for longer traces while bounding the memory a
+#: single (possibly hostile) connection can make us buffer.
+MAX_FRAME_SIZE: Final = 8 * 1024 * 1024
+#: Upper bound of one frame until the handshake is complete, on both sides. The largest handshake
+#: message (a Hello of 16 sensor names of 32 characters, a 64-character version, a refusal of 512
+#: characters) takes well under 3 KiB; a peer that has not authenticated can make us buffer no
+#: more than this per connection.
+HANDSHAKE_MAX_FRAME_SIZE: Final = 4 * 1024
+
+#: Refused codes: the shared secret did not match.
+REFUSED_BAD_SECRET: Final = "bad-secret"
+#: Refused codes: the robot speaks another :data:`PROTOCOL_VERSION`.
+REFUSED_VERSION_MISMATCH: Final = "version-mismatch"
+#: Refused codes: the robot id is not part of this run.
+REFUSED_UNKNOWN_ROBOT: Final = "unknown-robot"
+#: Refused codes: the robot lacks a sensor the experiment needs.
+REFUSED_MISSING_SENSORS: Final = "missing-sensors"
+#: Refused codes: the robot broke the handshake (wrong message, wrong order, too slow).
+REFUSED_PROTOCOL: Final = "protocol"
+#: Every Refused code.
+REFUSED_CODES: Final = frozenset(
+    {
+        REFUSED_BAD_SECRET,
+        REFUSED_VERSION_MISMATCH,
+        REFUSED_UNKNOWN_ROBOT,
+        REFUSED_MISSING_SENSORS,
+        REFUSED_PROTOCOL,
+    }
+)
+
+# Bounds checked while decoding (msgspec does not check them when a Struct is built in code).
+_NonNegative = Annotated[int, msgspec.Meta(ge=0)]
+_Positive = Annotated[int, msgspec.Meta(ge=1)]
+_Name = Annotated[str, msgspec.Meta(max_length=MAX_NAME_LENGTH)]
+_StepPeriod = Annotated[float, msgspec.Meta(gt=0.0, le=MAX_STEP_PERIOD)]
+_Nonce = Annotated[bytes, msgspec.Meta(min_length=NONCE_SIZE, max_length=NONCE_SIZE)]
+_Proof = Annotated[bytes, msgspec.Meta(min_length=PROOF_SIZE, max_length=PROOF_SIZE)]
+_RobotId = Annotated[str, msgspec.Meta(pattern=ROBOT_ID_PATTERN)]
+_HeartbeatInterval = Annotated[
+    float, msgspec.Meta(ge=MIN_HEARTBEAT_INTERVAL, le=MAX_HEARTBEAT_INTERVAL)
+]
+
+_HEADER = struct.Struct(">I")
+#: Bytes of a frame's length header.
+HEADER_SIZE: Final = _HEADER.size
+
+
+def is_valid_robot_id(robot_id: str) -> bool:
+    """Whether ``robot_id`` matches :data:`ROBOT_ID_PATTERN`."""
+    return _ROBOT_ID_RE.match(robot_id) is not None
+
+
+def printable(text: str, limit: int = LOGGED_TEXT_LIMIT) -> str:
+    """``text`` from a peer, fit for one log line: control characters (line breaks, terminal
+    escapes) shown as ``?`` and at most ``limit`` characters, a cut marked with ``...``."""
+    head = "".join(c if c.isprintable() else "?" for c in text[:limit])
+    return head + "..." if len(text) > limit else head
+
+
+# ---------------------------------------------------------------------------------------------
+# Genomes
+
+
+def genome_to_bytes(genome: np.ndarray) -> bytes:
+    """Return a flat genome as float64 little-endian bytes (bit-exact on every platform).
+
+    Raises :class:`GenomeError` if the genome is not one-dimensional or holds a non-finite value:
+    such a genome is a bug on the sending side and must not reach a robot.
+    """
+    array = np.asarray(genome)
+    if array.ndim != 1:
+        raise GenomeError(f"a genome must be one-dimensional, got shape {array.shape}")
+    array = array.astype("<f8", copy=False)
+    if not np.isfinite(array).all():
+        raise GenomeError("a genome must hold finite values only")
+    return array.tobytes()
+
+
+def genome_from_bytes(data: bytes) -> np.ndarray:
+    """Return the float64 genome encoded by :func:`genome_to_bytes` as a new writable array.
+
+    Raises :class:`ProtocolError` if the length is not a multiple of 8 or a value is not finite.
+    """
+    if len(data) % 8:
+        raise ProtocolError(f"genome of {len(data)} bytes is not a whole number of float64 values")
+    # Copy to native byte order: the caller owns the result and may compute with it directly.
+    array = np.frombuffer(data, dtype="<f8").astype(np.float64)
+    if not np.isfinite(array).all():
+        raise ProtocolError("genome holds a non-finite value")
+    return array
+
+
+# ---------------------------------------------------------------------------------------------
+# Messages
+
+
+class _Message(msgspec.Struct, frozen=True, kw_only=True, tag_field="type"):
+    """Base of every message; the subclass's tag goes in the field ``type``."""
+
+
+class Hello(_Message, tag="hello"):
+    """Robot -> master, the first message: who the robot is, what it can sense, and a fresh
+    ``nonce`` (:func:`minimize_surprise.session.new_nonce`) the master's proof must cover.
+
+    ``nonce`` may only be missing in a Hello of another protocol version (so that such a robot is
+    told about the version, not about a missing field).
+    """
+
+    robot_id: _RobotId
+    software_version: Annotated[str, msgspec.Meta(max_length=MAX_VERSION_LENGTH)]
+    protocol_version: int
+    sensors: Annotated[tuple[_Name, ...], msgspec.Meta(max_length=MAX_SENSORS)]
+    nonce: _Nonce | None = None
+
+
+class Challenge(_Message, tag="challenge"):
+    """Master -> robot: the master's fresh ``nonce`` and its ``proof`` of the shared secret
+    (:func:`minimize_surprise.session.master_proof`), which the robot checks before it answers."""
+
+    nonce: _Nonce
+    proof: _Proof
+
+
+class Authenticate(_Message, tag="auth"):
+    """Robot -> master: the robot's ``proof`` (:func:`minimize_surprise.session.robot_proof`)."""
+
+    proof: _Proof
+
+
+class Welcome(_Message, tag="welcome"):
+    """Master -> robot, the first tagged frame: accepted into run ``run_id``; send or expect a
+    Ping every ``heartbeat_interval`` seconds (within the protocol's bounds)."""
+
+    run_id: Annotated[str, msgspec.Meta(max_length=MAX_RUN_ID_LENGTH)]
+    heartbeat_interval: _HeartbeatInterval
+
+
+class Refused(_Message, tag="refused"):
+    """Master -> robot before closing: why the robot was not accepted (one of REFUSED_CODES)."""
+
+    code: _Name
+    reason: Annotated[str, msgspec.Meta(max_length=MAX_REASON_LENGTH)]
+
+
+class Evaluate(_Message, tag="eval"):
+    """Master -> robot: run ``genome`` (see :func:`genome_to_bytes`) for ``steps`` control steps
+    of ``step_period`` seconds each (the experiment's period; a robot that cannot keep it answers
+    Failed).
+
+    With ``record`` (post-evaluation) the robot returns the full :class:`Trace` in its Result.
+    """
+
+    evaluation_id: _NonNegative
+    genome: bytes
+    spec: NetworkSpec
+    steps: _Positive
+    step_period: _StepPeriod
+    record: bool = False
+
+    def __post_init__(self) -> None:
+        # Reject a malformed genome where it enters, not deep inside the robot's control loop.
+        genome_from_bytes(self.genome)
+        if self.record and self.steps > MAX_RECORDED_STEPS:
+            # The trace would not fit one frame: the robot could never send its Result.
+            raise ProtocolError(
+                f"a recorded evaluation has at most {MAX_RECORDED_STEPS} steps, not {self.steps}"
+            )
+
+
+class EvaluationStats(msgspec.Struct, frozen=True, kw_only=True):
+    """What happened during an evaluation besides the fitness.
+
+    ``overruns`` counts steps that missed their deadline, ``interventions`` counts safety
+    interventions by reason and ``read_failures`` sensor reads that failed or timed out.
+    """
+
+    steps_run: _NonNegative
+    overruns: _NonNegative
+    interventions: Annotated[dict[_Name, _NonNegative], msgspec.Meta(max_length=MAX_REASONS)]
+    read_failures: _NonNegative = 0
+
+
+#: Columns of each of a :class:`Trace`'s arrays; None: the trace's ``width`` (its sensors).
+TRACE_COLUMNS: Final[dict[str, int | None]] = {
+    "sensors": None,
+    "predictions": None,
+    "actions": 2,
+    "commands": 2,
+    "poses": 3,
+}
+_TRACE_DTYPE: Final = np.dtype("<f8")
+# The most bytes one array of a trace can need; the decoder refuses a longer one before copying.
+_MAX_TRACE_ARRAY: Final = MAX_RECORDED_STEPS * MAX_SENSORS * _TRACE_DTYPE.itemsize
+_TraceArray = Annotated[bytes, msgspec.Meta(max_length=_MAX_TRACE_ARRAY)]
+
+
+class Trace(msgspec.Struct, frozen=True, kw_only=True):
+    """A post-evaluation record of ``steps`` control steps as packed arrays, one row per step.
+
+    Each array is float64 little-endian bytes, row after row: ``sensors`` the ``width`` sensor
+    values, ``predictions`` the ``width`` values predicted at that step for the next, ``actions``
+    the 2 intended wheel speeds, ``commands`` the 2 applied after safety and, in simulation,
+    ``poses`` (x, y, theta). ``safety`` holds each step's intervention reason ("" when none).
+    Build one with :meth:`from_arrays`; read one with :meth:`array`.
+
+    Packed arrays are checked for shape and size as they are decoded: ``steps`` and ``width``
+    are bounded, an array longer than any trace can need is refused before it is copied, and
+    every array must hold exactly ``steps`` rows. (Rows as lists of floats would let a peer make
+    the receiver build millions of objects before the shape could be checked.)
+    """
+
+    steps: Annotated[int, msgspec.Meta(ge=0, le=MAX_RECORDED_STEPS)]
+    width: Annotated[int, msgspec.Meta(ge=1, le=MAX_SENSORS)]
+    sensors: _TraceArray
+    predictions: _TraceArray
+    actions: _TraceArray
+    commands: _TraceArray
+    safety: Annotated[list[_Name], msgspec.Meta(max_length=MAX_RECORDED_STEPS)]
+    poses: _TraceArray | None = None
+
+    def __post_init__(self) -> None:
+        size = _TRACE_DTYPE.itemsize
+        for name, columns in TRACE_COLUMNS.items():
+            data = getattr(self, name)
+            if data is None:
+                continue
+            columns = self.width if columns is None else columns
+            expected = self.steps * columns * size
+            if len(data) != expected:
+                raise ValueError(
+                    f"a trace's {name} must hold {self.steps} x {columns} float64 values "
+                    f"({expected} bytes), not {len(data)} bytes"
+                )
+        if len(self.safety) != self.steps:
+            raise ValueError(
+                f"a trace's safety must hold one entry per step ({self.steps}), "
+                f"not {len(self.safety)}"
+            )
+
+    @classmethod
+    def from_arrays(
+        cls,
+        *,
+        sensors: np.ndarray,
+        predictions: np.ndarray,
+        actions: np.ndarray,
+        commands: np.ndarray,
+        safety: list[str],
+        poses: np.ndarray | None = None,
+    ) -> Trace:
+        """Pack arrays shaped (steps, columns); raises ``ValueError`` if their shapes disagree."""
+        arrays = {
+            "sensors": sensors,
+            "predictions": predictions,
+            "actions": actions,
+            "commands": commands,
+            "poses": poses,
+        }
+        first = np.asarray(sensors)
+        if first.ndim != 2:
+            raise ValueError(
+                f"a trace's sensors must be shaped (steps, sensors), not {first.shape}"
+            )
+        steps, width = first.shape
+        packed: dict[str, bytes | None] = {}
+        for name, array in arrays.items():
+            if array is None:
+                packed[name] = None
+                continue
+            columns = TRACE_COLUMNS[name]
+            shape = (steps, width if columns is None else columns)
+            values = np.ascontiguousarray(array, dtype=_TRACE_DTYPE)
+            if values.shape != shape:
+                raise ValueError(f"a trace's {name} must be shaped {shape}, not {values.shape}")
+            packed[name] = values.tobytes()
+        return cls(steps=steps, width=width, safety=list(safety), **packed)  # type: ignore[arg-type]
+
+    def array(self, name: str) -> np.ndarray:
+        """The array ``name`` (one of :data:`TRACE_COLUMNS`) shaped (steps, columns), as a
+        read-only float64 view of the bytes; raises ``KeyError`` for an unknown name and
+        ``ValueError`` for ``poses`` when the trace has none."""
+        columns = TRACE_COLUMNS[name]
+        data = getattr(self, name)
+        if data is None:
+            raise ValueError(f"this trace has no {name}")
+        columns = self.width if columns is None else columns
+        return np.frombuffer(data, dtype=_TRACE_DTYPE).reshape(self.steps, columns)
+
+
+class Result(_Message, tag="result"):
+    """Robot -> master: the fitness of evaluation ``evaluation_id``, with its trace if recorded.
+
+    A surprise fitness lies in [0, 1] (paper Eq. 1); decoding refuses anything else, NaN
+    included: one robot's garbage must not steer (or freeze) the evolution.
+    """
+
+    evaluation_id: _NonNegative
+    fitness: Annotated[float, msgspec.Meta(ge=0.0, le=1.0)]
+    stats: EvaluationStats
+    trace: Trace | None = None
+
+
+class Failed(_Message, tag="failed"):
+    """Robot -> master: evaluation ``evaluation_id`` could not be completed, and why."""
+
+    evaluation_id: _NonNegative
+    reason: str
+
+
+class Abort(_Message, tag="abort"):
+    """Master -> robot: stop evaluation ``evaluation_id`` now (motors stop; no Result follows)."""
+
+    evaluation_id: _NonNegative
+    reason: str
+
+
+class Ping(_Message, tag="ping"):
+    """Either way: liveness probe; the peer answers with a Pong of the same ``seq``."""
+
+    seq: _NonNegative
+
+
+class Pong(_Message, tag="pong"):
+    """Either way: the answer to the Ping with the same ``seq``."""
+
+    seq: _NonNegative
+
+
+class Error(_Message, tag="error"):
+    """Either way, before closing: the peer broke the protocol or something failed."""
+
+    code: str
+    message: str
+
+
+class Bye(_Message, tag="bye"):
+    """Either way: orderly close; the sender closes the connection after it."""
+
+    reason: str
+
+
+#: Any message of the protocol.
+Message = (
+    Hello
+    | Challenge
+    | Authenticate
+    | Welcome
+    | Refused
+    | Evaluate
+    | Result
+    | Failed
+    | Abort
+    | Ping
+    | Pong
+    | Error
+    | Bye
+)
+
+_MESSAGE_TYPES: Final = Message.__args__
+_encoder = msgspec.msgpack.Encoder()
+_decoder = msgspec.msgpack.Decoder(Message)
+
+
+# ---------------------------------------------------------------------------------------------
+# Framing
+
+
+def encode_payload(msg: Message) -> bytes:
+    """Return ``msg`` as a frame's payload (msgpack, without the length header).
+
+    Raises ``TypeError`` if ``msg`` is not a protocol message.
+    """
+    if not isinstance(msg, _MESSAGE_TYPES):
+        raise TypeError(f"not a protocol message: {type(msg).__name__}")
+    return _encoder.encode(msg)
+
+
+def frame(payload: bytes, *, max_frame_size: int = MAX_FRAME_SIZE) -> bytes:
+    """Return ``payload`` (a tagged one after the handshake) with its length header.
+
+    Raises :class:`FrameTooLargeError` if the payload exceeds ``max_frame_size`` (the peer would
+    refuse it anyway).
+    """
+    if len(payload) > max_frame_size:
+        raise FrameTooLargeError(len(payload), max_frame_size)
+    return _HEADER.pack(len(payload)) + payload
+
+
+def encode(msg: Message, *, max_frame_size: int = MAX_FRAME_SIZE) -> bytes:
+    """Return ``msg`` as one complete untagged frame (length header and payload), as sent
+    during the handshake.
+
+    Raises :class:`FrameTooLargeError` if the payload exceeds ``max_frame_size`` and
+    ``TypeError`` if ``msg`` is not a protocol message.
+    """
+    return frame(encode_payload(msg), max_frame_size=max_frame_size)
+
+
+def decode_payload(payload: bytes | bytearray | memoryview) -> Message:
+    """Return the message in one frame's payload (without the length header or tag).
+
+    This is the one place where decoding failures become :class:`ProtocolError` with the reason.
+    """
+    try:
+        return _decoder.decode(payload)
+    except RecursionError as exc:  # deeply nested data in an ignored field
+        raise ProtocolError("malformed message: nested too deeply") from exc
+    except ValueError as exc:
+        # msgspec.DecodeError (and its ValidationError, which wraps __post_init__ failures), and
+        # UnicodeDecodeError, which msgspec raises as is for a string that is not UTF-8.
+        raise ProtocolError(f"malformed message: {exc}") from exc
+
+
+class FrameDecoder:
+    """Incremental splitter and decoder of a byte stream of frames.
+
+    :meth:`feed_payloads` returns the payloads of the frames completed so far, however the stream
+    is split (a transport that checks tags decodes them itself); :meth:`feed` decodes them too.
+    Any error poisons the decoder: the stream is out of sync and the connection must be closed.
+    """
+
+    def __init__(self, max_frame_size: int = MAX_FRAME_SIZE) -> None:
+        self.max_frame_size = max_frame_size
+        self._buffer = bytearray()
+        # Start of unconsumed data in _buffer; consumed bytes are dropped once per feed(), so a
+        # frame fed a byte at a time costs amortised O(1) per byte, not a copy of the buffer.
+        self._start = 0
+        # Payload length of the frame being received, once its header is complete.
+        self._length: int | None = None
+        self._poisoned: ProtocolError | None = None
+
+    @property
+    def poisoned(self) -> bool:
+        """Whether an earlier error made the decoder unusable (every feed raises)."""
+        return self._poisoned is not None
+
+    @property
+    def pending(self) -> int:
+        """Number of bytes received but not yet decoded (a partial frame, header included)."""
+        # Count a header already parsed too, so that a peer closing right after a header is seen
+        # as closing mid-frame.
+        header = 0 if self._length is None else _HEADER.size
+        return header + len(self._buffer) - self._start
+
+    def poison(self, error: ProtocolError) -> None:
+        """Make the decoder unusable after ``error`` (found by the caller in a payload)."""
+        self._poisoned = error
+        self._buffer = bytearray()
+        self._start = 0
+        self._length = None
+
+    def feed(self, data: bytes | bytearray | memoryview) -> list[Message]:
+        """Add received bytes; return every message they complete, in order.
+
+        Raises :class:`FrameTooLargeError` as soon as a header announces an oversized frame,
+        :class:`ProtocolError` for an empty frame or an undecodable payload, and
+        :class:`ProtocolError` on every call after an error.
+        """
+        payloads = self.feed_payloads(data)
+        try:
+            return [decode_payload(payload) for payload in payloads]
+        except ProtocolError as exc:
+            self.poison(exc)
+            raise
+
+    def feed_payloads(self, data: bytes | bytearray | memoryview) -> list[bytes | bytearray]:
+        """Add received bytes; return the payloads of every frame they complete, in order.
+
+        Raises :class:`FrameTooLargeError` as soon as a header announces an oversized frame,
+        :class:`ProtocolError` for an empty frame, and on every call after an error.
+        """
+        if self._poisoned is not None:
+            raise ProtocolError(f"decoder unusable after an earlier error: {self._poisoned}")
+        try:
+            return self._feed(data)
+        except ProtocolError as exc:
+            self.poison(exc)
+            raise
+
+    def _feed(self, data: bytes | bytearray | memoryview) -> list[bytes | bytearray]:
+        buffer = self._buffer
+        if not buffer and self._length is None and len(data) >= _HEADER.size:
+            # Refuse an oversized frame before its first bytes are copied anywhere.
+            (length,) = _HEADER.unpack_from(data)
+            if length > self.max_frame_size:
+                raise FrameTooLargeError(length, self.max_frame_size)
+        buffer += data
+        payloads: list[bytes | bytearray] = []
+        while True:
+            available = len(buffer) - self._start
+            if self._length is None:
+                if available < _HEADER.size:
+                    break
+                (length,) = _HEADER.unpack_from(buffer, self._start)
+                if length > self.max_frame_size:
+                    raise FrameTooLargeError(length, self.max_frame_size)
+                if length == 0:
+                    raise ProtocolError("empty frame")
+                self._start += _HEADER.size
+                self._length = length
+                available -= _HEADER.size
+            if available < self._length:
+                break
+            end = self._start + self._length
+            if end == len(buffer):
+                # The buffer ends with this frame (always so for a large one): hand the buffer
+                # over rather than copy megabytes (dropping its head is cheap for a bytearray).
+                del buffer[: self._start]
+                payloads.append(buffer)
+                buffer = self._buffer = bytearray()
+                self._start = 0
+            else:
+                with memoryview(buffer) as view:
+                    payloads.append(bytes(view[self._start : end]))
+                self._start = end
+            self._length = None
+        if self._start:
+            del buffer[: self._start]
+            self._start = 0
+        return payloads

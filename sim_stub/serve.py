@@ -1,0 +1,396 @@
+"""``surprise-sim-robots``: simulated Thymios served over D-Bus, as in a lab, for separate agents.
+
+::
+
+    surprise-sim-robots --scenario basic --robots 4 --seed 1 --dir robots \\
+        [--master-host 127.0.0.1] [--master-port 7474] [--secret-file secret.key] \\
+        [--reconnect-initial 0.5] [--reconnect-max 30] [--speed-scale 265] [--poses]
+
+One process holds a real-time world (:class:`~sim_stub.body.SimSwarm`, one step every 0.1 s of
+wall-clock time) and serves each of its robots as an asebamedulla-like service
+(:mod:`sim_stub.medulla_model`) on a private ``dbus-daemon`` of its own. In ``--dir`` it writes
+one ready-to-use agent configuration per robot, ``agent-sim-<i>.yaml`` (robot id ``sim-<i>``,
+the master's address and secret, ``body.thymio.bus`` set to that robot's bus), so that
+``surprise-agent --config DIR/agent-sim-<i>.yaml`` drives the simulated robot with the real
+Thymio driver, in its own process, exactly as on a robot's Pi. ``DIR/robots.json`` announces the
+running service (process id, each robot's bus and configuration); it is written once every
+robot is served and removed on exit. The command lines to start the agents are printed.
+
+It runs until SIGTERM or SIGINT, then stops the world, hangs up and stops every dbus-daemon it
+started (exit code 0). With ``--poses`` the poses of every step are written to
+``DIR/poses.npy`` (shape: steps + 1, robots, 3 for x, y, theta) on exit.
+
+Exit codes: 0 stopped by a signal; 1 could not start (no dbus-daemon, DIR not writable, another
+server on DIR); 2 bad arguments (argparse's usage error), or the ``robot`` extra (``dbus-fast``)
+is not installed: the D-Bus modules are imported only once the arguments are parsed, so ``--help``
+works without it.
+
+Without ``--secret-file``, ``DIR/secret.key`` is used and created with a random secret if
+absent; the master's ``secret_file`` must name the same file. Only scenarios whose robots carry
+nothing but the Thymio's own sensors (IR and ground) can be served: ``basic``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import logging
+import os
+import secrets
+import signal
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import yaml
+
+from drivers.config import SPEED_SCALE
+from minimize_surprise.errors import ConfigError
+from minimize_surprise.files import PRIVATE_MODE, write_atomic
+from minimize_surprise.sensors import GROUND_SENSORS, IR_SENSORS
+from minimize_surprise.wire import DEFAULT_PORT
+from sim_stub.scenarios import SCENARIOS, scenario_config
+
+if TYPE_CHECKING:
+    from sim_stub.medulla_model import SignallingWorld
+
+__all__ = ["EXIT_FAILURE", "EXIT_OK", "EXIT_USAGE", "main", "serve"]
+
+log = logging.getLogger("sim_stub.serve")
+
+#: Exit code after SIGTERM or SIGINT: stopping is the normal end of a server.
+EXIT_OK = 0
+#: Exit code when the robots cannot be served (no dbus-daemon, DIR unusable).
+EXIT_FAILURE = 1
+#: Exit code for bad arguments (argparse's own code for usage errors).
+EXIT_USAGE = 2
+
+#: The master's default TCP port.
+DEFAULT_MASTER_PORT = DEFAULT_PORT
+#: Robot ids are ``sim-<index>``: they name CSV columns and trace files on the master.
+ROBOT_ID_PREFIX = "sim-"
+ROBOTS_FILE = "robots.json"
+POSES_FILE = "poses.npy"
+SECRET_FILE = "secret.key"
+#: The agents' reconnection backoff, as ``robot_agent.config.BackoffConfig`` defaults it.
+RECONNECT_INITIAL = 0.5
+RECONNECT_MAX = 30.0
+RECONNECT_JITTER = 0.25
+
+_SIGNALS = (signal.SIGTERM, signal.SIGINT)
+#: What to install when the D-Bus modules are missing.
+ROBOT_EXTRA = "pip install -e '.[robot]'"
+_THYMIO_SENSORS = frozenset(IR_SENSORS + GROUND_SENSORS)
+
+
+def robot_id(index: int) -> str:
+    """The id of simulated robot ``index``: ``sim-<index>``."""
+    return f"{ROBOT_ID_PREFIX}{index}"
+
+
+def _positive(text: str) -> float:
+    value = float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text}")
+    return value
+
+
+def _count(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected at least 1, got {text}")
+    return value
+
+
+def _port(text: str) -> int:
+    value = int(text)
+    if not 1 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"expected a TCP port 1..65535, got {text}")
+    return value
+
+
+def servable_scenarios() -> tuple[str, ...]:
+    """The scenarios whose robots carry only the Thymio's own sensors (IR and ground): the
+    D-Bus service provides nothing else (force and light sensors are I2C devices)."""
+    return tuple(
+        name for name in SCENARIOS if set(scenario_config(name).sensors) <= _THYMIO_SENSORS
+    )
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="surprise-sim-robots",
+        description="Serve simulated Thymios over D-Bus (one private bus each, real time) for "
+        "separate surprise-agent processes, and write their configurations.",
+    )
+    parser.add_argument(
+        "--scenario",
+        default="basic",
+        choices=servable_scenarios(),
+        help="the world (default: basic; scenarios with force or light sensors cannot be served)",
+    )
+    parser.add_argument("--robots", type=_count, help="number of robots (default: the scenario's)")
+    parser.add_argument("--seed", type=int, default=0, help="the world's seed (default: 0)")
+    parser.add_argument(
+        "--dir", required=True, type=Path, help="where the agent configurations are written"
+    )
+    parser.add_argument("--master-host", default="127.0.0.1", help="default: 127.0.0.1")
+    parser.add_argument(
+        "--master-port", type=_port, default=DEFAULT_MASTER_PORT, help="default: 7474"
+    )
+    parser.add_argument(
+        "--secret-file",
+        type=Path,
+        help=f"the shared secret's file (default: DIR/{SECRET_FILE}, created if absent)",
+    )
+    parser.add_argument(
+        "--reconnect-initial",
+        type=_positive,
+        default=RECONNECT_INITIAL,
+        help=f"the agents' first reconnection delay in seconds (default: {RECONNECT_INITIAL})",
+    )
+    parser.add_argument(
+        "--reconnect-max",
+        type=_positive,
+        default=RECONNECT_MAX,
+        help=f"the agents' longest reconnection delay in seconds (default: {RECONNECT_MAX:g})",
+    )
+    parser.add_argument(
+        "--speed-scale",
+        type=_positive,
+        default=SPEED_SCALE,
+        help=f"motor units for full speed, in the robots and their configs (default: "
+        f"{SPEED_SCALE:g})",
+    )
+    parser.add_argument(
+        "--poses", action="store_true", help=f"write every step's poses to DIR/{POSES_FILE}"
+    )
+    parser.add_argument(
+        "--log-level",
+        default="INFO",
+        type=str.upper,
+        choices=["DEBUG", "INFO", "WARNING", "ERROR"],
+        help="log verbosity (default: INFO)",
+    )
+    return parser
+
+
+def agent_config(
+    args: argparse.Namespace, index: int, bus: str, secret_file: Path
+) -> dict[str, Any]:
+    """The agent configuration (plain data) of robot ``index`` served on ``bus``."""
+    return {
+        "robot_id": robot_id(index),
+        "master": {
+            "host": args.master_host,
+            "port": args.master_port,
+            "secret_file": str(secret_file),
+        },
+        # No failsafe program: the simulated Thymio does not run Aseba code.
+        "body": {"thymio": {"bus": bus, "speed_scale": args.speed_scale}},
+        "safety": {"profile": "stop"},
+        "reconnect": {
+            "initial": args.reconnect_initial,
+            # The agent refuses max < initial; a short --reconnect-initial alone raises max.
+            "max": max(args.reconnect_max, args.reconnect_initial),
+            "jitter": RECONNECT_JITTER,
+        },
+    }
+
+
+def _secret_file(given: Path | None, directory: Path) -> Path:
+    if given is not None:
+        path = given.expanduser().resolve()
+        if not path.is_file():
+            log.warning("the secret file %s does not exist (yet); the agents need it", path)
+        return path
+    path = directory / SECRET_FILE
+    if not path.exists():
+        # Only the owner may read it, as an agent's secret on a robot; written whole, so that a
+        # stop half-way leaves no empty secret file for the next start to take.
+        text = secrets.token_hex(16) + "\n"
+        write_atomic(path, text.encode("utf-8"), mode=PRIVATE_MODE)
+        log.info("wrote a new shared secret to %s", path)
+    return path
+
+
+def _running_server(directory: Path) -> int | None:
+    """The process id of a live server that announced itself in ``directory``, if any."""
+    try:
+        pid = int(json.loads((directory / ROBOTS_FILE).read_text(encoding="utf-8"))["pid"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    if pid == os.getpid():
+        return None
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return None
+    except PermissionError:
+        return pid  # alive, someone else's
+    return pid
+
+
+def _prepare_dir(directory: Path) -> None:
+    directory.mkdir(parents=True, exist_ok=True)
+    other = _running_server(directory)
+    if other is not None:
+        raise RuntimeError(f"{directory} is served by another surprise-sim-robots (pid {other})")
+    # Configurations of an earlier server name dead buses: an agent started on one would only
+    # fail to connect, so they go.
+    for stale in directory.glob(f"agent-{ROBOT_ID_PREFIX}*.yaml"):
+        stale.unlink()
+    with contextlib.suppress(FileNotFoundError):
+        (directory / ROBOTS_FILE).unlink()
+
+
+def _announce(args: argparse.Namespace, robots: list[dict[str, Any]], scenario: str) -> None:
+    print(
+        f"surprise-sim-robots: {len(robots)} simulated Thymios of scenario {scenario} "
+        f"(seed {args.seed}) in real time, master {args.master_host}:{args.master_port}",
+        flush=True,
+    )
+    for robot in robots:
+        print(f"  {robot['robot_id']}: D-Bus {robot['bus']}", flush=True)
+    print("start one agent per robot (each in its own terminal, or with &):", flush=True)
+    for robot in robots:
+        print(f"  surprise-agent --config {robot['config']}", flush=True)
+    print(f"stop with Ctrl-C or: kill {os.getpid()}", flush=True)
+
+
+async def serve(args: argparse.Namespace) -> int:
+    """Serve the robots until SIGTERM or SIGINT; returns the exit code.
+
+    Must run in the main thread (signal handlers can only be set there). Needs ``dbus-fast``
+    (the ``robot`` extra).
+    """
+    # Imported here, not at the top: they need dbus-fast, which --help must do without.
+    from sim_stub.body import SimSwarm
+    from sim_stub.fake_medulla import private_bus
+    from sim_stub.medulla_model import SignallingWorld, SimThymio, serve_sim_thymio
+    from sim_stub.warmup import warm_up
+
+    overrides = {} if args.robots is None else {"robots": args.robots}
+    try:
+        config = scenario_config(args.scenario, overrides)
+    except ConfigError as exc:
+        print(f"surprise-sim-robots: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    directory: Path = args.dir.expanduser().resolve()
+    try:
+        _prepare_dir(directory)
+        secret_file = _secret_file(args.secret_file, directory)
+    except (OSError, RuntimeError) as exc:
+        print(f"surprise-sim-robots: {exc}", file=sys.stderr)
+        return EXIT_FAILURE
+
+    loop = asyncio.get_running_loop()
+    task = asyncio.current_task()
+    assert task is not None
+    received: list[int] = []
+
+    def on_signal(signum: int) -> None:
+        if not received:
+            log.info("received %s: stopping", signal.Signals(signum).name)
+            task.cancel()
+        received.append(signum)
+
+    for sig in _SIGNALS:
+        loop.add_signal_handler(sig, on_signal, sig)
+    # Compile (or load) the world's kernels before any robot is served: a first step that
+    # compiles would stall the real-time world for seconds, and the agents' reads time out.
+    await asyncio.to_thread(warm_up)
+    world = SignallingWorld(config, args.seed, record=args.poses)
+    announced = False
+    try:
+        async with contextlib.AsyncExitStack() as stack:
+            robots: list[dict[str, Any]] = []
+            for index in range(world.n_robots):
+                bus = await stack.enter_async_context(private_bus())
+                model = SimThymio(world, index, speed_scale=args.speed_scale)
+                await stack.enter_async_context(serve_sim_thymio(bus, model))
+                path = directory / f"agent-{robot_id(index)}.yaml"
+                header = (
+                    f"# Written by surprise-sim-robots (pid {os.getpid()}): simulated Thymio "
+                    f"{index} of scenario {args.scenario}, seed {args.seed}.\n"
+                    "# Valid while that process runs: the bus below is its private dbus-daemon.\n"
+                )
+                text = yaml.safe_dump(agent_config(args, index, bus, secret_file), sort_keys=False)
+                # Readers (the tests, a script waiting for robots.json) see the whole file or none.
+                write_atomic(path, (header + text).encode("utf-8"), durable=False)
+                robots.append(
+                    {"robot_id": robot_id(index), "index": index, "bus": bus, "config": str(path)}
+                )
+            # The exit stack stops the world before the services hang up and the buses go.
+            await stack.enter_async_context(SimSwarm(world, realtime=True))
+            info = {
+                "pid": os.getpid(),
+                "scenario": args.scenario,
+                "seed": args.seed,
+                "dt": config.dt,
+                "master": {"host": args.master_host, "port": args.master_port},
+                "secret_file": str(secret_file),
+                "robots": robots,
+            }
+            text = json.dumps(info, indent=2) + "\n"
+            write_atomic(directory / ROBOTS_FILE, text.encode("utf-8"), durable=False)
+            announced = True
+            _announce(args, robots, args.scenario)
+            await asyncio.Event().wait()  # until a signal cancels this task
+        return EXIT_OK  # not reached: the wait ends only by cancellation
+    except asyncio.CancelledError:
+        if not received:
+            raise
+        # Our own signal handler cancelled us: that is the normal way to stop.
+        task.uncancel()
+        log.info("stopped after %d steps (%.1f s of world time)", world.steps, world.time)
+        return EXIT_OK
+    except (OSError, RuntimeError) as exc:  # e.g. dbus-daemon missing or failing to start
+        print(f"surprise-sim-robots: cannot serve the robots: {exc}", file=sys.stderr)
+        return EXIT_FAILURE
+    finally:
+        for sig in _SIGNALS:
+            loop.remove_signal_handler(sig)
+        if announced:
+            with contextlib.suppress(OSError):
+                (directory / ROBOTS_FILE).unlink()
+        if args.poses:
+            _save_poses(directory / POSES_FILE, world)
+
+
+def _save_poses(path: Path, world: SignallingWorld) -> None:
+    try:
+        np.save(path, world.recorded_poses())
+    except OSError as exc:
+        log.error("cannot write %s: %s", path, exc)
+    else:
+        log.info("wrote the poses of %d steps to %s", world.steps, path)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``surprise-sim-robots``; returns the exit code."""
+    args = _parser().parse_args(argv)
+    try:
+        import dbus_fast  # noqa: F401  # the D-Bus services need it; --help does not
+    except ImportError:
+        print(
+            "surprise-sim-robots: serving robots over D-Bus needs dbus-fast, the robot extra: "
+            f"{ROBOT_EXTRA}",
+            file=sys.stderr,
+        )
+        return EXIT_USAGE
+    # Logs go to stderr: stdout carries the announcement, which scripts may read.
+    logging.basicConfig(
+        stream=sys.stderr,
+        level=args.log_level,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    return asyncio.run(serve(args))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
