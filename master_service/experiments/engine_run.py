@@ -1,29 +1,32 @@
 """``surprise-master sim --engine fast``: the experiment on the compiled engine, no robots.
 
-:class:`FastRun` is the master's run without the network: the same (1+1) evolution
-(:class:`~minimize_surprise.evolution.OnePlusOne`, seeded alike), the same run directory
-(configuration snapshot, exactly-once rows and checkpoints, best genome, post-evaluation traces,
-simulation.json, report), the same arena reset before the post-evaluation; each evaluation runs on
+:class:`FastRun` is the master's run without the network: the same evolution loop
+(:class:`~master_service.evolution_run.EvolutionRun`: the (1+1) evolution seeded alike, the same
+run directory with its configuration snapshot, exactly-once rows and checkpoints, best genome and
+post-evaluation traces, resume), the same arena reset before the post-evaluation, then
+simulation.json and the report. Its evaluator runs each evaluation on
 :class:`sim_stub.engine.Swarm`, which does what the agents do in lockstep, in one compiled loop.
 For the same experiment and seed it gives the rows and traces that ``--engine agents`` gives.
 
-Commits are grouped: the rows counted since the last commit are appended and the checkpoint
-written at most every :data:`COMMIT_INTERVAL` seconds (and at the end of each phase), so a run of
-a thousand evaluations a minute does not spend its time in fsync; a stopped run loses at most
-that much work.
+Evaluation ids never leave the process here, so commits are grouped: the rows counted since the
+last commit are appended and the checkpoint written at most every :data:`COMMIT_INTERVAL`
+seconds (and at the end of each phase), so a run of a thousand evaluations a minute does not
+spend its time in fsync; a stopped run loses at most that much work.
 """
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Final
+from typing import Any, Final
 
 import numpy as np
 
 from master_service.config import MasterConfig
+from master_service.evolution_run import Evaluation, EvolutionRun, Progress
 from master_service.experiments.simulation_setup import (
     SimulatedRun,
     simulated_safety,
@@ -31,24 +34,14 @@ from master_service.experiments.simulation_setup import (
     write_box_track,
     write_simulation_file,
 )
-from master_service.master import Progress, RunSummary
-from master_service.rundir import (
-    EVALUATION_COLUMNS,
-    RunDir,
-    RunState,
-    format_row,
-)
+from master_service.rundir import RunDir, RunState
 from minimize_surprise.config import ExperimentConfig
-from minimize_surprise.errors import FileWriteError
-from minimize_surprise.evolution import OnePlusOne
-from minimize_surprise.fitness import swarm_fitness
-from minimize_surprise.network import GenomeLayout, spec_from_config
-from minimize_surprise.safety import dominance_warning
+from minimize_surprise.network import spec_from_config
 from minimize_surprise.wire import EvaluationStats, Result, Trace
 from sim_stub.engine import EvaluationRecord, Swarm
 from sim_stub.world import box_frame_steps
 
-__all__ = ["COMMIT_INTERVAL", "FastRun"]
+__all__ = ["COMMIT_INTERVAL", "EngineEvaluator", "FastRun"]
 
 #: Seconds between two commits at most: a stopped run repeats at most this much of its work.
 COMMIT_INTERVAL: Final = 2.0
@@ -57,7 +50,7 @@ COMMIT_INTERVAL: Final = 2.0
 class FastRun:
     """One experiment on the engine, into a run directory (see the module docstring).
 
-    ``on_progress`` sees a :class:`~master_service.master.Progress` after every evaluation.
+    ``on_progress`` sees a :class:`~master_service.evolution_run.Progress` on every change.
     """
 
     def __init__(
@@ -69,15 +62,16 @@ class FastRun:
         self.experiment = experiment
         self.on_progress = on_progress
         self.spec = spec_from_config(experiment)
-        self.genome_size = GenomeLayout(self.spec).size
         self.swarm = Swarm(
             world_config(experiment), simulated_safety(experiment), self.spec, experiment.seed
         )
         self.ids = list(self.swarm.ids)
+        # The configuration snapshot of the run directory: what the master of ``--engine
+        # agents`` would hold for this swarm (config.yaml has one format for both engines).
         self.config = MasterConfig(
             experiment=experiment, host="127.0.0.1", port=0, allowed_robots=self.ids
         )
-        self._boxes_before: list[list[float]] | None = None
+        self.evaluator = EngineEvaluator(self.swarm, experiment)
 
     def run(
         self,
@@ -98,209 +92,36 @@ class FastRun:
         from master_service.reporting.report import write_report  # matplotlib: only when reporting
 
         directory = RunDir(run_dir)
-        state = self._open(directory, resume)
         log = _run_log(directory)
-        stop = should_stop or (lambda: False)
+        evolution = EvolutionRun(
+            self.config,
+            directory,
+            self.spec,
+            self.evaluator,
+            log,
+            ids_leave_process=False,
+            commit_interval=COMMIT_INTERVAL,
+        )
+        if self.on_progress is not None:
+            evolution.add_progress_listener(self.on_progress)
+        state = evolution.load(resume=resume, roster=self.ids)
+        evolution.open(resume=resume)
         try:
+            if not resume:
+                self._write_simulation_file(directory.path)
+            elif state.simulation is not None:
+                self.swarm.restore(state.simulation)
             if resume:
                 log.info("resumed: %d evaluations done", state.optimizer.evaluations)
-            started = time.monotonic() - state.elapsed_s
-            if state.phase == "evolution" and not self._evolve(
-                directory, state, log, started, stop
-            ):
-                return None
-            post = self._post_evaluate(directory, state, log, started)
-        except FileWriteError as exc:
-            # Into master.log if it still takes lines; the command line says it on the console.
-            log.error("the run stopped: %s; it can be resumed", exc)
-            raise
+            # The loop logs a failed write into master.log; the command line says it too.
+            summary = asyncio.run(_run(evolution, should_stop))
         finally:
             directory.close()
             directory.close_log(log)
-        self._write_simulation_file(directory.path)
-        opt = state.optimizer
-        summary = RunSummary(
-            run_dir=directory.path,
-            evaluations=opt.evaluations,
-            best_fitness=opt.best_fitness,
-            best_genome=None if opt.best is None else opt.best.copy(),
-            failed_attempts=0,
-            post_evaluation_fitness=post,
-        )
-        return SimulatedRun(summary, write_report(directory.path, plots=plots))
-
-    def _open(self, directory: RunDir, resume: bool) -> RunState:
-        """The run's state: new (the directory created) or the checkpoint's (restored)."""
-        experiment = self.experiment
-        state = None
-        if resume:
-            directory.check_experiment(experiment)
-            state = directory.read_state(self.config)
-        else:
-            directory.create(self.config)
-            self._write_simulation_file(directory.path)
-        if state is None:  # new, or stopped before its first commit
-            optimizer = OnePlusOne(experiment.evolution, self.genome_size, experiment.seed)
-            return RunState(
-                run_id=directory.path.resolve().name, optimizer=optimizer, roster=self.ids
-            )
-        directory.prepare_resume(state)
-        if state.simulation is not None:
-            self.swarm.restore(state.simulation)
-        return state
-
-    # -- the phases ------------------------------------------------------------------------------
-
-    def _evolve(
-        self,
-        directory: RunDir,
-        state: RunState,
-        log: logging.Logger,
-        started: float,
-        stop: Callable[[], bool],
-    ) -> bool:
-        """Count evaluations until done (True) or told to stop (False, committed)."""
-        experiment = self.experiment
-        opt = state.optimizer
-        total = experiment.evolution.evaluations
-        header = [*EVALUATION_COLUMNS, *(f"fitness_{robot}" for robot in self.ids)]
-        rows: list[str] = []
-        best_changed = False
-        last_commit = time.monotonic()
-        while not opt.done:
-            if stop():
-                self._commit(directory, state, rows, header, best_changed, started)
-                log.info("stopped after %d evaluations", opt.evaluations)
-                return False
-            candidate = opt.ask()
-            state.next_evaluation_id += 1
-            state.attempts += 1
-            began = time.monotonic()
-            record = self.swarm.evaluate(candidate.genome, experiment.evaluation_steps)
-            fitnesses = [float(f) for f in record.fitness]
-            outcome = opt.tell(swarm_fitness(fitnesses))
-            duration = time.monotonic() - began
-            share = record.safety_share(experiment.evaluation_steps)
-            rows.append(
-                format_row(
-                    outcome.evaluation,
-                    outcome.kind,
-                    outcome.fitness,
-                    outcome.best_fitness,
-                    outcome.accepted,
-                    state.attempts,
-                    duration,
-                    share,
-                    fitnesses,
-                )
-            )
-            state.attempts = 0
-            best_changed |= outcome.accepted
-            log.info(
-                "evaluation %d/%d %s: fitness %.4f, best %.4f%s, safety %.0f %%",
-                outcome.evaluation,
-                total,
-                outcome.kind,
-                outcome.fitness,
-                outcome.best_fitness,
-                ", accepted" if outcome.accepted and outcome.kind == "offspring" else "",
-                100 * share,
-            )
-            if opt.done:
-                state.phase = "post-evaluation" if experiment.post_evaluation_steps else "done"
-            if opt.done or time.monotonic() - last_commit >= COMMIT_INTERVAL:
-                self._commit(directory, state, rows, header, best_changed, started)
-                rows, best_changed, last_commit = [], False, time.monotonic()
-            self._emit(state, outcome.fitness, started, share)
-        return True
-
-    def _post_evaluate(
-        self, directory: RunDir, state: RunState, log: logging.Logger, started: float
-    ) -> float | None:
-        if state.phase != "post-evaluation":
+        if summary is None:
             return None
-        opt = state.optimizer
-        assert opt.best is not None
-        steps = self.experiment.post_evaluation_steps
-        evaluation_id = state.next_evaluation_id
-        state.next_evaluation_id += 1
-        # The paper's post-evaluation starts from a fresh arena, as --engine agents does.
-        world = self.swarm.world
-        world.reset(seed=self.experiment.seed + 1)
-        self._boxes_before = world.box_positions.tolist()
-        log.info("post-evaluation of the best genome for %d steps", steps)
-        record = self.swarm.evaluate(opt.best, steps, record=True)
-        results = {
-            robot: _result(evaluation_id, record, index, steps)
-            for index, robot in enumerate(self.ids)
-        }
-        directory.write_post_evaluation(evaluation_id, opt.best_fitness, steps, results)
-        assert record.boxes is not None
-        write_box_track(directory.path, record.boxes, box_frame_steps(world.config.dt))
-        fitness = swarm_fitness([r.fitness for r in results.values()])
-        share = record.safety_share(steps)
-        log.info(
-            "post-evaluation done: swarm fitness %.4f, safety drove %.0f %% of the steps",
-            fitness,
-            100 * share,
-        )
-        warning = dominance_warning(share, record.interventions)
-        if warning is not None:
-            log.warning("post-evaluation: %s", warning)
-        state.phase = "done"
-        self._commit(directory, state, [], [], False, started)
-        self._emit(state, None, started, None)
-        return fitness
-
-    # -- bookkeeping -----------------------------------------------------------------------------
-
-    def _commit(
-        self,
-        directory: RunDir,
-        state: RunState,
-        rows: list[str],
-        header: list[str],
-        best_changed: bool,
-        started: float,
-    ) -> None:
-        state.csv_rows += len(rows)
-        state.elapsed_s = time.monotonic() - started
-        state.simulation = self.swarm.snapshot()  # between evaluations: consistent
-        directory.commit(state.to_json(), "".join(rows) or None, header)
-        opt = state.optimizer
-        if best_changed and opt.best is not None:
-            directory.write_best(opt.best, opt.best_fitness, opt.best_evaluation, self.spec)
-
-    def _emit(
-        self, state: RunState, last: float | None, started: float, share: float | None
-    ) -> None:
-        if self.on_progress is None:
-            return
-        opt = state.optimizer
-        elapsed = time.monotonic() - started
-        total = self.experiment.evolution.evaluations
-        left = None
-        if opt.evaluations and state.phase != "done":
-            per = elapsed / opt.evaluations
-            post = self.experiment.post_evaluation_steps / self.experiment.evaluation_steps
-            left = per * (total - opt.evaluations + post)
-        self.on_progress(
-            Progress(
-                run_id=state.run_id,
-                phase=state.phase,
-                waiting=False,
-                evaluations=opt.evaluations,
-                total=total,
-                best_fitness=opt.best_fitness,
-                last_fitness=last,
-                robots_connected=len(self.ids),
-                robots_expected=len(self.ids),
-                failed_attempts=0,
-                elapsed_s=elapsed,
-                time_left_s=0.0 if state.phase == "done" else left,
-                safety_share=share,
-            )
-        )
+        self._write_simulation_file(directory.path)
+        return SimulatedRun(summary, write_report(directory.path, plots=plots))
 
     def _write_simulation_file(self, run_dir: Path) -> None:
         write_simulation_file(
@@ -308,8 +129,94 @@ class FastRun:
             self.experiment,
             self.swarm.world,
             engine="fast",
-            boxes_before=self._boxes_before,
+            boxes_before=self.evaluator.boxes_before,
         )
+
+
+class EngineEvaluator:
+    """The engine as an :class:`~master_service.evolution_run.Evaluator`: a whole swarm's
+    evaluation in one compiled call; its robots are always there."""
+
+    def __init__(self, swarm: Swarm, experiment: ExperimentConfig) -> None:
+        self.engine = swarm
+        self.experiment = experiment
+        self.ids = list(swarm.ids)
+        #: the boxes where the post-evaluation's arena put them (None before it)
+        self.boxes_before: list[list[float]] | None = None
+        self._recorded: EvaluationRecord | None = None
+
+    @property
+    def robots_connected(self) -> int:
+        """Every simulated robot, always."""
+        return len(self.ids)
+
+    @property
+    def robots_expected(self) -> int:
+        """The swarm's size."""
+        return len(self.ids)
+
+    @property
+    def waiting(self) -> bool:
+        """Never: the simulated robots are always there."""
+        return False
+
+    def missing_robots(self) -> list[str]:
+        """None."""
+        return []
+
+    async def swarm(self, state: RunState) -> list[str]:
+        """The simulated robots (fixed when the run began)."""
+        if state.roster is None:
+            state.roster = list(self.ids)
+        return state.roster
+
+    async def evaluate(
+        self, evaluation_id: int, genome: np.ndarray, steps: int, *, record: bool
+    ) -> Evaluation:
+        """One evaluation on the engine (it never fails: no robot can drop out)."""
+        began = time.monotonic()
+        record_ = self.engine.evaluate(genome, steps, record=record)
+        seconds = time.monotonic() - began
+        fitnesses = [float(f) for f in record_.fitness]
+        results = None
+        if record:
+            self._recorded = record_
+            results = {
+                robot: _result(evaluation_id, record_, index, steps)
+                for index, robot in enumerate(self.ids)
+            }
+        return Evaluation(
+            evaluation_id,
+            tuple(self.ids),
+            None,
+            fitnesses=fitnesses,
+            seconds=seconds,
+            safety_share=record_.safety_share(steps),
+            results=results,
+        )
+
+    async def before_post_evaluation(self) -> None:
+        """The paper's post-evaluation starts from a fresh arena, as ``--engine agents`` does."""
+        world = self.engine.world
+        world.reset(seed=self.experiment.seed + 1)
+        self.boxes_before = world.box_positions.tolist()
+
+    async def after_post_evaluation(self, run_dir: RunDir) -> None:
+        """The boxes' track beside the traces (the report's animation)."""
+        assert self._recorded is not None and self._recorded.boxes is not None
+        frames = box_frame_steps(self.engine.world.config.dt)
+        await asyncio.to_thread(write_box_track, run_dir.path, self._recorded.boxes, frames)
+
+    def snapshot(self) -> dict[str, Any]:
+        """The world and the safety layers (between evaluations: consistent)."""
+        return self.engine.snapshot()
+
+
+async def _run(evolution: EvolutionRun, should_stop: Callable[[], bool] | None) -> Any:
+    try:
+        return await evolution.run(should_stop)
+    finally:
+        await evolution.close()
 
 
 def _result(evaluation_id: int, record: EvaluationRecord, robot: int, steps: int) -> Result:
@@ -337,7 +244,6 @@ def _result(evaluation_id: int, record: EvaluationRecord, robot: int, steps: int
 def _run_log(directory: RunDir) -> logging.Logger:
     # The run's own logger writing master.log, as the master's does.
     log = logging.getLogger(f"master_service.run.{directory.path.resolve().name}")
-    directory.open_log(log)
     log.setLevel(logging.INFO)
     log.propagate = False
     return log
