@@ -44,16 +44,7 @@ from typing import Any, Final
 import numpy as np
 
 from master_service.config import MasterConfig, build_ssl_context
-from master_service.evolution_run import (
-    ETA_WINDOW,
-    RETRY_PAUSE,
-    RETRY_PAUSE_MAX,
-    Evaluation,
-    EvolutionRun,
-    Progress,
-    RunSummary,
-    format_duration,
-)
+from master_service.evolution_run import Evaluation, EvolutionRun, Progress, RunSummary
 from master_service.rounds import RoundRunner
 from master_service.rundir import FILE_ONLY, RunDir, RunState
 from master_service.server import RobotServer, Session
@@ -65,16 +56,7 @@ from telemetry.config import require_client_library
 from telemetry.payloads import RunStatus, master_status_suffix, now, run_status_suffix
 from telemetry.publisher import TelemetryPublisher
 
-__all__ = [
-    "ETA_WINDOW",
-    "LIVE_INTERVAL",
-    "RETRY_PAUSE",
-    "RETRY_PAUSE_MAX",
-    "Master",
-    "Progress",
-    "RunSummary",
-    "format_duration",
-]
+__all__ = ["LIVE_INTERVAL", "Master", "Progress", "RunSummary"]
 
 #: How often live.json is refreshed at the least; ``status`` calls a master silent for 5 periods
 #: gone.

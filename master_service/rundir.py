@@ -66,6 +66,7 @@ from minimize_surprise.network import NetworkSpec
 from minimize_surprise.wire import Result
 
 __all__ = [
+    "BASELINE_FILE",
     "BEST_GENOME",
     "BOX_TRACK",
     "CHECKPOINT",
@@ -86,11 +87,14 @@ __all__ = [
     "RunLog",
     "RunState",
     "for_console",
+    "load_baseline",
     # the run directory's writers, for the modules that write files into a run
     "write_atomic",
     "writing",
 ]
 
+#: A baseline's results in its output directory (``surprise-master baseline``).
+BASELINE_FILE: Final = "baseline.json"
 CONFIG_SNAPSHOT: Final = "config.yaml"
 CHECKPOINT: Final = "checkpoint.json"
 EVALUATIONS: Final = "evaluations.csv"
@@ -509,3 +513,11 @@ def _trace_npz(result: Result) -> bytes:
     buffer = io.BytesIO()
     np.savez_compressed(buffer, **arrays)
     return buffer.getvalue()
+
+
+def load_baseline(path: str | Path) -> dict[str, Any]:
+    """``baseline.json`` from a baseline directory (or the file itself)."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / BASELINE_FILE
+    return json.loads(path.read_text(encoding="utf-8"))

@@ -21,7 +21,7 @@ import msgspec
 import numpy as np
 
 from master_service.experiments.simulation_setup import simulated_safety, world_config
-from master_service.rundir import write_atomic
+from master_service.rundir import BASELINE_FILE, load_baseline, write_atomic
 from minimize_surprise.config import ExperimentConfig
 from minimize_surprise.evolution import random_genome
 from minimize_surprise.fitness import surprise_fitness, swarm_fitness
@@ -30,9 +30,6 @@ from sim_stub import metrics as sim_metrics
 from sim_stub.engine import EvaluationRecord, Swarm
 
 __all__ = ["BASELINE_FILE", "load_baseline", "run_baseline"]
-
-#: The baseline's results in its output directory.
-BASELINE_FILE = "baseline.json"
 
 
 def _pair_entry(
@@ -112,11 +109,3 @@ def run_baseline(experiment: ExperimentConfig, pairs: int, out: str | Path) -> d
     }
     write_atomic(out / BASELINE_FILE, json.dumps(data, indent=1).encode("utf-8"))
     return data
-
-
-def load_baseline(path: str | Path) -> dict[str, Any]:
-    """``baseline.json`` from a baseline directory (or the file itself)."""
-    path = Path(path)
-    if path.is_dir():
-        path = path / BASELINE_FILE
-    return json.loads(path.read_text(encoding="utf-8"))

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from master_service.config import MasterConfig
+from master_service.evolution_run import Progress
 from master_service.experiments.simulation_setup import (
     SimulatedRun,
     robot_ids,
@@ -34,7 +35,7 @@ from master_service.experiments.simulation_setup import (
     write_box_track,
     write_simulation_file,
 )
-from master_service.master import Master, Progress
+from master_service.master import Master
 from master_service.rundir import SIMULATION_FILE, RunDir
 from minimize_surprise.backoff import BackoffConfig
 from minimize_surprise.config import ExperimentConfig

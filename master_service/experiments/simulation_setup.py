@@ -15,14 +15,13 @@ from typing import Any, Final
 
 import numpy as np
 
-from master_service.master import RunSummary
+from master_service.evolution_run import RunSummary
 from master_service.rundir import BOX_TRACK, SIMULATION_FILE, RunDirError, write_atomic
 from minimize_surprise.config import ExperimentConfig, decode_experiment, read_yaml
 from minimize_surprise.errors import ConfigError
-from minimize_surprise.safety import SafetyConfig
 from sim_stub.engine import robot_ids
-from sim_stub.scenarios import SCENARIOS, WorldConfig, scenario_config
-from sim_stub.settings import check_setting, safety_config, world_overrides
+from sim_stub.experiment import scenario_world, simulated_safety, world_config
+from sim_stub.scenarios import WorldConfig
 from sim_stub.world import TooManyRobotsError, World
 
 __all__ = [
@@ -81,7 +80,7 @@ def simulation_experiment(
             raise ConfigError(f"expected a positive side in metres, got {arena}", key="--arena")
         data["simulation"] = {**(data.get("simulation") or {}), "arena_side": arena}
     name = data.get("scenario", "basic")
-    world = _world(data.get("setting"), name, data.get("simulation"), config_file)
+    world = scenario_world(data.get("setting"), name, data.get("simulation"), config_file)
     robots_in_file = "robots" in data
     data.setdefault("robots", world.robots)
     data.setdefault("sensors", list(world.sensors))
@@ -149,48 +148,6 @@ def _check_robots_fit(
         key=key,
         file=str(file) if file and not key.startswith("--") else None,
     ) from None
-
-
-def _world(setting: Any, scenario: str, overrides: Any, file: str | Path | None) -> WorldConfig:
-    check_setting(setting, file)
-    if overrides is not None and not isinstance(overrides, dict):
-        raise ConfigError(
-            "expected a mapping of world parameters",
-            file=str(file) if file else None,
-            key="simulation",
-        )
-    if scenario not in SCENARIOS:
-        return scenario_config(scenario, file=file)  # raises, naming the scenario
-    return scenario_config(
-        scenario, {**world_overrides(setting, scenario), **(overrides or {})}, file=file
-    )
-
-
-def world_config(experiment: ExperimentConfig, *, file: str | Path | None = None) -> WorldConfig:
-    """The world an experiment runs in: its scenario in its setting with its ``simulation``
-    overrides, stepping at the experiment's step period (one world step per control step)."""
-    given = experiment.simulation.get("dt")
-    if given is not None and given != experiment.step_period:
-        raise ConfigError(
-            f"the world steps once per control step: simulation.dt ({given}) must equal "
-            f"step_period ({experiment.step_period}), or be left out",
-            file=str(file) if file else None,
-            key="simulation.dt",
-        )
-    overrides = {
-        **experiment.simulation,
-        "robots": experiment.robots,
-        "dt": experiment.step_period,
-    }
-    return _world(experiment.setting, experiment.scenario, overrides, file)
-
-
-def simulated_safety(
-    experiment: ExperimentConfig, *, file: str | Path | None = None
-) -> SafetyConfig:
-    """The simulated robots' safety layer: the setting's for the scenario, with the experiment's
-    ``safety`` overrides."""
-    return safety_config(experiment.setting, experiment.scenario, experiment.safety, file=file)
 
 
 def write_simulation_file(

@@ -26,7 +26,8 @@ from typing import Any, Final
 import msgspec
 import numpy as np
 
-from master_service.master import LIVE_INTERVAL, format_duration
+from master_service.evolution_run import format_duration
+from master_service.master import LIVE_INTERVAL
 from master_service.reporting import pictures
 from master_service.rundir import (
     BOX_TRACK,
@@ -37,6 +38,7 @@ from master_service.rundir import (
     SIMULATION_FILE,
     RunDir,
     RunDirError,
+    load_baseline,
     write_atomic,
     writing,
 )
@@ -45,6 +47,7 @@ from minimize_surprise.errors import ConfigError
 from minimize_surprise.safety import dominance_warning, intervention_reasons, intervention_share
 from minimize_surprise.text import plural
 from sim_stub import metrics as sim_metrics
+from sim_stub.experiment import world_config
 
 __all__ = ["baseline_text", "compute_metrics", "safety_lines", "status_text", "write_report"]
 
@@ -312,8 +315,6 @@ def write_report(
     data = _load(path)
     metrics = _metrics(data)
     if baseline is not None:
-        from master_service.experiments.baseline import load_baseline
-
         try:
             loaded = load_baseline(baseline)
         except (OSError, ValueError, KeyError) as exc:
@@ -378,8 +379,6 @@ def _arena(data: _Run) -> pictures.Arena | None:
     """The simulated world of the run, as the pictures draw it (None for real robots)."""
     if data.simulation is None:
         return None
-    from master_service.experiments.simulation_setup import world_config
-
     config = world_config(data.experiment)
     boxes = data.simulation.get("post_evaluation_boxes") or {}
     track, every = None, 1

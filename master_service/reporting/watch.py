@@ -35,7 +35,7 @@ from rich.panel import Panel
 from rich.table import Table
 from rich.text import Text
 
-from master_service.master import format_duration
+from master_service.evolution_run import format_duration
 from minimize_surprise.backoff import Backoff, BackoffConfig
 from telemetry.config import (
     DEFAULT_PREFIX,
