@@ -1,9 +1,9 @@
 """One run of (1+1) online evolution, whatever evaluates its genomes: the loop written once.
 
 :class:`EvolutionRun` owns everything around ask and tell (docs/runs.md): the run's state and its
-checkpoint, the exactly-once commits of ``evaluations.csv`` and ``state.json``, resume, retries of
-an evaluation that did not count, progress and its estimate of the time left, the log lines, and
-the post-evaluation of the best genome with its traces. What evaluates a genome is an
+checkpoint, the exactly-once commits of ``evaluations.csv`` and ``checkpoint.json``, resume,
+retries of an evaluation that did not count, progress and its estimate of the time left, the log
+lines, and the post-evaluation of the best genome with its traces. What evaluates a genome is an
 :class:`Evaluator`: the robots over TCP (:class:`master_service.master.Master`) or the compiled
 engine (:class:`master_service.experiments.engine_run.FastRun`); the loop knows nothing of how.
 
@@ -133,46 +133,37 @@ class Evaluator(Protocol):
     @property
     def robots_connected(self) -> int:
         """Robots able to evaluate now."""
-        ...
 
     @property
     def robots_expected(self) -> int:
         """Robots the swarm has."""
-        ...
 
     @property
     def waiting(self) -> bool:
         """True while the run waits for robots (the swarm incomplete)."""
-        ...
 
     def missing_robots(self) -> list[str]:
         """The swarm's robots not able to evaluate now."""
-        ...
 
     async def swarm(self, state: RunState) -> list[str]:
         """Wait until every robot of the swarm can evaluate; its robots, in a fixed order. The
         first time, fix the swarm in ``state.roster``."""
-        ...
 
     async def evaluate(
         self, evaluation_id: int, genome: np.ndarray, steps: int, *, record: bool
     ) -> Evaluation:
         """Evaluate ``genome`` on ``robots`` for ``steps`` control steps."""
-        ...
 
     async def before_post_evaluation(self) -> None:
         """Called before each attempt of the post-evaluation, every robot idle (a simulator
         resets its arena here, as the paper does before this run)."""
-        ...
 
     async def after_post_evaluation(self, run_dir: RunDir) -> None:
         """Called once the post-evaluation's traces are written into ``run_dir``."""
-        ...
 
     def snapshot(self) -> dict[str, Any] | None:
         """A simulator's state, kept in every checkpoint so a resumed run goes on exactly;
         None for real robots. Called between evaluations, every robot idle."""
-        ...
 
 
 class EvolutionRun:
@@ -353,7 +344,7 @@ class EvolutionRun:
             evaluation_id = self._reserve_attempt()
             if self.ids_leave_process:
                 await self._commit()
-            robots = await self.evaluator.swarm(state)
+            await self.evaluator.swarm(state)
             attempt = await self.evaluator.evaluate(
                 evaluation_id, candidate.genome, experiment.evaluation_steps, record=False
             )
@@ -390,7 +381,7 @@ class EvolutionRun:
                 state.attempts,
                 attempt.seconds,
                 100 * attempt.safety_share,
-                self._status_suffix(robots),
+                self._status_suffix(),
             )
             state.attempts = 0
             self.emit()
@@ -579,7 +570,7 @@ class EvolutionRun:
         self._last_fitness = fitness
         self._last_safety_share = share
 
-    def _status_suffix(self, robots: Sequence[str]) -> str:
+    def _status_suffix(self) -> str:
         left = self.time_left()
         suffix = f" | robots {self.evaluator.robots_connected}/{self.evaluator.robots_expected}"
         if left is not None:

@@ -19,6 +19,10 @@ out, and a silent connection beyond the limit is closed before any handshake wor
 descriptor is free again; the whole handshake, TLS included, has one deadline; its frames are small
 and every field in them is bounded; and what goes wrong with such connections is logged through a
 :class:`ThrottledLog`.
+
+Why one file of over 600 lines: a connection's life, from the socket's arrival through the
+handshake to the session's close, is one state machine whose limits must be read together; the
+policy of whom to evict is apart, in :mod:`master_service.handshakes`.
 """
 
 from __future__ import annotations
