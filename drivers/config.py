@@ -39,7 +39,7 @@ PositiveSeconds = Annotated[float, msgspec.Meta(gt=0.0, le=60.0)]
 BusNumber = Annotated[int, msgspec.Meta(ge=0, le=255)]
 
 
-class ThymioConfig(Strict):
+class ThymioConfig(Strict, frozen=True):
     """The Thymio II base, reached through asebamedulla on D-Bus (docs/thymio.md).
 
     ``bus`` is ``"session"``, ``"system"`` or an explicit D-Bus address (``"unix:path=..."``).
@@ -105,7 +105,7 @@ class ThymioConfig(Strict):
             )
 
 
-class MuxConfig(Strict):
+class MuxConfig(Strict, frozen=True):
     """A TCA9548A I2C multiplexer channel in front of a device (docs/sensors.md)."""
 
     #: the multiplexer channel the device is on
@@ -114,7 +114,7 @@ class MuxConfig(Strict):
     address: Annotated[int, msgspec.Meta(ge=0x70, le=0x77)] = 0x70
 
 
-class LightSensorConfig(Strict):
+class LightSensorConfig(Strict, frozen=True):
     """A TSL45315 ambient light sensor (docs/sensors.md).
 
     It sits on its own bus (``bus``, e.g. a software bus from the ``i2c-gpio`` overlay) or behind
@@ -147,7 +147,7 @@ AdsInput = Literal[
 ]  # fmt: skip
 
 
-class ForceSensorConfig(Strict):
+class ForceSensorConfig(Strict, frozen=True):
     """The blade's force sensor (a bridge) read differentially by an ADS1115 (docs/sensors.md).
 
     ``inputs`` selects the ADC's input pair, ``pga_range_volts`` its gain (±6.144 .. ±0.256 V),
@@ -191,7 +191,7 @@ class ForceSensorConfig(Strict):
             )
 
 
-class BodyConfig(Strict):
+class BodyConfig(Strict, frozen=True):
     """The parts of one real robot: the Thymio base, up to two light sensors, a force sensor."""
 
     #: the Thymio II base, through asebamedulla on D-Bus (docs/thymio.md)

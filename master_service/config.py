@@ -80,7 +80,7 @@ _HeartbeatInterval = Annotated[
 _RobotId = Annotated[str, msgspec.Meta(pattern=ROBOT_ID_PATTERN)]
 
 
-class MasterConfig(Strict):
+class MasterConfig(Strict, frozen=True):
     """Everything the master needs besides the run directory.
 
     ``experiment`` or ``experiment_file`` (exactly one) defines the experiment. ``port`` 0 picks

@@ -7,14 +7,11 @@ lines, and the post-evaluation of the best genome with its traces. What evaluate
 :class:`Evaluator`: the robots over TCP (:class:`master_service.master.Master`) or the compiled
 engine (:class:`master_service.experiments.engine_run.FastRun`); the loop knows nothing of how.
 
-Commits. Every commit writes the rows counted since the last one and the checkpoint (optimizer
-state with its pending candidate, the id counter past the reserved id) in a worker thread, while
-the next evaluation runs; a commit starts only when the previous one is on disk. Where ids leave
-this process (``ids_leave_process``: robots hear them over the network) the next attempt's id is
-reserved and committed before the attempt goes out, and a resumed run starts one id further (1
-when there is no checkpoint yet) and commits that before anything else: an id is never reused,
-however often the process is killed (see :mod:`master_service.master`). Where they do not (the
-engine), commits are grouped to one every ``commit_interval`` seconds at most, so a thousand
+Commits. Each writes the rows counted since the last one and the checkpoint in a worker thread
+while the next evaluation runs, once the previous one is on disk. Where ids leave this process
+(``ids_leave_process``: robots hear them) each attempt's id is committed before it goes out and a
+resumed run skips one id: an id is never reused (see :mod:`master_service.master`). Where they do
+not (the engine), commits come at most every ``commit_interval`` seconds, so a thousand
 evaluations a minute do not spend their time in fsync; a stopped run repeats at most that much.
 """
 
@@ -262,9 +259,9 @@ class EvolutionRun:
         self._elapsed_before = state.elapsed_s
         self._started_at = time.monotonic()
         self._last_commit = self._started_at
-        opt = state.optimizer
-        if opt.best is not None and opt.best_fitness is not None:
-            self.run_dir.write_best(opt.best, opt.best_fitness, opt.best_evaluation, self.spec)
+        best = _best(state.optimizer)
+        if best is not None:
+            self.run_dir.write_best(*best, self.spec)
 
     async def close(self) -> None:
         """Let a commit in flight complete (its error, if any, was or is raised by :meth:`run`)."""
@@ -482,17 +479,14 @@ class EvolutionRun:
             state.simulation = simulation
         data = state.to_json()
         header = [*EVALUATION_COLUMNS, *(f"fitness_{robot}" for robot in state.roster or [])]
-        opt = state.optimizer
-        best = None
-        if best_changed and opt.best is not None:
-            best = (opt.best.copy(), opt.best_fitness, opt.best_evaluation)
+        best = _best(state.optimizer) if best_changed else None
         text = "".join(rows) or None
         self._last_commit = time.monotonic()
 
         def write() -> None:
             self.run_dir.commit(data, text, header)
             if best is not None:
-                self.run_dir.write_best(best[0], best[1], best[2], self.spec)
+                self.run_dir.write_best(*best, self.spec)
 
         # The thread keeps the event loop free (pings, the next Evaluate) while the disk syncs.
         self._write = asyncio.ensure_future(asyncio.to_thread(write))
@@ -593,6 +587,13 @@ def format_duration(seconds: float) -> str:
     if minutes:
         return f"{minutes}m{secs:02d}s"
     return f"{secs}s"
+
+
+def _best(opt: OnePlusOne) -> tuple[np.ndarray, float, int] | None:
+    """A copy of the best genome with its fitness and evaluation, if there is one."""
+    if opt.best is None or opt.best_fitness is None or opt.best_evaluation is None:
+        return None
+    return opt.best.copy(), opt.best_fitness, opt.best_evaluation
 
 
 def _fmt(value: float | None) -> str:

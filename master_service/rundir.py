@@ -511,7 +511,7 @@ def _trace_npz(result: Result) -> bytes:
     if trace.poses is not None:
         arrays["poses"] = trace.array("poses")
     buffer = io.BytesIO()
-    np.savez_compressed(buffer, **arrays)
+    np.savez_compressed(buffer, **arrays)  # type: ignore[arg-type]  # numpy's stub: allow_pickle
     return buffer.getvalue()
 
 

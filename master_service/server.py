@@ -462,10 +462,10 @@ class RobotServer:
             await self._refuse(stream, robot_id, peer, refusal)
             return None
         except TimeoutError:
-            refusal = _Refusal(
+            late = _Refusal(
                 REFUSED_PROTOCOL, f"the handshake took longer than {self.handshake_timeout:g} s"
             )
-            await self._refuse(stream, robot_id, peer, refusal)
+            await self._refuse(stream, robot_id, peer, late)
             return None
         except ProtocolError as exc:
             # Garbage or an oversized frame: the stream is out of sync; say why and close.

@@ -18,7 +18,7 @@ __all__ = ["Backoff", "BackoffConfig"]
 _Seconds = Annotated[float, msgspec.Meta(gt=0.0, le=3600.0)]
 
 
-class BackoffConfig(Strict):
+class BackoffConfig(Strict, frozen=True):
     """Delays between connection attempts: ``initial`` doubling per failed attempt up to ``max``
     (seconds), each shortened by a random fraction of up to ``jitter``, so that a swarm whose
     server comes back does not reconnect in one burst."""

@@ -103,7 +103,7 @@ MAX_RECORDED_STEPS = 20_000
 MAX_STEP_PERIOD = 10.0
 
 
-class NetworkConfig(Strict):
+class NetworkConfig(Strict, frozen=True):
     """Sizes of the actor-predictor pair.
 
     ``predictor_hidden`` defaults to R + 1 where R is the number of sensors. ``initial_action`` is
@@ -118,7 +118,7 @@ class NetworkConfig(Strict):
     initial_action: Annotated[float, msgspec.Meta(ge=-1.0, le=1.0)] = 0.0
 
 
-class EvolutionConfig(Strict):
+class EvolutionConfig(Strict, frozen=True):
     """(1+1) online evolution with re-evaluation (paper Sec. V-A)."""
 
     #: counted evaluations of a run before the post-evaluation (failed rounds do not count)
@@ -137,7 +137,7 @@ class EvolutionConfig(Strict):
     first_genome: Literal["random", "mutant"] = "random"
 
 
-class ExperimentConfig(Strict):
+class ExperimentConfig(Strict, frozen=True):
     """Everything that defines one experiment, whatever runs it (simulator or real robots).
 
     ``setting`` names the bundle of defaults the experiment starts from

@@ -32,14 +32,18 @@ class SurpriseScore:
     ``1 - |p - s|`` over the scored steps and sensors; it is 0.0 before any step was scored.
     """
 
+    _pending: np.ndarray | None
+    _total: np.ndarray | float
+    scored_steps: int
+
     def __init__(self) -> None:
-        self._pending: np.ndarray | None = None
-        self._total: np.ndarray | float = 0.0
-        self.scored_steps = 0
+        self.reset()
 
     def reset(self) -> None:
         """Forget everything: the next :meth:`observe` scores nothing."""
-        self.__init__()
+        self._pending = None
+        self._total = 0.0
+        self.scored_steps = 0
 
     def observe(self, sensors: np.ndarray) -> np.ndarray | float | None:
         """Score the pending prediction against ``sensors``; returns that step's score or None."""

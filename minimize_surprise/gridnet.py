@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import SupportsFloat
 
 import numpy as np
 
@@ -102,12 +103,13 @@ class GridNetSpec:
                     f"expected one of {', '.join(predefined_names())}"
                 )
             if self.partial:
-                ones = TARGETS[self.target][self.sensors]
+                target = self.predefined.removesuffix(PARTIAL_SUFFIX)  # == self.target
+                ones = TARGETS[target][self.sensors]
                 if not 0 < len(ones) < self.sensors:
                     raise ValueError(
                         f"{self.predefined!r} with {self.sensors} sensors fixes "
                         f"{'no' if not ones else 'every'} sensor to 1, so nothing is left to "
-                        f"fix partly; use {self.target!r}"
+                        f"fix partly; use {target!r}"
                     )
 
     @property
@@ -135,8 +137,9 @@ class GridNetSpec:
         """The sensors the predictor predicts, in output order (empty: no predictor)."""
         if self.actor_only or (self.predefined is not None and not self.partial):
             return ()
-        if self.partial:
-            ones = set(TARGETS[self.target][self.sensors])  # type: ignore[index]
+        target = self.target
+        if target is not None and self.partial:  # partial: a target is named
+            ones = set(TARGETS[target][self.sensors])
             return tuple(r for r in range(self.sensors) if r not in ones)
         return tuple(range(self.sensors))
 
@@ -200,7 +203,7 @@ class GridGenomeLayout:
         }
 
 
-def activation(x: float) -> float:
+def activation(x: SupportsFloat) -> float:
     """The code's tanh, ``2 / (1 + exp(-2x)) - 1`` in double, returned as float32."""
     return float(np.float32(2.0 / (1.0 + math.exp(-2.0 * float(x))) - 1.0))
 

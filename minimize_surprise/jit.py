@@ -16,12 +16,14 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable
-from typing import Any, TypeVar
+from types import ModuleType
+from typing import Any, Literal, TypeVar
 
 __all__ = ["JIT", "kernel"]
 
 F = TypeVar("F", bound=Callable[..., Any])
 
+_numba: ModuleType | None
 try:  # numba is optional: the `sim` extra brings it, a robot may do without
     if os.environ.get("SURPRISE_NO_JIT", "") not in ("", "0"):
         raise ImportError("SURPRISE_NO_JIT is set")
@@ -33,7 +35,7 @@ except ImportError:  # pragma: no cover - depends on the installation
 JIT: bool = _numba is not None
 
 
-def kernel(function: F | None = None, *, error_model: str = "python") -> Any:
+def kernel(function: F | None = None, *, error_model: Literal["python", "numpy"] = "python") -> Any:
     """Compile ``function`` with numba (no Python objects, cached on disk) if available.
 
     The original function stays reachable as ``.py_func`` either way, so tests can check that the

@@ -21,6 +21,8 @@ absent and the genome holds the actor only.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import msgspec
 import numpy as np
 
@@ -223,7 +225,7 @@ class NetworkPair:
         r = self.layout.sensors
         self._r = r
         self.previous_action = np.empty((robots, ACTIONS))
-        self.hidden = np.empty((robots, self.weights[2].shape[0]))
+        self.hidden = np.empty((robots, self.weights.p_in.shape[0]))
         self._work = np.empty(r + ACTIONS + 1 + spec.actor_hidden)
         self._action = np.empty((robots, ACTIONS))
         self._prediction = np.empty((robots, r))
@@ -232,7 +234,7 @@ class NetworkPair:
     def reset(self) -> None:
         """Start an evaluation: a(-1) = ``initial_action``, hidden state = the learned one."""
         self.previous_action[:] = self.layout.spec.initial_action
-        self.hidden[:] = self.weights[-1]
+        self.hidden[:] = self.weights.p_init
 
     def step(self, sensors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One control step: ``(a(t), p(t+1))`` for the readings ``s(t)`` (fresh arrays)."""
@@ -260,15 +262,23 @@ class NetworkPair:
         return action.copy(), prediction.copy()
 
 
-#: The weights of a genome as the kernels take them: ``(a_in, a_out, p_in, p_self, p_out, free,
-#: fixed, p_initial)``; ``p_*`` have no rows when the predictor is dropped.
-Weights = tuple[
-    np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray
-]
+class Weights(NamedTuple):
+    """The weights of a genome as the kernels take them (a tuple: the first seven are
+    :func:`network_step`'s first arguments, in order); ``p_*`` have no rows when the predictor is
+    dropped."""
+
+    a_in: np.ndarray  # actor.hidden
+    a_out: np.ndarray  # actor.output
+    p_in: np.ndarray  # predictor.hidden
+    p_self: np.ndarray  # predictor.self
+    p_out: np.ndarray  # predictor.output
+    free: np.ndarray  # the sensors whose prediction the network makes (int64)
+    fixed: np.ndarray  # the prediction vector with the predefined values filled in
+    p_init: np.ndarray  # predictor.initial
 
 
 def network_weights(layout: GenomeLayout, genome: np.ndarray) -> Weights:
-    """Contiguous copies of ``genome``'s blocks for :func:`network_step` (see :data:`Weights`).
+    """Contiguous copies of ``genome``'s blocks for :func:`network_step` (see :class:`Weights`).
 
     Raises :class:`GenomeError` if the genome does not fit the layout.
     """
@@ -284,7 +294,7 @@ def network_weights(layout: GenomeLayout, genome: np.ndarray) -> Weights:
         p_self = np.zeros(0)
         p_out = np.zeros((0, 1))
         p_init = np.zeros(0)
-    return (
+    return Weights(
         np.ascontiguousarray(w["actor.hidden"]),
         np.ascontiguousarray(w["actor.output"]),
         p_in,

@@ -9,7 +9,9 @@ The rules are one kernel, :func:`safety_step` (compiled by numba where available
 robot's agent runs for its one robot through :class:`SafetyLayer` and the simulator's engine runs
 for every robot of every run; the two cannot drift apart. Every number and every condition is a
 field of :class:`SafetyConfig`, so the real robots' rules (the ``lab`` setting, the authors'
-real-robot code) and the paper's Webots rules (the ``paper`` setting) are two configurations::
+real-robot code) and the paper's Webots rules (the ``paper`` setting) are two configurations.
+Why one file of over 600 lines: the rules, their every parameter and their one kernel are read
+together when a rule changes, and the robot and the engine must share exactly this code::
 
     layer = SafetyLayer(body.sensors, config.safety)
     state = layer.initial_state(seed)
@@ -107,7 +109,7 @@ _PHASES: tuple[str, ...] = ("idle", "drive", "turn")
 Speed = Annotated[float, msgspec.Meta(gt=0.0, le=1.0)]
 
 
-class SafetyConfig(Strict):
+class SafetyConfig(Strict, frozen=True):
     """Thresholds, timings and conditions of the safety layer (docs/safety.md).
 
     Sensor thresholds are on normalised values in [0, 1]; steps are control steps; speeds are

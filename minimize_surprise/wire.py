@@ -8,6 +8,8 @@ decoding are pure; :class:`FrameDecoder` is incremental so any transport can fee
 bytes arrive (the asyncio transport of both the master and the agent is
 :class:`transport.stream.MessageStream`). The protocol's facts that both sides must agree on
 (default port, limits, keep-alive, robot ids) are defined here too.
+Why one file of over 600 lines: every message, the bounds on its fields and the codec that
+enforces them are the protocol, read together whenever a message changes.
 
 A session (``docs/protocol.md``)::
 
@@ -226,7 +228,7 @@ class _Message(msgspec.Struct, frozen=True, kw_only=True, tag_field="type"):
     """Base of every message; the subclass's tag goes in the field ``type``."""
 
 
-class Hello(_Message, tag="hello"):
+class Hello(_Message, tag="hello", frozen=True):
     """Robot -> master, the first message: who the robot is, what it can sense, and a fresh
     ``nonce`` (:func:`minimize_surprise.session.new_nonce`) the master's proof must cover.
 
@@ -241,7 +243,7 @@ class Hello(_Message, tag="hello"):
     nonce: _Nonce | None = None
 
 
-class Challenge(_Message, tag="challenge"):
+class Challenge(_Message, tag="challenge", frozen=True):
     """Master -> robot: the master's fresh ``nonce`` and its ``proof`` of the shared secret
     (:func:`minimize_surprise.session.master_proof`), which the robot checks before it answers."""
 
@@ -249,13 +251,13 @@ class Challenge(_Message, tag="challenge"):
     proof: _Proof
 
 
-class Authenticate(_Message, tag="auth"):
+class Authenticate(_Message, tag="auth", frozen=True):
     """Robot -> master: the robot's ``proof`` (:func:`minimize_surprise.session.robot_proof`)."""
 
     proof: _Proof
 
 
-class Welcome(_Message, tag="welcome"):
+class Welcome(_Message, tag="welcome", frozen=True):
     """Master -> robot, the first tagged frame: accepted into run ``run_id``; send or expect a
     Ping every ``heartbeat_interval`` seconds (within the protocol's bounds)."""
 
@@ -263,14 +265,14 @@ class Welcome(_Message, tag="welcome"):
     heartbeat_interval: _HeartbeatInterval
 
 
-class Refused(_Message, tag="refused"):
+class Refused(_Message, tag="refused", frozen=True):
     """Master -> robot before closing: why the robot was not accepted (one of REFUSED_CODES)."""
 
     code: _Name
     reason: Annotated[str, msgspec.Meta(max_length=MAX_REASON_LENGTH)]
 
 
-class Evaluate(_Message, tag="eval"):
+class Evaluate(_Message, tag="eval", frozen=True):
     """Master -> robot: run ``genome`` (see :func:`genome_to_bytes`) for ``steps`` control steps
     of ``step_period`` seconds each (the experiment's period; a robot that cannot keep it answers
     Failed).
@@ -415,7 +417,7 @@ class Trace(msgspec.Struct, frozen=True, kw_only=True):
         return np.frombuffer(data, dtype=_TRACE_DTYPE).reshape(self.steps, columns)
 
 
-class Result(_Message, tag="result"):
+class Result(_Message, tag="result", frozen=True):
     """Robot -> master: the fitness of evaluation ``evaluation_id``, with its trace if recorded.
 
     A surprise fitness lies in [0, 1] (paper Eq. 1); decoding refuses anything else, NaN
@@ -428,40 +430,40 @@ class Result(_Message, tag="result"):
     trace: Trace | None = None
 
 
-class Failed(_Message, tag="failed"):
+class Failed(_Message, tag="failed", frozen=True):
     """Robot -> master: evaluation ``evaluation_id`` could not be completed, and why."""
 
     evaluation_id: _NonNegative
     reason: str
 
 
-class Abort(_Message, tag="abort"):
+class Abort(_Message, tag="abort", frozen=True):
     """Master -> robot: stop evaluation ``evaluation_id`` now (motors stop; no Result follows)."""
 
     evaluation_id: _NonNegative
     reason: str
 
 
-class Ping(_Message, tag="ping"):
+class Ping(_Message, tag="ping", frozen=True):
     """Either way: liveness probe; the peer answers with a Pong of the same ``seq``."""
 
     seq: _NonNegative
 
 
-class Pong(_Message, tag="pong"):
+class Pong(_Message, tag="pong", frozen=True):
     """Either way: the answer to the Ping with the same ``seq``."""
 
     seq: _NonNegative
 
 
-class Error(_Message, tag="error"):
+class Error(_Message, tag="error", frozen=True):
     """Either way, before closing: the peer broke the protocol or something failed."""
 
     code: str
     message: str
 
 
-class Bye(_Message, tag="bye"):
+class Bye(_Message, tag="bye", frozen=True):
     """Either way: orderly close; the sender closes the connection after it."""
 
     reason: str

@@ -66,7 +66,7 @@ STEP_MARGIN = 0.03
 MAX_PERIOD = WATCHDOG_TIMEOUT - STEP_MARGIN
 
 
-class MasterConfig(Strict):
+class MasterConfig(Strict, frozen=True):
     """Where the master listens and how the robot proves who it is."""
 
     #: the master's host name or address
@@ -86,7 +86,7 @@ class MasterConfig(Strict):
             raise ValueError("`secret_file`: must not be empty")
 
 
-class LoopConfig(Strict):
+class LoopConfig(Strict, frozen=True):
     """The control loop's limits; the period itself comes with each evaluation (the experiment's
     ``step_period``), and one outside [``min_period``, :data:`MAX_PERIOD`] is refused.
 
@@ -126,7 +126,7 @@ class LoopConfig(Strict):
             )
 
 
-class AgentConfig(Strict):
+class AgentConfig(Strict, frozen=True):
     """Everything one robot's agent needs; see the module docstring for an example file."""
 
     #: this robot's id: 1 to 64 letters, digits, ``.``, ``_`` or ``-``, starting with a letter or

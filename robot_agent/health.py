@@ -19,8 +19,8 @@ from typing import Final
 
 from drivers.body import Body
 from minimize_surprise.backoff import Backoff, BackoffConfig
+from robot_agent.bounded import finish
 from robot_agent.loop import FAILED_UNREACHABLE
-from robot_agent.runner import finish
 
 __all__ = ["FAILED_UNREACHABLE", "RECOVERY_BACKOFF", "RECOVER_TIMEOUT", "RobotHealth"]
 

@@ -63,8 +63,9 @@ from minimize_surprise.wire import (
     encode_payload,
     printable,
 )
+from robot_agent.bounded import finish
 from robot_agent.config import AgentConfig
-from robot_agent.runner import EvaluationRunner, finish
+from robot_agent.runner import EvaluationRunner
 from robot_agent.watchdog import Watchdog
 from transport.stream import MessageStream
 
@@ -122,6 +123,7 @@ Spawn = Callable[..., asyncio.Task[Any]]
 class _Prefixed(logging.LoggerAdapter):
     # Several agents may share one process (the master's ``sim`` command): say which robot speaks.
     def process(self, msg: Any, kwargs: Any) -> tuple[Any, Any]:
+        assert self.extra is not None  # robot_logger always passes it
         return f"[{self.extra['robot']}] {msg}", kwargs
 
 
@@ -243,7 +245,7 @@ class Link:
     async def _handshake(self, stream: MessageStream) -> Welcome:
         robot_id, secret = self.config.robot_id, self.secret
         robot_nonce = new_nonce()
-        step = Challenge
+        step: type[Challenge] | type[Welcome] = Challenge
         try:
             # One deadline for the whole handshake: a master dribbling bytes gains nothing.
             async with asyncio.timeout(HANDSHAKE_TIMEOUT):

@@ -242,11 +242,8 @@ class ControlLoop:
                 else:
                     frame = await body.read()
                 values = frame.values
-                if index is not None:
-                    np.take(values, index, out=sensors)
-                    s = sensors
-                else:
-                    s = values
+                # With an index, np.take fills ``sensors`` and returns it.
+                s = np.take(values, index, out=sensors) if index is not None else values
                 if not np.isfinite(s).all():
                     error = "the reading holds a non-finite value"
             except TimeoutError:

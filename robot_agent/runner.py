@@ -44,7 +44,6 @@ __all__ = [
     "FAILED_STEPS",
     "FAILED_UNREACHABLE",
     "EvaluationRunner",
-    "finish",
     "stop_motors",
 ]
 
@@ -68,8 +67,8 @@ FAILED_INTERNAL = "internal"
 
 
 async def stop_motors(body: Body, timeout: float) -> BaseException | None:
-    """Stop the motors (see :func:`finish`); returns None if that is known to have worked, else
-    the error (logged)."""
+    """Stop the motors (see :func:`~robot_agent.bounded.finish`); returns None if that is known to
+    have worked, else the error (logged)."""
     error = await finish(body.stop(), timeout)
     if error is not None:
         log.error("stopping the motors failed: %r", error)

@@ -261,5 +261,5 @@ class Watchdog:
             return f"no answer within {self._stop_timeout} s"
         if stop_task.cancelled():
             return "the stop call was cancelled"
-        exc = stop_task.exception()
-        return None if exc is None else repr(exc)
+        error = stop_task.exception()
+        return None if error is None else repr(error)

@@ -22,14 +22,22 @@ robot ids) and evaluates genomes on it; the evolution around it is the master's 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
 from minimize_surprise.fitness import step_score
 from minimize_surprise.jit import kernel
-from minimize_surprise.network import GenomeLayout, NetworkSpec, network_step, network_weights
+from minimize_surprise.network import (
+    GenomeLayout,
+    NetworkSpec,
+    Weights,
+    network_step,
+    network_weights,
+)
 from minimize_surprise.safety import (
     REASON_OF_CODE,
+    REASONS,
     SafetyConfig,
     SafetyLayer,
     SafetyParams,
@@ -43,7 +51,17 @@ from sim_stub.physics import Geometry, Sensing
 from sim_stub.scenarios import WorldConfig
 from sim_stub.world import World, box_frame_steps, box_frames
 
-__all__ = ["EvaluationRecord", "Swarm", "evaluate", "robot_ids"]
+__all__ = [
+    "Controller",
+    "EvaluationRecord",
+    "Outcome",
+    "Recording",
+    "SafetyLayers",
+    "Swarm",
+    "WorldState",
+    "evaluate",
+    "robot_ids",
+]
 
 #: Sensors in the world's full frame, every sensor it simulates (as ``World`` allocates it).
 _FULL_WIDTH = len(ALL_SENSORS)
@@ -54,52 +72,93 @@ def robot_ids(count: int) -> list[str]:
     return [f"sim-{i}" for i in range(count)]
 
 
+class Controller(NamedTuple):
+    """What every robot runs for one genome: its network's weights, the action a(-1) before the
+    first step, and ``columns``, the network's sensors among the world's (int64)."""
+
+    weights: Weights
+    initial_action: float
+    columns: np.ndarray
+
+
+class SafetyLayers(NamedTuple):
+    """Every robot's safety layer: its rules, the positions of each group of sensors in the
+    world's sensors (empty: that rule is off; see :func:`~minimize_surprise.safety.safety_step`)
+    and ``state`` (N, 5) int64, each robot's state, updated in place."""
+
+    params: SafetyParams
+    front: np.ndarray
+    rear: np.ndarray
+    ground: np.ndarray
+    force: np.ndarray
+    state: np.ndarray
+
+
+class WorldState(NamedTuple):
+    """The world's live arrays, updated in place (see :attr:`World.kernel_state
+    <sim_stub.world.World.kernel_state>`)."""
+
+    pose: np.ndarray
+    cmd: np.ndarray
+    force: np.ndarray
+    boxes: np.ndarray
+    pending: np.ndarray
+
+
+class Outcome(NamedTuple):
+    """What one evaluation gives per robot: ``fitness`` (N) and ``interventions`` (N,
+    len(REASON_OF_CODE)) int64, the count of each safety reason code."""
+
+    fitness: np.ndarray
+    interventions: np.ndarray
+
+
+class Recording(NamedTuple):
+    """With ``on``, the trace the agents send with a recorded result, arrays (steps, N, ...), and
+    ``boxes``, the boxes' positions every ``box_every`` steps (frames, boxes, 2); without, the
+    arrays are empty and untouched."""
+
+    on: bool
+    sensors: np.ndarray
+    predictions: np.ndarray
+    actions: np.ndarray
+    commands: np.ndarray
+    reasons: np.ndarray  # int64
+    poses: np.ndarray
+    box_every: int
+    boxes: np.ndarray
+
+
 @kernel
 def evaluate(
     g: Geometry,
     sn: Sensing,
-    sp: SafetyParams,
-    front: np.ndarray,
-    rear: np.ndarray,
-    ground: np.ndarray,
-    force_idx: np.ndarray,
-    a_in: np.ndarray,
-    a_out: np.ndarray,
-    p_in: np.ndarray,
-    p_self: np.ndarray,
-    p_out: np.ndarray,
-    free: np.ndarray,
-    fixed: np.ndarray,
-    p_init: np.ndarray,
-    initial_action: float,
-    columns: np.ndarray,
-    pose: np.ndarray,
-    cmd: np.ndarray,
-    force: np.ndarray,
-    boxes: np.ndarray,
-    pending: np.ndarray,
+    net: Controller,
+    safety: SafetyLayers,
+    world: WorldState,
     world_step: int,
     steps: int,
-    safety: np.ndarray,
-    fitness: np.ndarray,
-    interventions: np.ndarray,
-    record: bool,
-    rec_sensors: np.ndarray,
-    rec_predictions: np.ndarray,
-    rec_actions: np.ndarray,
-    rec_commands: np.ndarray,
-    rec_reasons: np.ndarray,
-    rec_poses: np.ndarray,
-    box_every: int,
-    rec_boxes: np.ndarray,
+    out: Outcome,
+    rec: Recording,
 ) -> int:
-    """One evaluation of one genome on every robot of one arena; returns the world's new step
-    count. ``columns`` picks the network's sensors from the world's; ``safety`` (N, 5) holds
-    each robot's safety state (reset here for the new genome, its generator kept);
-    ``fitness`` (N) receives each robot's fitness and ``interventions`` (N, reasons + 1) the
-    count of each safety reason code. With ``record`` the ``rec_*`` arrays (steps, N, ...)
-    receive the trace the agents send with a recorded result, and ``rec_boxes`` the boxes'
-    positions every ``box_every`` steps (frames, boxes, 2)."""
+    """One evaluation of one genome on every robot of one arena, from the world's step
+    ``world_step``; returns the world's new step count. Each robot's safety state is reset for
+    the new genome (its generator kept); ``out`` receives the fitnesses and safety counts, ``rec``
+    the trace if it is on."""
+    # Every field into a local once, by name: numba counts a reference each time an array is
+    # read from a tuple, which in the loop below would cost a tenth of the speed (measured).
+    pose, cmd, force, boxes = world.pose, world.cmd, world.force, world.boxes
+    pending = world.pending
+    w = net.weights
+    a_in, a_out, p_in, p_self, p_out = w.a_in, w.a_out, w.p_in, w.p_self, w.p_out
+    free, fixed, p_init = w.free, w.fixed, w.p_init
+    initial_action, columns = net.initial_action, net.columns
+    sp, front, rear, ground = safety.params, safety.front, safety.rear, safety.ground
+    force_idx, state = safety.force, safety.state
+    fitness, interventions = out.fitness, out.interventions
+    record, box_every, rec_boxes = rec.on, rec.box_every, rec.boxes
+    rec_sensors, rec_predictions, rec_actions = rec.sensors, rec.predictions, rec.actions
+    rec_commands, rec_reasons, rec_poses = rec.commands, rec.reasons, rec.poses
     n = pose.shape[0]
     r = columns.shape[0]
     values = np.empty((n, sn.columns.shape[0]))
@@ -110,10 +169,10 @@ def evaluate(
     for i in range(n):
         hidden[i, :] = p_init
         # A new genome: no manoeuvre carries over; the generator of escape turns does.
-        safety[i, 0] = 0
-        safety[i, 1] = 0
-        safety[i, 2] = 0
-        safety[i, 3] = 0
+        state[i, 0] = 0
+        state[i, 1] = 0
+        state[i, 2] = 0
+        state[i, 3] = 0
     work = np.empty(r + 3 + a_in.shape[0])
     action = np.empty(2)
     predictions = np.empty((n, r))
@@ -134,7 +193,7 @@ def evaluate(
             )  # fmt: skip
             left, right, code = safety_step(
                 sp, front, rear, ground, force_idx, values[i], action[0], action[1], True, 0.0,
-                safety[i],
+                state[i],
             )  # fmt: skip
             interventions[i, code] += 1
             cmd[i, 0] = left
@@ -206,10 +265,13 @@ class Swarm:
         self.ids = robot_ids(world_config.robots)
         layer = SafetyLayer(world_config.sensors, safety)
         self.layer = layer
-        self._groups = (layer.front, layer.rear, layer.ground, layer.force)
         self.safety = np.zeros((world_config.robots, 5), dtype=np.int64)
         for i, robot_id in enumerate(self.ids):
             self.safety[i] = layer.initial_state(safety_seed(robot_id)).to_array()
+        # The kernel's view of the safety layers; ``restore`` keeps ``self.safety`` in place.
+        self._layers = SafetyLayers(
+            layer.params, layer.front, layer.rear, layer.ground, layer.force, self.safety
+        )
         missing = [name for name in spec.sensors if name not in world_config.sensors]
         if missing:
             raise ValueError(f"the world's robots do not carry {', '.join(missing)}")
@@ -231,33 +293,38 @@ class Swarm:
         """Run ``genome`` on every robot for ``steps`` steps from where the swarm stands."""
         world = self.world
         n = world.n_robots
-        weights = network_weights(self.layout, genome)
-        r = len(self.spec.sensors)
-        fitness = np.empty(n)
-        counts = np.zeros((n, self._reasons), dtype=np.int64)
-        shape = (steps, n) if record else (0, n)
-        rec = (
-            np.empty((*shape, r)),
-            np.empty((*shape, r)),
-            np.empty((*shape, 2)),
-            np.empty((*shape, 2)),
-            np.empty(shape, dtype=np.int64),
-            np.empty((*shape, 3)),
+        net = Controller(
+            network_weights(self.layout, genome), self.spec.initial_action, self._columns
         )
+        r = len(self.spec.sensors)
+        out = Outcome(np.empty(n), np.zeros((n, self._reasons), dtype=np.int64))
+        shape = (steps, n) if record else (0, n)
         every = box_frame_steps(world.config.dt)
         frames = box_frames(steps, every) if record else 0
-        boxes = np.empty((frames, len(world.box_positions), 2))
+        rec = Recording(
+            on=record,
+            sensors=np.empty((*shape, r)),
+            predictions=np.empty((*shape, r)),
+            actions=np.empty((*shape, 2)),
+            commands=np.empty((*shape, 2)),
+            reasons=np.empty(shape, dtype=np.int64),
+            poses=np.empty((*shape, 3)),
+            box_every=every,
+            boxes=np.empty((frames, len(world.box_positions), 2)),
+        )
         geometry, sensing = world.kernel_constants
         steps_after = evaluate(
-            geometry, sensing, self.layer.params, *self._groups, *weights,
-            self.spec.initial_action, self._columns, *world.kernel_state, world.steps, steps,
-            self.safety, fitness, counts, record, *rec, every, boxes,
+            geometry, sensing, net, self._layers, WorldState(*world.kernel_state), world.steps,
+            steps, out, rec,
         )  # fmt: skip
         world.advance_to(steps_after)
         interventions = [
-            {REASON_OF_CODE[c]: int(k) for c, k in enumerate(row) if c and k}  # type: ignore[misc]
-            for row in counts
+            {REASONS[c - 1]: int(k) for c, k in enumerate(row) if c and k}
+            for row in out.interventions
         ]
         if not record:
-            return EvaluationRecord(fitness, interventions)
-        return EvaluationRecord(fitness, interventions, *rec, boxes=boxes)
+            return EvaluationRecord(out.fitness, interventions)
+        return EvaluationRecord(
+            out.fitness, interventions, rec.sensors, rec.predictions, rec.actions, rec.commands,
+            rec.reasons, rec.poses, boxes=rec.boxes,
+        )  # fmt: skip

@@ -393,7 +393,8 @@ class _AsebaNetwork(ServiceInterface):
     """The D-Bus face of :class:`FakeMedulla` (method names and signatures as medulla's).
 
     The string annotations are D-Bus signatures read by dbus-fast, not Python types (hence the
-    ``noqa``); this module avoids ``from __future__ import annotations`` so they stay plain.
+    ``noqa`` and ``type: ignore``); this module avoids ``from __future__ import annotations`` so
+    they stay plain.
     """
 
     def __init__(self, fake: FakeMedulla) -> None:
@@ -401,24 +402,24 @@ class _AsebaNetwork(ServiceInterface):
         self._fake = fake
 
     @dbus_method()
-    def GetNodesList(self) -> "as":  # noqa: F722
+    def GetNodesList(self) -> "as":  # type: ignore[valid-type]  # noqa: F722
         self._fake.calls.append(("GetNodesList", ()))
         return [self._fake.node]
 
     @dbus_method()
-    async def GetVariable(self, node: "s", variable: "s") -> "an":  # noqa: F821
+    async def GetVariable(self, node: "s", variable: "s") -> "an":  # type: ignore[name-defined]  # noqa: F821
         return await self._fake.get_variable(node, variable)
 
     @dbus_method()
-    def SetVariable(self, node: "s", variable: "s", data: "an"):  # noqa: F821
+    def SetVariable(self, node: "s", variable: "s", data: "an"):  # type: ignore[name-defined]  # noqa: F821
         self._fake.set_variable(node, variable, data)
 
     @dbus_method()
-    def IsConnected(self, node: "s") -> "b":  # noqa: F821
+    def IsConnected(self, node: "s") -> "b":  # type: ignore[name-defined]  # noqa: F821
         return self._fake.is_connected(node)
 
     @dbus_method()
-    def LoadScripts(self, path: "s"):  # noqa: F821
+    def LoadScripts(self, path: "s"):  # type: ignore[name-defined]  # noqa: F821
         self._fake.load_scripts(path)
 
 

@@ -37,7 +37,7 @@ Unit = Annotated[float, msgspec.Meta(ge=0.0, le=1.0)]
 Point = tuple[float, float]
 
 
-class WorldConfig(Strict):
+class WorldConfig(Strict, frozen=True):
     """Every parameter of a simulated world (see the module docstring for units and axes).
 
     The robots approximate the Thymio II body (front arc of radius 8 cm around the wheel axis, flat
@@ -218,7 +218,7 @@ SCENARIOS: tuple[str, ...] = tuple(_SCENARIOS)
 assert all(set(s.get("sensors", ())) <= set(ALL_SENSORS) for s in _SCENARIOS.values())
 
 
-class _Document(Strict):
+class _Document(Strict, frozen=True):
     # Wrapping the world in a ``simulation`` key makes decode() report keys as the experiment
     # configuration spells them, e.g. "simulation.arena_side".
     simulation: WorldConfig

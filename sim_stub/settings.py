@@ -159,7 +159,7 @@ def safety_config(
     return decode({"safety": merged}, _SafetyDocument, file=file).safety
 
 
-class _SafetyDocument(Strict):
+class _SafetyDocument(Strict, frozen=True):
     # Wrapping the safety in a ``safety`` key makes decode() name keys as the experiment file
     # spells them, e.g. "safety.force_threshold".
     safety: SafetyConfig

@@ -479,7 +479,7 @@ class World:
     def restore(self, snapshot: dict[str, object]) -> None:
         """Return to the state of :meth:`snapshot` (of a world of the same configuration)."""
         n = self._n
-        self.seed = int(snapshot["seed"])  # type: ignore[arg-type]
+        self.seed = int(snapshot["seed"])  # type: ignore[call-overload]
         self._geometry, self._sensing = compile_world(self.config, self.seed)
         self._pose[:] = np.array(snapshot["pose"], dtype=float).reshape(n, 3)
         self._cmd[:] = np.array(snapshot["cmd"], dtype=float).reshape(n, 2)
@@ -488,7 +488,7 @@ class World:
         self._box_start = np.array(snapshot["box_start"], dtype=float).reshape(-1, 2)
         self._box_start.flags.writeable = False
         self._pending = np.array(snapshot["pending"], dtype=bool).reshape(-1)
-        self._steps = int(snapshot["steps"])  # type: ignore[arg-type]
+        self._steps = int(snapshot["steps"])  # type: ignore[call-overload]
         self._cache = None
 
     # --- the engine's access ------------------------------------------------------------------

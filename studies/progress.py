@@ -5,9 +5,12 @@ from __future__ import annotations
 
 import sys
 from types import TracebackType
-from typing import Self
+from typing import TYPE_CHECKING, Self
 
 from studies.runner import Counts
+
+if TYPE_CHECKING:
+    from rich.progress import Progress, TaskID
 
 __all__ = ["StudyProgress"]
 
@@ -33,8 +36,8 @@ class StudyProgress:
 
     def __init__(self) -> None:
         self.live = sys.stdout.isatty()
-        self._progress = None
-        self._task = None
+        self._progress: Progress | None = None
+        self._task: TaskID | None = None
 
     def __enter__(self) -> Self:
         if self.live:
@@ -65,6 +68,7 @@ class StudyProgress:
             f"running {counts.running}, failed {counts.failed}, left ~{_time_left(counts, elapsed)}"
         )
         if self._progress is not None:
+            assert self._task is not None  # added with the progress in __enter__
             self._progress.update(
                 self._task, total=counts.total, completed=counts.done, detail=detail
             )

@@ -102,7 +102,7 @@ _WALLTIME = re.compile(r"^(\d+(:\d{1,2}){0,2}|\d+-\d+(:\d{1,2}){0,2})$")
 _Positive = Annotated[int, msgspec.Meta(ge=1)]
 
 
-class SlurmOptions(Strict):
+class SlurmOptions(Strict, frozen=True):
     """The ``slurm:`` section of a study file: where and how ``--slurm`` starts the workers.
     Every key has a ``--slurm-*`` option too (``--slurm-queue``, ...), which overrides it."""
 

@@ -30,15 +30,29 @@ import subprocess
 import threading
 import time
 from collections.abc import Callable, Iterable
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import Any, NamedTuple, Protocol
 
 from minimize_surprise.backoff import Backoff, BackoffConfig
 from minimize_surprise.errors import ClusterError, ClusterTimeoutError
 from minimize_surprise.text import plural
 
-if TYPE_CHECKING:
-    # Annotations only: studies.slurm imports this module.
-    from studies.slurm import SlurmOptions
+
+class JobShape(Protocol):
+    """What the keeper needs of the study's Slurm options (:class:`studies.slurm.SlurmOptions`,
+    which imports this module): how many jobs, their worker processes, their workers' lifetime."""
+
+    @property
+    def jobs(self) -> int:
+        """Jobs to keep submitted."""
+
+    @property
+    def worker_processes(self) -> int:
+        """Dask worker processes per job."""
+
+    @property
+    def lifetime(self) -> float | None:
+        """Seconds a job's workers run before they leave (None: until the job ends)."""
+
 
 __all__ = [
     "ANSWER_TIMEOUT",
@@ -48,6 +62,7 @@ __all__ = [
     "SQUEUE_POLL",
     "SUBMIT_TIMEOUT",
     "JobKeeper",
+    "JobShape",
     "renewal_line",
     "walltime_seconds",
 ]
@@ -197,7 +212,7 @@ class JobKeeper:
     ``<job>-<i>``), only 15 s after its worker left and by cancelling the job, and silently.
     """
 
-    def __init__(self, cluster: Any, options: SlurmOptions, say: Callable[[str], None]) -> None:
+    def __init__(self, cluster: Any, options: JobShape, say: Callable[[str], None]) -> None:
         self._cluster = cluster
         self._options = options
         self._say = say

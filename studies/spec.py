@@ -60,7 +60,7 @@ _NAME = Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"
 Seed = Annotated[int, msgspec.Meta(ge=0)]
 
 
-class SeedRange(Strict):
+class SeedRange(Strict, frozen=True):
     """Seeds ``from`` .. ``to``, both included."""
 
     #: the first seed
@@ -73,7 +73,7 @@ class SeedRange(Strict):
             raise ValueError("`to`: must be at least `from`")
 
 
-class Group(Strict):
+class Group(Strict, frozen=True):
     """One group of runs: a kind, its parameters, its seeds, and an optional sweep."""
 
     #: the group's name (1 to 64 letters, digits, ``.``, ``_``, ``-``): its runs' directory
@@ -107,7 +107,7 @@ class Group(Strict):
         return list(self.seeds)
 
 
-class Study(Strict):
+class Study(Strict, frozen=True):
     """A study file (see the module docstring)."""
 
     #: the study's name (1 to 64 letters, digits, ``.``, ``_``, ``-``)

@@ -100,7 +100,7 @@ def check_prefix(prefix: str) -> str:
     return prefix
 
 
-class TelemetryConfig(Strict):
+class TelemetryConfig(Strict, frozen=True):
     """The ``telemetry`` section; see the module docstring for an example.
 
     ``broker`` None means off. ``rate_hz`` is the rate of a robot's step samples (0: none; it is

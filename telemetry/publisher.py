@@ -71,7 +71,7 @@ STATE_QOS: Final = 1
 _MQTT_LOG = logging.getLogger("telemetry.mqtt")
 
 
-class _DebugOnly(logging.LoggerAdapter):  # type: ignore[type-arg]
+class _DebugOnly(logging.LoggerAdapter):
     """Passes every record of the MQTT library on at debug level."""
 
     def log(self, level: int, msg: object, *args: Any, **kwargs: Any) -> None:
@@ -289,7 +289,7 @@ class TelemetryPublisher:
             will=will,
             keepalive=self.config.keepalive,
             timeout=BROKER_TIMEOUT,
-            logger=_DebugOnly(_MQTT_LOG, {}),  # type: ignore[arg-type]
+            logger=_DebugOnly(_MQTT_LOG, {}),  # type: ignore[arg-type]  # typed Logger; duck-typed
         )
         try:
             async with client:

@@ -16,7 +16,7 @@ from minimize_surprise.errors import ConfigError
 __all__ = ["ClientTlsConfig", "ServerTlsConfig", "client_context", "server_context"]
 
 
-class ServerTlsConfig(Strict):
+class ServerTlsConfig(Strict, frozen=True):
     """The master's side: its certificate chain and private key.
 
     With ``ca_file`` the robots must present a client certificate signed by that CA (mutual TLS).
@@ -31,7 +31,7 @@ class ServerTlsConfig(Strict):
     ca_file: str | None = None
 
 
-class ClientTlsConfig(Strict):
+class ClientTlsConfig(Strict, frozen=True):
     """A robot's side. Without ``ca_file`` the system's trusted CAs verify the master;
     ``cert_file`` (with ``key_file`` if the key is separate) is the robot's client certificate;
     ``server_hostname`` overrides the name checked in the master's certificate (default: host)."""

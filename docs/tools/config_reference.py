@@ -18,8 +18,9 @@ error, so every key has a meaning. Types and constraints come from the annotatio
 from its parent's default, e.g. ``telemetry.reconnect.initial``), and the keys an experiment's
 ``setting`` fills in from :func:`minimize_surprise.config.with_setting`.
 
-Why one file of over 600 lines: it is a script run by path (``python docs/tools/config_reference.py``),
-beside the page it writes; more than half of it is the pages' own text.
+Why one file of over 600 lines: it is a script run by path
+(``python docs/tools/config_reference.py``), beside the page it writes; more than half of it
+is the pages' own text.
 """
 
 from __future__ import annotations

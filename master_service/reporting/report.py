@@ -490,6 +490,7 @@ def status_text(path: str | Path) -> str:
         and _alive(int(live.get("pid", -1)))
     )
     if fresh:
+        assert isinstance(live, dict)
         robots = live.get("robots", [])
         lines.append(
             f"master: running (pid {live['pid']}, {live['host']}:{live['port']}), "

@@ -252,11 +252,11 @@ def _sensor_cell(value: float, predicted: float | None) -> Text:
 
 def _sensors_table(state: SwarmState) -> Table | None:
     samples = [(rid, state.robots[rid].sample) for rid in sorted(state.robots)]
-    samples = [(rid, s) for rid, s in samples if s is not None]
-    if not samples:
+    present = [(rid, s) for rid, s in samples if s is not None]
+    if not present:
         return None
     names: list[str] = []
-    for _, sample in samples:
+    for _, sample in present:
         names += [name for name in sample.names if name not in names]
     # Each cell: the reading s(t) / what the predictor forecast for it at t-1, coloured by the
     # gap between them (the surprise).
@@ -265,8 +265,7 @@ def _sensors_table(state: SwarmState) -> Table | None:
     table.add_column("step", justify="right")
     for name in names:
         table.add_column(name, justify="right")
-    for robot_id, sample in samples:
-        assert sample is not None
+    for robot_id, sample in present:
         where = dict(zip(sample.names, range(len(sample.names)), strict=False))
         predicted = sample.predictions
         cells: list[Any] = []

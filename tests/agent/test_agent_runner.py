@@ -12,9 +12,10 @@ from agent_fakes import THYMIO, FakeBody, FakeClock, PosedBody, genome, spec
 
 from minimize_surprise.network import NetworkPair
 from minimize_surprise.wire import Evaluate, Failed, Result, genome_to_bytes
+from robot_agent.bounded import finish
 from robot_agent.config import LoopConfig
 from robot_agent.loop import Deadlines, MissingSensorsError, sensor_index
-from robot_agent.runner import EvaluationRunner, finish, stop_motors
+from robot_agent.runner import EvaluationRunner, stop_motors
 from robot_agent.watchdog import Watchdog
 
 ALL_PREDEFINED = 0.25

@@ -1,0 +1,131 @@
+"""Contacts of robots with the walls and with each other.
+
+A robot's body (and blade) is kept inside the walls; robots that overlap push each other apart,
+half each, a blade against another robot's body included. Boxes are in :mod:`.boxes`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from minimize_surprise.jit import kernel
+from sim_stub.physics.model import Geometry
+
+# Overlaps shallower than this (metres) are left alone: resolving them exactly would take many
+# more passes for nothing anyone could measure (boxes and robots are a few centimetres).
+_SLOP = 1e-5
+# At most this many passes of robot-robot separation per step (most steps need none or one;
+# pile-ups of several robots against a wall need more).
+_ROBOT_PASSES = 8
+
+
+@kernel
+def _wall_shift(g: Geometry, x: float, y: float, c: float, s: float) -> tuple[float, float]:
+    # Translation that brings a robot's body (and blade) back inside the walls.
+    wall = g.wall_half
+    r = g.robot_radius
+    cx = x + g.body_offset * c
+    cy = y + g.body_offset * s
+    lo_x = r - wall - cx
+    hi_x = cx - (wall - r)
+    lo_y = r - wall - cy
+    hi_y = cy - (wall - r)
+    if g.blade:
+        ax = x + g.blade_x * c - g.hw * s
+        ay = y + g.blade_x * s + g.hw * c
+        bx = ax + 2 * g.hw * s
+        by = ay - 2 * g.hw * c
+        tb = g.tb
+        lo_x = max(lo_x, tb - wall - ax, tb - wall - bx)
+        hi_x = max(hi_x, ax - (wall - tb), bx - (wall - tb))
+        lo_y = max(lo_y, tb - wall - ay, tb - wall - by)
+        hi_y = max(hi_y, ay - (wall - tb), by - (wall - tb))
+    return max(lo_x, 0.0) - max(hi_x, 0.0), max(lo_y, 0.0) - max(hi_y, 0.0)
+
+
+@kernel
+def _keep_inside_walls(g: Geometry, pose: np.ndarray) -> None:
+    for i in range(pose.shape[0]):
+        c, s = math.cos(pose[i, 2]), math.sin(pose[i, 2])
+        sx, sy = _wall_shift(g, pose[i, 0], pose[i, 1], c, s)
+        pose[i, 0] += sx
+        pose[i, 1] += sy
+
+
+@kernel
+def _separate_robots(g: Geometry, pose: np.ndarray) -> bool:
+    # Whether any robot moved. Each pass computes every push from the same positions, then
+    # applies them all, as a simultaneous relaxation.
+    n = pose.shape[0]
+    moved = False
+    c = np.empty(n)
+    s = np.empty(n)
+    for i in range(n):
+        c[i] = math.cos(pose[i, 2])
+        s[i] = math.sin(pose[i, 2])
+    r2 = 2 * g.robot_radius
+    shift_x = np.empty(n)
+    shift_y = np.empty(n)
+    cx = np.empty(n)
+    cy = np.empty(n)
+    reach = g.robot_radius + g.tb
+    for _ in range(_ROBOT_PASSES):
+        shift_x[:] = 0.0
+        shift_y[:] = 0.0
+        for i in range(n):
+            cx[i] = pose[i, 0] + g.body_offset * c[i]
+            cy[i] = pose[i, 1] + g.body_offset * s[i]
+        for i in range(n):
+            for j in range(n):
+                if i == j:
+                    continue
+                dx = cx[i] - cx[j]
+                dy = cy[i] - cy[j]
+                d2 = dx * dx + dy * dy
+                if d2 < (r2 - _SLOP) ** 2:
+                    if d2 < 1e-18:  # the same spot: part along x
+                        dx, dy, d2 = (1.0 if i > j else -1.0), 0.0, 1.0
+                    d = math.sqrt(d2)
+                    # Each of two touching robots gives way by half the overlap.
+                    k = 0.5 * (r2 - d) / d
+                    shift_x[i] += k * dx
+                    shift_y[i] += k * dy
+        if g.blade:
+            # Robot i's blade against robot j's body; both give way by half.
+            for i in range(n):
+                ax = pose[i, 0] + g.blade_x * c[i] - g.hw * s[i]
+                ay = pose[i, 1] + g.blade_x * s[i] + g.hw * c[i]
+                ux = 2 * g.hw * s[i]
+                uy = -2 * g.hw * c[i]
+                for j in range(n):
+                    if i == j:
+                        continue
+                    wx = cx[j] - ax
+                    wy = cy[j] - ay
+                    t = (wx * ux + wy * uy) / (g.blade_width * g.blade_width)
+                    t = min(max(t, 0.0), 1.0)
+                    dx = wx - t * ux
+                    dy = wy - t * uy
+                    d2 = dx * dx + dy * dy
+                    if d2 < (reach - _SLOP) ** 2:
+                        d = math.sqrt(max(d2, 1e-18))
+                        k = 0.5 * (reach - d) / d
+                        shift_x[j] += k * dx
+                        shift_y[j] += k * dy
+                        shift_x[i] -= k * dx
+                        shift_y[i] -= k * dy
+        any_shift = False
+        for i in range(n):
+            pose[i, 0] += shift_x[i]
+            pose[i, 1] += shift_y[i]
+            sx, sy = _wall_shift(g, pose[i, 0], pose[i, 1], c[i], s[i])
+            pose[i, 0] += sx
+            pose[i, 1] += sy
+            if shift_x[i] != 0.0 or shift_y[i] != 0.0 or sx != 0.0 or sy != 0.0:
+                any_shift = True
+        if not any_shift:
+            return moved
+        moved = True
+    return moved

@@ -1,0 +1,79 @@
+"""Every robot's sensor values (:func:`sense`), in the order the world's sensors are configured.
+
+IR from :mod:`.ir`; ground: ``ground_carpet`` over the carpet, ``ground_outside`` beyond its edge,
+with Gaussian noise of ``ground_noise`` times the value; force as the step left it; light from a
+lamp's fall-off or uniform. Then Gaussian ``noise`` on every value, clipped to [0, 1].
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from minimize_surprise.jit import kernel
+from sim_stub.physics.ir import _ir_value
+from sim_stub.physics.model import GROUND_POSITIONS, IR_HEADINGS, IR_POSITIONS, Sensing, gaussian
+
+__all__ = ["sense"]
+
+_IR_COS = np.cos(IR_HEADINGS)
+_IR_SIN = np.sin(IR_HEADINGS)
+
+# Indices of the sensors in the full frame (minimize_surprise.sensors.ALL_SENSORS).
+_IR0, _GROUND0, _FORCE, _LIGHT0 = 0, 7, 9, 10
+
+
+@kernel
+def sense(
+    sn: Sensing, pose: np.ndarray, force: np.ndarray, step: int, out: np.ndarray,
+    full: np.ndarray,
+) -> None:  # fmt: skip
+    """Every robot's sensor values for the arena as it is at ``step`` into ``out`` (N, R), in
+    the order of ``sn.columns``; ``full`` (N, 12) is scratch space."""
+    n = pose.shape[0]
+    bodies = np.empty((n, 2))
+    for i in range(n):
+        bodies[i, 0] = pose[i, 0] + sn.body_offset * math.cos(pose[i, 2])
+        bodies[i, 1] = pose[i, 1] + sn.body_offset * math.sin(pose[i, 2])
+    for i in range(n):
+        x, y, th = pose[i, 0], pose[i, 1], pose[i, 2]
+        c, s = math.cos(th), math.sin(th)
+        if sn.need_ir:
+            for k in range(7):
+                px, py = IR_POSITIONS[k, 0], IR_POSITIONS[k, 1]
+                sx = x + c * px - s * py
+                sy = y + s * px + c * py
+                # cos and sin of th + heading, from those of th and of the heading
+                cp = c * _IR_COS[k] - s * _IR_SIN[k]
+                sp = s * _IR_COS[k] + c * _IR_SIN[k]
+                full[i, _IR0 + k] = _ir_value(sn, bodies, i, sx, sy, cp, sp, step, k)
+        if sn.need_ground:
+            half = sn.arena_half
+            for k in range(2):
+                px, py = GROUND_POSITIONS[k, 0], GROUND_POSITIONS[k, 1]
+                gx = x + c * px - s * py
+                gy = y + s * px + c * py
+                on = abs(gx) <= half and abs(gy) <= half
+                value = sn.ground_carpet if on else sn.ground_outside
+                if value > 0.0 and sn.ground_noise > 0.0:
+                    value += sn.ground_noise * value * gaussian(sn.seed, step, i, 48 + k)
+                full[i, _GROUND0 + k] = value
+        if sn.need_force:
+            full[i, _FORCE] = force[i]
+        if sn.need_light:
+            for k in range(2):
+                if sn.light:
+                    px, py = sn.light_offsets[k, 0], sn.light_offsets[k, 1]
+                    lx = x + c * px - s * py
+                    ly = y + s * px + c * py
+                    h2 = sn.lamp_h2
+                    ratio = h2 / (h2 + lx * lx + ly * ly)
+                    full[i, _LIGHT0 + k] = sn.light_centre * ratio**sn.light_exponent
+                else:
+                    full[i, _LIGHT0 + k] = sn.light_uniform
+        for j in range(sn.columns.shape[0]):
+            value = full[i, sn.columns[j]]
+            if sn.noise > 0.0:
+                value += sn.noise * gaussian(sn.seed, step, i, j)
+            out[i, j] = min(max(value, 0.0), 1.0)
