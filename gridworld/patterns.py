@@ -1,5 +1,6 @@
 """The nine patterns of paper Sec. IV-A and solution quality, as the authors' classifier scripts
-compute them on the agents' final poses.
+compute them on the agents' final poses, but for lines across the torus border, whose ends are
+trimmed once, as the paper says (docs/gridworld.md, "Lines across the border").
 
 Each measure gives the fraction of agents that belong to its pattern; every neighbourhood wraps
 around the torus. Codes: LN lines, PR pairs, SQ squares, TL triangular lattice, RD random
