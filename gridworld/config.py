@@ -20,7 +20,7 @@ __all__ = ["GridRunConfig", "GridWorldParams", "PositiveInt", "decode_run_config
 PositiveInt = Annotated[int, msgspec.Meta(ge=1)]
 
 
-class GridWorldParams(Strict):
+class GridWorldParams(Strict, frozen=True):
     """The world and the scoring every grid task shares: the torus, the agents, their sensors
     and fixed predictions, sensor noise, and how a genome is scored.
 
@@ -69,7 +69,7 @@ class GridWorldParams(Strict):
         return self.height or self.size
 
 
-class GridRunConfig(GridWorldParams):
+class GridRunConfig(GridWorldParams, frozen=True):
     """One evolution run in the grid world: the world's parameters and the GA's.
 
     ``novelty`` evolves the actor alone by novelty search (no elitism; ``novelty_k`` nearest

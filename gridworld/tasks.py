@@ -69,7 +69,7 @@ GRID_KINDS: tuple[str, ...] = (
 NonNegativeInt = Annotated[int, msgspec.Meta(ge=0)]
 
 
-class RandomParams(GridWorldParams):
+class RandomParams(GridWorldParams, frozen=True):
     """Parameters of ``grid-random`` and ``grid-selected-random``: the world's, and how many
     random genomes the selected one is the best of (``candidates``)."""
 
@@ -78,7 +78,7 @@ class RandomParams(GridWorldParams):
     candidates: PositiveInt = 5000
 
 
-class GenomeParams(Strict):
+class GenomeParams(Strict, frozen=True):
     """The genome of ``grid-damage`` and ``grid-rerun``: a run directory, or the genome inline
     with its sensors and predefined predictions (and, for damage, its start poses)."""
 
@@ -95,7 +95,7 @@ class GenomeParams(Strict):
     start: list[list[int]] | None = None
 
 
-class RerunParams(GenomeParams):
+class RerunParams(GenomeParams, frozen=True):
     """Parameters of ``grid-rerun``: the new grid and how many runs."""
 
     #: the new torus side L
@@ -112,7 +112,7 @@ class RerunParams(GenomeParams):
     steps: PositiveInt = 500
 
 
-class DamageParams(GenomeParams):
+class DamageParams(GenomeParams, frozen=True):
     """Parameters of ``grid-damage``: the rectangle, the variant, and the grid of the genome's
     run (taken from ``genome_run`` when given)."""
 
@@ -202,17 +202,18 @@ def _random(kind: str, p: RandomParams, seed: int, run_dir: Path) -> dict[str, A
     count = p.candidates if kind == "grid-selected-random" else 1
     starts = draw_starts(np.random.default_rng([seed, 11]), torus, p.agents, p.repetitions)
     noise_key = int(np.random.default_rng([seed, 12]).integers(0, 2**32))
-    best = (-1.0, None, None, None, None)
+    best: tuple[float, Any, int, Any, Any] | None = None
     for begin in range(0, count, 50):  # batches bound the memory of the results
         batch = min(50, count - begin)
         genomes = rng.uniform(-p.initial_range, p.initial_range, (batch, layout.size))
         result = evaluator.evaluate(genomes, starts, noise_key)
         fitness, reps = reduce_repetitions(result.fitness, p.fitness_of)
         i = int(np.argmax(fitness))
-        if fitness[i] > best[0]:
+        if best is None or fitness[i] > best[0]:
             rep = int(reps[i])
             best = (float(fitness[i]), genomes[i], rep, result.final[i, rep],
                     result.predictions[i, rep])  # fmt: skip
+    assert best is not None, "at least one candidate is drawn"
     fitness_value, genome, rep, final, predictions = best
     poses, classified = _classified(p.size, height, final, torus)
     write_best(run_dir, genome, spec, fitness_value)
