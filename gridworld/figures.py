@@ -18,6 +18,7 @@ import numpy as np
 
 from gridworld.patterns import PATTERN_NAMES, PATTERNS
 from gridworld.world import SENSOR_OFFSETS
+from minimize_surprise.figures import save_figure
 
 __all__ = [
     "example_grids",
@@ -50,11 +51,7 @@ def _pyplot():
 
 def _save(fig: Any, stem: Path) -> list[Path]:
     stem.parent.mkdir(parents=True, exist_ok=True)
-    paths = []
-    for ext in ("png", "pdf"):
-        path = stem.with_name(f"{stem.name}.{ext}")
-        fig.savefig(path, dpi=150, bbox_inches="tight")
-        paths.append(path)
+    paths = save_figure(fig, stem)
     _pyplot().close(fig)
     return paths
 

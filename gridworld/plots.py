@@ -12,17 +12,16 @@ from pathlib import Path
 import numpy as np
 
 from gridworld.world import Poses
+from minimize_surprise.figures import save_figure
 
 __all__ = ["animate", "draw_grid", "plot_fitness", "plot_grid"]
 
+#: Resolution of a run's PNGs: these pictures are looked at on a screen, not printed.
+_DPI = 120
+
 
 def _save(fig, stem: Path) -> list[Path]:
-    paths = []
-    for ext in ("png", "pdf"):
-        path = stem.with_name(f"{stem.name}.{ext}")
-        fig.savefig(path, dpi=120, bbox_inches="tight")
-        paths.append(path)
-    return paths
+    return save_figure(fig, stem, dpi=_DPI)
 
 
 def plot_fitness(

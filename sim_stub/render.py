@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from minimize_surprise.figures import save_figure
 from sim_stub.scenarios import WorldConfig
 from sim_stub.world import World
 
@@ -227,7 +228,8 @@ def render_world(
     ax.set_title(title or f"{world.n_robots} robots, t = {world.time:.1f} s")
     fig.tight_layout()
     if path is not None:
-        fig.savefig(path, format="png")
+        # The figure's own size and dpi, laid out above: no cropping.
+        save_figure(fig, path, formats=("png",), dpi=None, tight=False, suffix=False)
     return fig
 
 

@@ -26,6 +26,10 @@ Kinds:
 * ``grid-*``: the grid world's kinds (``gridworld.tasks``), when that package is installed. A
   relative ``genome_run`` (reruns and damage of an evolved genome) names another run of the
   study below its ``runs/``, e.g. ``evolved/size=16/seed-{seed}`` with the run's own seed.
+
+Any other kind (or a grid kind without the grid world installed) is a
+:class:`~minimize_surprise.errors.ConfigError` naming it and :data:`KINDS`: checking the task
+raises it, running the task fails the run with it.
 """
 
 from __future__ import annotations
@@ -39,7 +43,7 @@ import os
 import shutil
 import time
 import traceback
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, Final
 
@@ -221,13 +225,15 @@ def run_busy(directory: Path) -> bool:
 def check_task(task: dict[str, Any]) -> None:
     """Decode ``task``'s parameters as its run would, running nothing: a
     :class:`~minimize_surprise.errors.ConfigError` naming the bad key (the key within
-    ``params``)."""
-    if task["kind"] in _KIND_RUNNERS:
+    ``params``), or naming the kind when it is none of :data:`KINDS`."""
+    kind = task["kind"]
+    _runner(kind)
+    if kind in _KIND_RUNNERS:
         _experiment(task)
     else:
         from gridworld.tasks import check_params
 
-        check_params(task["kind"], task["params"])
+        check_params(kind, task["params"])
 
 
 def run_task(task: dict[str, Any], root: str) -> dict[str, Any]:
@@ -252,7 +258,7 @@ def _run_afresh(task: dict[str, Any], directory: Path) -> dict[str, Any]:
     started = time.perf_counter()
     try:
         with _quiet():
-            result = _KIND_RUNNERS.get(task["kind"], _run_grid)(task, directory)
+            result = _runner(task["kind"])(task, directory)
         summary = {**base, "status": "done", **result}
     except BaseException as exc:
         if isinstance(exc, KeyboardInterrupt | SystemExit) or disk_full(exc, directory):
@@ -283,6 +289,8 @@ def _run_evolved(task: dict[str, Any], directory: Path) -> dict[str, Any]:
 
     experiment = _experiment(task)
     result = FastRun(experiment).run(directory, plots=bool(task["params"].get("plots", True)))
+    if result is None:  # only when told to stop, and nothing here tells it to
+        raise RuntimeError(f"the evolved run in {directory} stopped before its end")
     metrics = result.metrics
     post = metrics.get("post_evaluation") or {}
     sensors = post.get("sensors") or {}
@@ -348,6 +356,18 @@ def _study_run(task: dict[str, Any], directory: Path, name: str) -> Path:
 
 
 _KIND_RUNNERS = {"evolved": _run_evolved, "random": _run_random}
+
+
+def _runner(kind: str) -> Callable[[dict[str, Any], Path], dict[str, Any]]:
+    # The function running a task of this kind; an unknown kind is a ConfigError naming the
+    # kinds this installation knows (the grid world's only when gridworld is installed).
+    if kind not in KINDS:
+        raise ConfigError(
+            f"unknown run kind {kind!r}; expected one of: {', '.join(KINDS)}",
+            file="<task>",
+            key="kind",
+        )
+    return _KIND_RUNNERS.get(kind, _run_grid)
 
 
 @contextlib.contextmanager

@@ -17,7 +17,9 @@ from typing import Any, Final
 
 import numpy as np
 
-from master_service.rundir import writing
+from master_service.rundir import write_atomic, writing
+from minimize_surprise.figures import FORMATS as FIGURE_FORMATS
+from minimize_surprise.figures import save_figure
 from minimize_surprise.safety import SAFETY_DOMINATES
 from sim_stub.render import draw_arena, draw_boxes, draw_robot, robot_colours
 from sim_stub.scenarios import WorldConfig
@@ -34,12 +36,11 @@ __all__ = [
     "trajectories_picture",
 ]
 
-#: The formats every picture is written in: a raster to look at, a vector one to print.
-FORMATS: Final = ("png", "pdf")
+#: The formats every picture is written in: a raster to look at, a vector one to print (the
+#: project's, :data:`minimize_surprise.figures.FORMATS`; the PNGs at its resolution, ``DPI``).
+FORMATS: Final = FIGURE_FORMATS
 #: The animation's file name in ``plots/``.
 ANIMATION: Final = "post_evaluation.gif"
-#: Resolution of the PNGs: sharp on a slide.
-_DPI: Final = 150
 #: At most this many points of a trajectory are drawn (a 100 Hz post-evaluation has 10,000):
 #: the eye sees no difference, the PDF stays small.
 _MAX_POINTS: Final = 2_500
@@ -75,13 +76,9 @@ def _figure(width: float, height: float, *, constrained: bool = True) -> Any:
 
 
 def _save(fig: Any, directory: Path, name: str) -> list[Path]:
-    paths = []
-    for fmt in FORMATS:
-        path = directory / f"{name}.{fmt}"
-        with writing(path):
-            fig.savefig(path, dpi=_DPI, format=fmt)
-        paths.append(path)
-    return paths
+    # The figure's size as laid out (constrained layout, or axes placed by hand): no cropping.
+    # A file that cannot be written is a FileWriteError naming it.
+    return save_figure(fig, directory / name, formats=FORMATS, tight=False, write=write_atomic)
 
 
 # -- fitness ---------------------------------------------------------------------------------
@@ -112,8 +109,8 @@ def fitness_picture(
     for kind, marker, label, colour in styles:
         pts = [(r["evaluation"], r["fitness"]) for r in rows if r["kind"] == kind]
         if pts:
-            x, y = zip(*pts, strict=True)
-            top.scatter(x, y, s=10, marker=marker, color=colour, alpha=0.6, label=label)
+            px, py = zip(*pts, strict=True)
+            top.scatter(px, py, s=10, marker=marker, color=colour, alpha=0.6, label=label)
     x = [r["evaluation"] for r in rows]
     top.step(
         x,

@@ -1,0 +1,87 @@
+"""Writing a drawn figure to files: every picture of the project goes through :func:`save_figure`.
+
+The figure is rendered into memory first, in every format asked for, and only then is each file
+written with :func:`minimize_surprise.files.write_atomic`: a figure that fails to draw writes
+nothing, and a reader (a report's page, a file browser) sees the old picture or the new one,
+never a half-written one.
+
+This module draws nothing and imports no plotting library: it takes any object with matplotlib's
+``Figure.savefig`` (the packages drawing figures import matplotlib themselves, only when they
+draw), so the core package stays free of it.
+"""
+
+from __future__ import annotations
+
+import io
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any, Final, Protocol
+
+from minimize_surprise.files import write_atomic
+
+__all__ = ["DPI", "DURABLE", "FORMATS", "TIGHT", "save_figure"]
+
+#: The formats a picture is written in: a raster to look at, a vector one to print.
+FORMATS: Final = ("png", "pdf")
+#: Resolution of the rasters, in dots per inch: sharp on a slide, small enough to mail.
+DPI: Final = 150
+#: Crop the picture to what is drawn: titles, labels and legends outside the axes stay in, the
+#: empty margin goes (the pixel size then follows the drawing, not the figure's size).
+TIGHT: Final = True
+#: No fsync: a picture is drawn again from the data by the next report, and syncing would cost a
+#: disk flush per file. The write is still atomic.
+DURABLE: Final = False
+
+
+class Drawable(Protocol):
+    """What :func:`save_figure` needs of a figure: matplotlib's ``Figure.savefig``."""
+
+    def savefig(self, fname: Any, **kwargs: Any) -> Any: ...
+
+
+def save_figure(
+    fig: Drawable,
+    path: str | Path,
+    *,
+    formats: Sequence[str] = FORMATS,
+    dpi: float | None = DPI,
+    tight: bool = TIGHT,
+    suffix: bool = True,
+    write: Callable[..., None] = write_atomic,
+) -> list[Path]:
+    """Write ``fig`` in each of ``formats``; the paths written, in the order of ``formats``.
+
+    ``path`` names the files without their extension: ``plots/fitness`` becomes
+    ``plots/fitness.png`` and ``plots/fitness.pdf``. ``suffix=False`` writes exactly ``path``
+    instead, in the one format given (for a caller handed a whole file name).
+
+    ``dpi`` is the rasters' resolution; None leaves it to matplotlib (its ``savefig.dpi``
+    setting, by default the figure's own). ``tight`` crops to what is drawn (``bbox_inches=
+    "tight"``); False keeps the figure's size, e.g. for a figure laid out by constrained layout.
+
+    Every format is rendered into memory before any file is written: when drawing fails, no file
+    is touched. ``write(path, data, durable=...)`` writes each file's bytes; by default
+    :func:`~minimize_surprise.files.write_atomic`, whose OSError propagates as it is. A caller
+    that names a failed file in a :class:`~minimize_surprise.errors.FileWriteError` passes its
+    own (e.g. ``master_service.rundir.write_atomic``).
+    """
+    path = Path(path)
+    formats = tuple(formats)
+    if not formats:
+        raise ValueError("save_figure: no format given")
+    if not suffix and len(formats) != 1:
+        raise ValueError(f"save_figure: suffix=False writes one file, not {len(formats)} formats")
+    options: dict[str, Any] = {}
+    if dpi is not None:
+        options["dpi"] = dpi
+    if tight:
+        options["bbox_inches"] = "tight"
+    rendered = []
+    for fmt in formats:
+        buffer = io.BytesIO()
+        fig.savefig(buffer, format=fmt, **options)
+        target = path.with_name(f"{path.name}.{fmt}") if suffix else path
+        rendered.append((target, buffer.getvalue()))
+    for target, data in rendered:
+        write(target, data, durable=DURABLE)
+    return [target for target, _ in rendered]

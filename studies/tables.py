@@ -1,0 +1,254 @@
+"""A study's tables and statistics, computed from pandas frames; no file is read or written here.
+
+:mod:`studies.report` reads the runs (:func:`studies.report.load_runs`: one row per run, the
+sweep keys in ``frame.attrs["sweep"]``), calls these functions on the finished ones, and writes
+what they return:
+
+* :func:`behaviour_class`: a run's behaviour as one label (``circling/grouped/pushing``);
+* :func:`summary_table`: one row per group and sweep value with the fitness's median, quartiles
+  and range, and the count of each behaviour;
+* :func:`statistics`: the paper's tests (docs/studies.md, on top of :mod:`studies.stats`), each
+  family Bonferroni-corrected;
+* :func:`fitness_curves` and :func:`mean_sensor_values`: what the report's figures draw.
+
+pandas (the ``studies`` extra) is imported inside the functions that build a frame.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+
+from studies.stats import bonferroni, fisher, kruskal_wallis, mann_whitney
+
+__all__ = [
+    "PAIRWISE_VALUES",
+    "behaviour_class",
+    "conditions",
+    "fitness_curves",
+    "mean_sensor_values",
+    "statistics",
+    "summary_table",
+    "sweep_columns",
+]
+
+#: Up to this many values of a sweep key are also compared two by two (more: Kruskal-Wallis only,
+#: as 20 grid sizes would make 190 tests).
+PAIRWISE_VALUES = 6
+
+
+def behaviour_class(behaviour: dict[str, Any] | None) -> str | None:
+    """A run's behaviour metrics as one label: ``motion/grouping`` and, with boxes,
+    ``/pushing`` or ``/not-pushing``; None without behaviour."""
+    if not behaviour:
+        return None
+    kind = f"{behaviour['motion']}/{behaviour['grouping']}"
+    if behaviour.get("pushing") is not None:
+        kind += "/pushing" if behaviour["pushing"] else "/not-pushing"
+    return kind
+
+
+def sweep_columns(frame: Any) -> list[str]:
+    """The study's sweep keys that are columns of ``frame``."""
+    return [k for k in frame.attrs.get("sweep", []) if k in frame.columns]
+
+
+def conditions(frame: Any) -> list[str]:
+    """The columns that make two groups' runs comparable: the scenario and setting (Thymio) and
+    the sweep values."""
+    keys = [k for k in ("scenario", "setting") if k in frame.columns]
+    return keys + sweep_columns(frame)
+
+
+def summary_table(done: Any) -> Any:
+    """One row per group and sweep value of the finished runs ``done``: ``group``, ``kind``, the
+    sweep values, ``runs``, the best fitness's median, quartiles, minimum and maximum, and
+    ``n_<behaviour>`` counts."""
+    import pandas as pd
+
+    keys = ["group", "kind", *sweep_columns(done)]
+    rows = []
+    for values, sub in done.groupby(keys, dropna=False, sort=False):
+        fitness = sub["best_fitness"].astype(float)
+        row = dict(zip(keys, values if isinstance(values, tuple) else (values,), strict=True))
+        row.update(
+            runs=len(sub),
+            median_fitness=float(fitness.median()),
+            q1_fitness=float(fitness.quantile(0.25)),
+            q3_fitness=float(fitness.quantile(0.75)),
+            min_fitness=float(fitness.min()),
+            max_fitness=float(fitness.max()),
+        )
+        if "behaviour" in sub.columns:
+            for name, count in sub["behaviour"].value_counts().items():
+                row[f"n_{name}"] = int(count)
+        rows.append(row)
+    table = pd.DataFrame(rows)
+    counts = [c for c in table.columns if c.startswith("n_")]
+    table[counts] = table[counts].fillna(0).astype(int)
+    return table
+
+
+# --------------------------------------------------------------------------- the tests
+
+
+def _test_row(
+    test: str, measure: str, condition: str, samples: str, n1: int, n2: int | None, **result: Any
+) -> dict[str, Any]:
+    return {
+        "test": test, "measure": measure, "condition": condition, "samples": samples,
+        "n1": n1, "n2": n2, **result,
+    }  # fmt: skip
+
+
+def _behaviour_table(a: Any, b: Any) -> tuple[list[str], list[list[int]]]:
+    classes = sorted(set(a["behaviour"].dropna()) | set(b["behaviour"].dropna()))
+    table = [[int((s["behaviour"] == c).sum()) for c in classes] for s in (a, b)]
+    return classes, table
+
+
+def _corrected(family: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    for row, p in zip(family, bonferroni([r["p"] for r in family]), strict=True):
+        row["p_bonferroni"] = p
+    return family
+
+
+def _label(keys: list[str], values: Any) -> str:
+    values = values if isinstance(values, tuple) else (values,)
+    return ", ".join(f"{k}={v}" for k, v in zip(keys, values, strict=True)) or "all runs"
+
+
+def _subsets(frame: Any, keys: list[str]) -> Iterator[tuple[str, Any]]:
+    # (label, rows) for every combination of the values of keys; the whole frame without keys.
+    if not keys:
+        yield "all runs", frame
+        return
+    for values, sub in frame.groupby(keys, dropna=False, sort=False):
+        yield _label(keys, values), sub
+
+
+def _numbers(rows: Any, column: str) -> list[float]:
+    if column not in rows.columns:
+        return []
+    return rows[column].dropna().astype(float).tolist()
+
+
+def _two_samples(
+    label: str, samples: str, a: Any, b: Any, tests: dict[str, list[dict[str, Any]]]
+) -> None:
+    # The paper's comparison of two sets of runs: fitness and solution quality (Mann-Whitney
+    # U), behaviours or patterns (Fisher's exact test on the counts).
+    for column, family in (
+        ("best_fitness", "mann-whitney-u"),
+        ("quality", "mann-whitney-u quality"),
+    ):
+        x, y = _numbers(a, column), _numbers(b, column)
+        if x and y:
+            u = mann_whitney(x, y)
+            tests[family].append(
+                _test_row(
+                    "mann-whitney-u",
+                    column,
+                    label,
+                    samples,
+                    len(x),
+                    len(y),
+                    statistic=u["U"],
+                    p=u["p"],
+                )
+            )
+    if "behaviour" in a.columns and a["behaviour"].notna().any() and b["behaviour"].notna().any():
+        classes, table = _behaviour_table(a, b)
+        f = fisher(table)
+        tests["fisher-exact"].append(
+            _test_row(
+                "fisher-exact", "behaviour", label, samples, len(a), len(b),
+                statistic=f.get("odds_ratio"),
+                p=f["p"], classes=" ".join(classes),
+            )
+        )  # fmt: skip
+
+
+def statistics(done: Any) -> list[dict[str, Any]]:
+    """The paper's tests on the finished runs ``done``, one row each, each family
+    Bonferroni-corrected (``p_bonferroni``; docs/studies.md):
+
+    * between every two groups run under the same condition (scenario, setting, sweep values),
+      e.g. evolved against random per arena or per grid size: Mann-Whitney U on the best
+      fitness and on the solution quality, Fisher's exact test on the behaviours;
+    * within a group across the values of one sweep key (the others fixed): Kruskal-Wallis on
+      the best fitness, and Mann-Whitney U between every two values when there are at most
+      :data:`PAIRWISE_VALUES` of them (e.g. noise levels).
+    """
+    tests: dict[str, list[dict[str, Any]]] = {
+        name: []
+        for name in (
+            "mann-whitney-u", "mann-whitney-u quality", "fisher-exact", "kruskal-wallis",
+            "mann-whitney-u across",
+        )
+    }  # fmt: skip
+    for label, sub in _subsets(done, conditions(done)):
+        groups = list(dict.fromkeys(sub["group"]))
+        for a, b in itertools.combinations(groups, 2):
+            rows_a, rows_b = sub[sub["group"] == a], sub[sub["group"] == b]
+            _two_samples(label, f"{a} vs {b}", rows_a, rows_b, tests)
+    sweep = sweep_columns(done)
+    for group, rows in done.groupby("group", sort=False):
+        for key in sweep:
+            others = [k for k in sweep if k != key and rows[k].notna().any()]
+            for label, sub in _subsets(rows[rows[key].notna()], others):
+                where = f"{group} across {key}" + ("" if label == "all runs" else f" ({label})")
+                by_value = {v: _numbers(g, "best_fitness") for v, g in sub.groupby(key)}
+                by_value = {v: x for v, x in by_value.items() if x}
+                if len(by_value) < 2:
+                    continue
+                samples = list(by_value.values())
+                h = kruskal_wallis(samples)
+                tests["kruskal-wallis"].append(
+                    _test_row(
+                        "kruskal-wallis", "best_fitness", where, f"{len(samples)} values",
+                        sum(len(x) for x in samples), None, statistic=h["H"], p=h["p"],
+                    )
+                )  # fmt: skip
+                if len(by_value) > PAIRWISE_VALUES:
+                    continue
+                for (v, x), (w, y) in itertools.combinations(by_value.items(), 2):
+                    u = mann_whitney(x, y)
+                    tests["mann-whitney-u across"].append(
+                        _test_row(
+                            "mann-whitney-u", "best_fitness", where, f"{key}={v} vs {key}={w}",
+                            len(x), len(y),
+                            statistic=u["U"], p=u["p"],
+                        )
+                    )  # fmt: skip
+    return [row for family in tests.values() for row in _corrected(family)]
+
+
+# --------------------------------------------------------------------------- for the figures
+
+
+def fitness_curves(evaluations: Any, keys: list[str]) -> Iterator[tuple[str, Any, Any, Any]]:
+    """Per combination of the values of ``keys`` (e.g. group and sweep values) in the table of
+    evaluations: its label and the best fitness's median, first and third quartile per
+    evaluation (pandas Series indexed by the evaluation)."""
+    for key in list(evaluations.groupby(keys, sort=False).groups):
+        key = key if isinstance(key, tuple) else (key,)
+        mask = (evaluations[keys] == list(key)).all(axis=1)
+        by = evaluations[mask].groupby("evaluation")["best_fitness"]
+        label = " ".join(str(k) for k in key)
+        yield label, by.median(), by.quantile(0.25), by.quantile(0.75)
+
+
+def mean_sensor_values(runs: Any) -> tuple[list[str], Any, Any] | None:
+    """The sensors' names and each sensor's mean predicted and mean real value over the runs
+    ``runs`` (arrays, one value per sensor), from their summaries; None when they hold none."""
+    summaries = list(runs["_summary"])
+    names = summaries[0].get("sensors") or []
+    real = [s.get("mean_sensors") for s in summaries if s.get("mean_sensors")]
+    pred = [s.get("mean_predictions") for s in summaries if s.get("mean_predictions")]
+    if not names or not real or not pred:
+        return None
+    return names, np.mean(pred, axis=0), np.mean(real, axis=0)

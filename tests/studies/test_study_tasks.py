@@ -1,0 +1,38 @@
+"""One run's task: a kind this installation does not know is refused by name, when the task is
+checked and when it is run (it is not taken for a grid-world run)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from minimize_surprise.errors import ConfigError
+from studies.tasks import FAILED, KINDS, SUMMARY, check_task, run_dir, run_task
+
+FLYING = {
+    "group": "a",
+    "kind": "flying",
+    "seed": 1,
+    "sweep": {},
+    "run": "a/seed-1",
+    "params": {"size": 10},
+}
+
+
+def test_checking_a_task_of_an_unknown_kind_names_it_and_the_known_kinds():
+    with pytest.raises(ConfigError, match="unknown run kind 'flying'") as caught:
+        check_task(FLYING)
+    assert caught.value.key == "kind"
+    assert all(kind in caught.value.reason for kind in KINDS)
+
+
+def test_running_a_task_of_an_unknown_kind_fails_the_run_naming_it(tmp_path):
+    summary = run_task(FLYING, str(tmp_path))
+    assert summary["status"] == "failed"
+    assert summary["error"].startswith("ConfigError: ")
+    assert "unknown run kind 'flying'" in summary["error"]
+    assert ", ".join(KINDS) in summary["error"]
+    directory = run_dir(tmp_path, FLYING)
+    assert (directory / FAILED).is_file() and not (directory / SUMMARY).exists()
+    assert json.loads((directory / FAILED).read_text())["error"] == summary["error"]
