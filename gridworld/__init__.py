@@ -7,7 +7,8 @@ moving one cell forward or turning on the spot. Their actor-predictor pair
 classified into nine patterns.
 
 Modules: :mod:`gridworld.world` (geometry, sensor models, start configurations),
-:mod:`gridworld.kernels` and :mod:`gridworld.evaluate` (compiled simulation of whole generations),
+:mod:`gridworld.kernels`, :mod:`gridworld.runs` and :mod:`gridworld.evaluate` (compiled simulation
+of whole generations),
 :mod:`gridworld.patterns` (the nine patterns and solution quality), :mod:`gridworld.config`,
 :mod:`gridworld.evolve` (a run with checkpoints), :mod:`gridworld.tasks` (the studies' entry
 point), :mod:`gridworld.plots`, :mod:`gridworld.figures` and :mod:`gridworld.cli`

@@ -1,4 +1,4 @@
-"""Evaluating genomes in the grid world: the Python face of :mod:`gridworld.kernels`.
+"""Evaluating genomes in the grid world: the Python face of :mod:`gridworld.runs`.
 
 :class:`GridEvaluator` holds a world (torus, agents, sensor model, steps, noise) and a network
 layout, and evaluates a batch of genomes on shared start configurations in one compiled call.
@@ -10,7 +10,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gridworld.kernels import evaluate_batch
+from gridworld.kernels import Noise
+from gridworld.runs import BatchOutcome, evaluate_batch
 from gridworld.world import WINDOW_MAX_SIDE, Torus, window_table
 from minimize_surprise.gridnet import GridGenomeLayout, GridNetSpec, grid_networks
 
@@ -45,7 +46,7 @@ class GridEvaluator:
     """Runs genomes of ``spec`` in a ``torus`` with ``steps`` steps per run and sensor ``noise``.
 
     ``exact`` uses the code's exp-based tanh in the predictor too (slower; see
-    :mod:`gridworld.kernels`).
+    :mod:`gridworld.runs`).
     """
 
     def __init__(
@@ -93,7 +94,7 @@ class GridEvaluator:
         for rep in range(starts.shape[0]):
             if np.unique(starts[rep, :, 0]).size != starts.shape[1]:
                 raise ValueError(f"start configuration {rep} puts two agents on one cell")
-        g, reps, n = nets.count, starts.shape[0], starts.shape[1]
+        g, reps, n = nets.genomes, starts.shape[0], starts.shape[1]
         s = self.spec.sensors
         fitness = np.empty((g, reps))
         predictions = np.empty((g, reps, s))
@@ -101,10 +102,10 @@ class GridEvaluator:
         behaviour = np.empty((g, reps, s))
         record = np.zeros((self.steps + 1, n, 2), dtype=np.int32)
         trace_run = -1 if trace is None else trace[0] * reps + trace[1]
+        noise = Noise(self._threshold, int(noise_key) & 0xFFFFFFFF)
+        out = BatchOutcome(fitness, predictions, final, behaviour, record, trace_run)
         evaluate_batch(
-            self.neighbours, self.window, self.torus.width, starts, self.steps, nets.a_u,
-            nets.a_hidden, nets.a_out, nets.p_u, nets.p_hidden, nets.p_self, nets.p_out,
-            nets.outputs, nets.fixed, self._threshold, int(noise_key) & 0xFFFFFFFF, self.exact,
-            fitness, predictions, final, behaviour, record, trace_run,
+            self.neighbours, self.window, self.torus.width, starts, self.steps, nets, noise,
+            self.exact, out,
         )  # fmt: skip
         return Evaluation(fitness, predictions, final, behaviour, record if trace else None)

@@ -43,7 +43,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import SupportsFloat
+from typing import NamedTuple, SupportsFloat
 
 import numpy as np
 
@@ -242,9 +242,9 @@ def _input_units(block: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return u0, u1
 
 
-@dataclass(frozen=True)
-class GridNetworks:
-    """A batch of G genomes as the kernels take them (float32, contiguous, genome first).
+class GridNetworks(NamedTuple):
+    """A batch of G genomes as the kernels take them (float32, contiguous, genome first): a
+    named tuple, so the compiled kernels take it whole.
 
     ``a_u`` (G, 2, I): actor input units for input 0 and 1; ``a_hidden`` (G, H_a, I);
     ``a_out`` (G, 2, H_a); ``p_u`` (G, 2, I); ``p_hidden`` (G, H_p, I); ``p_self`` (G, H_p);
@@ -263,7 +263,7 @@ class GridNetworks:
     fixed: np.ndarray
 
     @property
-    def count(self) -> int:
+    def genomes(self) -> int:
         """Number of genomes G."""
         return self.a_u.shape[0]
 
