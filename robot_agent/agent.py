@@ -27,11 +27,12 @@ import random
 import time
 from collections.abc import Callable
 from types import TracebackType
-from typing import Self
+from typing import Final, Self
 
 from drivers.body import Body
 from drivers.clock import Clock, MonotonicClock
 from minimize_surprise.safety import safety_seed
+from minimize_surprise.warmup import warm_up_control
 from robot_agent.config import AgentConfig, make_ssl_context
 from robot_agent.health import RobotHealth
 from robot_agent.link import Link, robot_logger
@@ -41,7 +42,10 @@ from telemetry.payloads import robot_suffix
 from telemetry.publisher import TelemetryPublisher
 from telemetry.robot import RobotTelemetry
 
-__all__ = ["Agent"]
+__all__ = ["WARM_UP_NOTE", "Agent"]
+
+#: Seconds of compiling at start-up worth a log line (a cached install takes milliseconds).
+WARM_UP_NOTE: Final = 0.5
 
 
 def _watchdog_time(clock: Clock) -> Callable[[], float]:
@@ -90,6 +94,7 @@ class Agent:
             rng=rng,
             logger=robot_logger(logging.getLogger("robot_agent.health"), config.robot_id),
         )
+        self._log = robot_logger(logging.getLogger("robot_agent.agent"), config.robot_id)
         #: the MQTT publisher, when a broker is configured
         self.telemetry: TelemetryPublisher | None = None
         robot_telemetry = None
@@ -138,6 +143,11 @@ class Agent:
         await stack.__aenter__()
         try:
             await stack.enter_async_context(self.watchdog)
+            # Compiled now, not at the first step of the first evaluation, where it made a
+            # swarm's first round miss its deadline (a thread: the watchdog keeps running).
+            seconds = await asyncio.to_thread(warm_up_control, self.body.sensors)
+            if seconds >= WARM_UP_NOTE:
+                self._log.info("compiled the control step in %.1f s", seconds)
             group = await stack.enter_async_context(asyncio.TaskGroup())
             # Evaluations are children of the group too, so none outlives the agent.
             self.link.spawn = group.create_task

@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 
 from minimize_surprise.network import GenomeLayout, NetworkPair, NetworkSpec
-from minimize_surprise.safety import SafetyConfig, SafetyLayer
 from minimize_surprise.sensors import ALL_SENSORS
+from minimize_surprise.warmup import warm_up_control
 from sim_stub.scenarios import SCENARIOS, scenario_config
 from sim_stub.world import World
 
@@ -29,10 +29,7 @@ def warm_up() -> None:
         world = World(scenario_config("basic", {"robots": 2, "ir_model": model}), seed=0)
         world.step()
         world.sensor_matrix()
+    warm_up_control(ALL_SENSORS)
     spec = NetworkSpec(sensors=ALL_SENSORS, actor_hidden=2, predictor_hidden=2)
     genome = np.zeros(GenomeLayout(spec).size)
-    NetworkPair(spec, genome).step(np.zeros(len(ALL_SENSORS)))
     NetworkPair(spec, genome, robots=2).step(np.zeros((2, len(ALL_SENSORS))))
-    for profile in ("stop", "escape"):
-        layer = SafetyLayer(ALL_SENSORS, SafetyConfig(profile=profile))
-        layer.step(layer.initial_state(), np.zeros(len(ALL_SENSORS)), (1.0, 1.0))
