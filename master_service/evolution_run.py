@@ -40,11 +40,11 @@ from master_service.rundir import (
     RunState,
     format_row,
 )
+from minimize_surprise.dominance import dominance
 from minimize_surprise.errors import FileWriteError
 from minimize_surprise.evolution import OnePlusOne
 from minimize_surprise.fitness import swarm_fitness
 from minimize_surprise.network import GenomeLayout, NetworkSpec
-from minimize_surprise.safety import dominance_warning
 from minimize_surprise.wire import Result
 
 __all__ = [
@@ -416,11 +416,11 @@ class EvolutionRun:
             ", ".join(f"{r} {results[r].fitness:.4f}" for r in attempt.robots),
             100 * attempt.safety_share,
         )
-        warning = dominance_warning(
-            attempt.safety_share, [r.stats.interventions for r in results.values()]
-        )
-        if warning is not None:
-            self.log.warning("post-evaluation: %s", warning)
+        found = dominance(attempt.safety_share, [r.stats.interventions for r in results.values()])
+        if found is not None:
+            # A fault of the set-up is a warning; the evolved behaviour itself is a note.
+            log = self.log.warning if found.actionable else self.log.info
+            log("post-evaluation: %s", found.text)
         state.phase = "done"
         state.attempts = 0
         await self._commit()

@@ -609,23 +609,6 @@ def apply_safety(
 #: the safety layer's behaviour, not the networks': the progress, the log and the report say so.
 SAFETY_DOMINATES = 0.5
 
-#: What to look at when one reason dominates, per reason.
-_DOMINANT_HINTS: dict[str, str] = {
-    REASON_GROUND: "the ground rule tripped: check safety.ground_threshold and "
-    "safety.ground_boundary against this floor (on a floor as light as the edge marking every "
-    "step looks like the edge)",
-    REASON_FRONT: "front obstacles: robots pressing ahead against a neighbour or a wall and held "
-    "there by the layer (the stop profile's aggregates look like this), or "
-    "safety.stop_ir_threshold / escape_front_threshold too low for these sensors",
-    REASON_REAR: "rear obstacles: robots reversing against a neighbour or a wall and held there "
-    "by the layer",
-    REASON_ESCAPE: "escape manoeuvres: robots keep running into obstacles or the boundary",
-    REASON_FORCE: "the pushing force rule: safety.force_threshold below what the boxes need",
-    REASON_STALE: "stale sensor readings: the sensors do not keep up with the step period",
-    REASON_SENSOR: "sensor values that are not numbers: a sensor is failing",
-    REASON_BACKWARD_LIMIT: "the backward limit: networks that reverse for long stretches",
-}
-
 
 def safety_seed(robot_id: str) -> int:
     """The seed of a robot's escape turns (:meth:`SafetyLayer.initial_state`): stable per robot,
@@ -649,22 +632,3 @@ def intervention_reasons(counts: Iterable[Mapping[str, int]]) -> Counter[str]:
     for c in counts:
         total.update(c)
     return total
-
-
-def dominance_warning(share: float, counts: Iterable[Mapping[str, int]]) -> str | None:
-    """One sentence when the layer drove more than :data:`SAFETY_DOMINATES` of the steps, naming
-    the commonest reason over every robot's ``counts`` of interventions per reason (as for
-    :func:`intervention_share`) and what to check; None otherwise."""
-    if share <= SAFETY_DOMINATES:
-        return None
-    reasons = intervention_reasons(counts)
-    text = (
-        f"the safety layer overrode {100 * share:.0f} % of the steps: what the robots did is "
-        "mostly the safety layer's doing, not the networks' commands"
-    )
-    if reasons:
-        reason = max(reasons, key=lambda r: reasons[r])
-        hint = _DOMINANT_HINTS.get(reason)
-        if hint:
-            text += f"; mostly {hint}"
-    return text

@@ -43,8 +43,9 @@ from master_service.rundir import (
     writing,
 )
 from minimize_surprise.config import ExperimentConfig
+from minimize_surprise.dominance import dominance
 from minimize_surprise.errors import ConfigError
-from minimize_surprise.safety import dominance_warning, intervention_reasons, intervention_share
+from minimize_surprise.safety import intervention_reasons, intervention_share
 from minimize_surprise.text import plural
 from sim_stub import metrics as sim_metrics
 from sim_stub.experiment import world_config
@@ -179,18 +180,34 @@ def _safety_metrics(
     if not metrics:
         return None
     # The post-evaluation is what the behaviour is judged on, the end of the evolution what the
-    # best genome was selected on: either dominated by the safety layer needs a look.
-    warnings = []
+    # best genome was selected on: either dominated by the safety layer is said, as a warning
+    # when a person should act on it, else as a note on the behaviour (minimize_surprise.dominance).
+    warnings: list[str] = []
+    notes: list[str] = []
+    post_found = None
     if "post_evaluation_share" in metrics:
-        warning = dominance_warning(metrics["post_evaluation_share"], counts)
-        if warning:
-            warnings.append(f"in the post-evaluation {warning}")
+        post_found = dominance(metrics["post_evaluation_share"], counts)
+        if post_found is not None:
+            said = warnings if post_found.actionable else notes
+            said.append(f"in the post-evaluation {post_found.text}")
     if "last_tenth_share" in metrics:
-        warning = dominance_warning(metrics["last_tenth_share"], [])
-        if warning:
-            warnings.append(f"in the last tenth of the evolution {warning}")
+        found = dominance(metrics["last_tenth_share"], [])
+        if found is not None:
+            # The rows keep no reasons: the post-evaluation's, of the genome the evolution ended
+            # on, say what it was; without one it is worth a look.
+            actionable = post_found is None or post_found.actionable
+            text = found.text if actionable else _evolution_note(metrics["last_tenth_share"])
+            (warnings if actionable else notes).append(f"in the last tenth of the evolution {text}")
     metrics["warnings"] = warnings
+    metrics["notes"] = notes
     return metrics
+
+
+def _evolution_note(share: float) -> str:
+    return (
+        f"the safety layer drove {100 * share:.0f} % of the steps, for the reason the "
+        "post-evaluation shows; an outcome of the evolution, not a fault"
+    )
 
 
 @dataclass
@@ -335,7 +352,7 @@ def write_report(
 
 
 def safety_lines(metrics: dict[str, Any]) -> list[str]:
-    """How much the safety layer drove, in a line, and its warning if it dominated."""
+    """How much the safety layer drove, in a line, and a note or a warning if it dominated."""
     safety = metrics.get("safety")
     if not safety:
         return []
@@ -348,6 +365,7 @@ def safety_lines(metrics: dict[str, Any]) -> list[str]:
             f"({100 * safety['last_tenth_share']:.0f} % in its last tenth)"
         )
     lines = [f"safety layer drove: {'; '.join(parts)}"] if parts else []
+    lines += [f"note: {note}" for note in safety.get("notes", [])]
     lines += [f"warning: {warning}" for warning in safety.get("warnings", [])]
     return lines
 

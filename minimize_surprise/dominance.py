@@ -1,0 +1,91 @@
+"""What it means when the safety layer drove most of a run's steps: a note or a warning.
+
+Above :data:`~minimize_surprise.safety.SAFETY_DOMINATES` of the steps, what a run shows is mostly
+the safety layer's doing. Whether a person should act on that depends on why it drove
+(docs/safety.md, "When the layer drives most of the steps"):
+
+- robots held against a neighbour or a wall (front or rear obstacles), turned away again and
+  again (escape manoeuvres) or cut short reversing (the backward limit) are what the evolved
+  networks do in this arena (held, they stand still, as the paper's *stopped* robots do); it is a
+  result, said as a **note**;
+- the ground rule on every step (a floor the thresholds take for the edge), the force limit,
+  stale readings and failing sensors are faults of the set-up: a **warning**, naming what to
+  check.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from typing import Final, NamedTuple
+
+from minimize_surprise.safety import (
+    REASON_BACKWARD_LIMIT,
+    REASON_ESCAPE,
+    REASON_FORCE,
+    REASON_FRONT,
+    REASON_GROUND,
+    REASON_REAR,
+    REASON_SENSOR,
+    REASON_STALE,
+    SAFETY_DOMINATES,
+    intervention_reasons,
+)
+
+__all__ = ["ACTIONABLE_REASONS", "Dominance", "dominance"]
+
+#: Reasons whose dominance is a fault of the set-up, for a person to act on.
+ACTIONABLE_REASONS: Final = frozenset({REASON_GROUND, REASON_FORCE, REASON_STALE, REASON_SENSOR})
+
+#: What to check, per actionable reason.
+_CHECK: Final[dict[str, str]] = {
+    REASON_GROUND: "the ground rule tripped: check safety.ground_threshold and "
+    "safety.ground_boundary against this floor (on a floor as light as the edge marking every "
+    "step looks like the edge)",
+    REASON_FORCE: "the pushing force rule: safety.force_threshold below what the boxes need",
+    REASON_STALE: "stale sensor readings: the sensors do not keep up with the step period",
+    REASON_SENSOR: "sensor values that are not numbers: a sensor is failing",
+}
+
+#: What the behaviour is, per reason that is the evolved networks' doing.
+_OUTCOME: Final[dict[str, str]] = {
+    REASON_FRONT: "mostly against a neighbour or a wall ahead: the robots press on and the layer "
+    "holds them, standing still as the paper's stopped robots do (the stop profile's aggregates "
+    "look like this)",
+    REASON_REAR: "mostly against a neighbour or a wall behind: the robots reverse into it and the "
+    "layer holds them, standing still as the paper's stopped robots do",
+    REASON_ESCAPE: "mostly in escape manoeuvres: the networks keep driving into obstacles or the "
+    "boundary and the layer turns them away",
+    REASON_BACKWARD_LIMIT: "mostly at the backward limit: the networks reverse for long "
+    "stretches and the layer cuts them short",
+}
+
+
+class Dominance(NamedTuple):
+    """The layer drove most of the steps: ``text``, one sentence, and whether a person should
+    act on it (``actionable``: a warning) or it describes the behaviour (a note)."""
+
+    text: str
+    actionable: bool
+
+
+def dominance(share: float, counts: Iterable[Mapping[str, int]]) -> Dominance | None:
+    """None unless the layer drove more than ``SAFETY_DOMINATES`` of the steps; otherwise what
+    that means, from the commonest reason over every robot's ``counts`` of interventions per
+    reason. Without counts the reason is unknown, and that is worth a look: a warning."""
+    if share <= SAFETY_DOMINATES:
+        return None
+    reasons = intervention_reasons(counts)
+    reason = max(reasons, key=lambda r: reasons[r]) if reasons else None
+    if reason in _OUTCOME:
+        return Dominance(
+            f"the safety layer drove {100 * share:.0f} % of the steps, {_OUTCOME[reason]}; an "
+            "outcome of the evolution, not a fault",
+            actionable=False,
+        )
+    text = (
+        f"the safety layer overrode {100 * share:.0f} % of the steps: what the robots did is "
+        "mostly the safety layer's doing, not the networks' commands"
+    )
+    if reason in _CHECK:
+        text += f"; mostly {_CHECK[reason]}"
+    return Dominance(text, actionable=True)

@@ -1,0 +1,26 @@
+"""The report says the safety layer's dominance apart: notes on the evolved behaviour, warnings
+for a person to act on (the quick start's held aggregates are notes, a too-light floor a
+warning)."""
+
+from __future__ import annotations
+
+from master_service.reporting.report import _safety_metrics, safety_lines
+
+
+def _post(reasons: dict[str, int], steps: int) -> dict:
+    return {"robots": {"r0": {"stats": {"interventions": reasons, "steps_run": steps}}}}
+
+
+def test_the_report_says_notes_and_warnings_apart() -> None:
+    rows = [{"safety_share": 1.0}] * 10
+    held = _safety_metrics(rows, _post({"front": 80}, 100))
+    assert held is not None and held["warnings"] == []
+    assert [n.split(" the safety")[0] for n in held["notes"]] == [
+        "in the post-evaluation",
+        "in the last tenth of the evolution",
+    ]
+    lines = safety_lines({"safety": held})
+    assert [line.split(":")[0] for line in lines] == ["safety layer drove", "note", "note"]
+    floor = _safety_metrics(rows, _post({"ground": 95}, 100))
+    assert floor is not None and floor["notes"] == [] and len(floor["warnings"]) == 2
+    assert any(line.startswith("warning: ") for line in safety_lines({"safety": floor}))
