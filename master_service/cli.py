@@ -492,7 +492,12 @@ def _baseline(args: argparse.Namespace) -> int:
 
 
 def _report(args: argparse.Namespace) -> int:
-    from master_service.reporting.report import baseline_text, safety_lines, write_report
+    from master_service.reporting.report import (
+        baseline_text,
+        behaviour_line,
+        safety_lines,
+        write_report,
+    )
 
     metrics = write_report(args.dir, baseline=args.baseline, animate=args.animate)
     best = metrics.get("best_fitness")
@@ -505,6 +510,9 @@ def _report(args: argparse.Namespace) -> int:
         + ("-" if best is None else f"{best:.4f}")
         + ("" if post is None else f", post-evaluation fitness {post:.4f}")
     )
+    behaviour = behaviour_line(metrics)
+    if behaviour is not None:
+        print(behaviour)
     for line in safety_lines(metrics):
         print(line)
     comparison = metrics.get("baseline")

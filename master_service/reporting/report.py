@@ -50,9 +50,22 @@ from minimize_surprise.text import plural
 from sim_stub import metrics as sim_metrics
 from sim_stub.experiment import world_config
 
-__all__ = ["baseline_text", "compute_metrics", "safety_lines", "status_text", "write_report"]
+__all__ = [
+    "NO_POSITIONS",
+    "baseline_text",
+    "behaviour_line",
+    "compute_metrics",
+    "safety_lines",
+    "status_text",
+    "write_report",
+]
 
-
+#: Why a run has no behaviour class: the metrics are computed from positions, which a simulated
+#: robot's trace carries and a real robot's does not (it does not know where it is).
+NO_POSITIONS: Final = (
+    "the post-evaluation's traces hold no positions (a real robot does not know where it is), "
+    "and the behaviour metrics are computed from them"
+)
 #: A live.json older than this many refresh periods means the master is gone.
 _STALE_PERIODS: Final = 5
 
@@ -152,6 +165,8 @@ def _post_metrics(
             stacked, boxes.get("start"), boxes.get("end"), dt=dt
         )
         metrics["behaviour"] = msgspec.to_builtins(behaviour)
+    else:
+        metrics["behaviour_missing"] = NO_POSITIONS
     return metrics
 
 
@@ -349,6 +364,21 @@ def write_report(
         metrics["pictures"] = [str(p.relative_to(data.run.path)) for p in drawn]
     write_atomic(data.run.file(METRICS), json.dumps(metrics, indent=2).encode("utf-8"))
     return metrics
+
+
+def behaviour_line(metrics: dict[str, Any]) -> str | None:
+    """The post-evaluation's behaviour class in a line, or why there is none (None before a
+    post-evaluation)."""
+    post = metrics.get("post_evaluation")
+    if not post:
+        return None
+    b = post.get("behaviour")
+    if not b:
+        return f"behaviour: none: {post.get('behaviour_missing', NO_POSITIONS)}"
+    kind = f"{b['motion']}, {b['grouping']}"
+    if b.get("box_displacement") is not None:
+        kind += ", pushing" if b["pushing"] else ", not pushing"
+    return f"behaviour: {kind}"
 
 
 def safety_lines(metrics: dict[str, Any]) -> list[str]:

@@ -9,6 +9,7 @@ import subprocess
 from pathlib import Path
 
 import pytest
+import yaml
 
 from drivers.config import RUNTIME_PROGRAM_DIR, ThymioConfig
 from master_service.config import load_master_config
@@ -40,6 +41,15 @@ def test_example_master_configuration_loads_with_the_example_experiment(tmp_path
     config = load_master_config(tmp_path / "master.yaml")
     assert config.experiment.robots == 4 and config.experiment.evolution.evaluations == 350
     assert len(config.allowed_robots) == 4
+
+
+def test_every_example_experiment_names_its_setting():
+    """A key left out takes the setting's default: the file should say which one it is."""
+    experiments = [p for p in EXAMPLES.glob("*.yaml") if "experiment" in p.name]
+    assert experiments
+    for path in experiments:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+        assert data.get("setting") in ("lab", "paper"), f"{path.name} names no setting"
 
 
 def test_example_robot_ids_are_the_masters_allow_list(tmp_path):

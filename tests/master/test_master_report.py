@@ -33,6 +33,7 @@ def test_report_writes_metrics_and_plots(finished_run, capsys):
     out = capsys.readouterr().out
     assert "8 evaluations, best fitness" in out and "8 pictures" in out
     assert "safety layer drove: 25 % of the post-evaluation steps" in out
+    assert "behaviour: stopped, grouped" in out
     assert "warning: in the last tenth of the evolution the safety layer overrode 100 %" in out
     metrics = json.loads((finished_run / "metrics.json").read_text())
     assert metrics["evaluations"] == metrics["evaluations_planned"] == 8
@@ -97,6 +98,20 @@ async def test_status_and_metrics_while_running(tmp_path):
         assert compute_metrics(run)["evaluations"] == 0
         await close(robots)
     assert "not running; continue with `surprise-master resume" in status_text(run)
+
+
+async def test_report_of_real_robots_says_why_there_is_no_behaviour(tmp_path, capsys):
+    run = tmp_path / "run"
+    async with Master(master_config(experiment(evaluations=2)), run, secret=SECRET) as master:
+        robots = make_robots(master.port, 3)  # as real robots: traces without positions
+        await run_with(master, robots)
+        await close(robots)
+    assert main(["report", str(run)]) == 0
+    out = capsys.readouterr().out
+    assert "behaviour: none: the post-evaluation's traces hold no positions" in out
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert "behaviour" not in metrics["post_evaluation"]
+    assert "no positions" in metrics["post_evaluation"]["behaviour_missing"]
 
 
 def test_report_of_a_run_without_rows(tmp_path):
