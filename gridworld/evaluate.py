@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gridworld.kernels import Noise
+from gridworld.kernels import Noise, build_torus
 from gridworld.runs import BatchOutcome, evaluate_batch
 from gridworld.world import WINDOW_MAX_SIDE, Torus, window_table
 from minimize_surprise.gridnet import GridGenomeLayout, GridNetSpec, grid_networks
@@ -72,6 +72,7 @@ class GridEvaluator:
             self.window = window_table(spec.sensors)
         else:  # sensors are looked up cell by cell
             self.window = np.zeros((0, 3, 32), dtype=np.uint16)
+        self._compiled_torus = build_torus(self.neighbours, self.window, torus.width)
 
     def evaluate(
         self,
@@ -104,8 +105,5 @@ class GridEvaluator:
         trace_run = -1 if trace is None else trace[0] * reps + trace[1]
         noise = Noise(self._threshold, int(noise_key) & 0xFFFFFFFF)
         out = BatchOutcome(fitness, predictions, final, behaviour, record, trace_run)
-        evaluate_batch(
-            self.neighbours, self.window, self.torus.width, starts, self.steps, nets, noise,
-            self.exact, out,
-        )  # fmt: skip
+        evaluate_batch(self._compiled_torus, starts, self.steps, nets, noise, self.exact, out)
         return Evaluation(fitness, predictions, final, behaviour, record if trace else None)

@@ -27,6 +27,7 @@ __all__ = [
     "Torus",
     "WorldTables",
     "actor_decision",
+    "build_torus",
     "noise_bits",
     "prefix_sums",
     "read_outputs",
@@ -258,3 +259,9 @@ def world_tables(nb: np.ndarray, width: int, bits_ok: bool) -> WorldTables:
     return WorldTables(
         front_of, sense_line, sense_shift, row_of, col_of, row_bits, col_bits, popcount
     )
+
+
+def build_torus(nb: np.ndarray, window: np.ndarray, width: int) -> Torus:
+    """The :class:`Torus` of neighbour table ``nb``, sensor ``window`` table (empty: read cell by
+    cell) and ``width``, its :func:`world_tables` built (the bit lines need a ``window``)."""
+    return Torus(nb, window, width, world_tables(nb, width, window.shape[0] > 0))

@@ -24,6 +24,15 @@ lies within float32 rounding of zero can.
 Sensor noise flips each sensor value an agent reads with probability ``noise`` (independent per
 run, step, agent and sensor; the same flips for every genome given the same ``noise_key``). The
 noisy values go into both networks and the fitness; moves are blocked by true occupancy only.
+
+:func:`simulate_genome` runs a genome's runs side by side as a loop of named steps, each over all
+agents of all runs: ``_sense`` (with the noise), ``_score``, ``_act``, ``_predict_hidden``,
+``_predict_outputs``, ``_move``; they share the agents' poses and decisions (:class:`Agents`),
+the runs' occupancy (:class:`Occupancy`), the genome's networks (:class:`Actor`,
+:class:`Predictor`) and working space (:class:`Sums`).
+
+Why one file of over 600 lines: the steps are private to the one kernel that calls them in order,
+and about half of the file is their docstrings.
 """
 
 from __future__ import annotations
@@ -42,7 +51,6 @@ from gridworld.kernels import (
     prefix_sums,
     read_outputs,
     tanh_fast,
-    world_tables,
 )
 from minimize_surprise.gridnet import GridNetworks, c_activation
 from minimize_surprise.jit import kernel
@@ -76,59 +84,400 @@ class BatchOutcome(NamedTuple):
     trace_run: int
 
 
+class Agents(NamedTuple):
+    """The agents of all runs of one genome side by side (lane ``rep * N + a`` is agent a of run
+    rep): the pose (``cell``, ``head``) and the actor's last decision (``a0`` 1: turn, then
+    ``left`` 1: to the left, 0: to the right)."""
+
+    cell: np.ndarray
+    head: np.ndarray
+    a0: np.ndarray
+    left: np.ndarray
+
+
+class Occupancy(NamedTuple):
+    """Each run's occupancy, twice. ``event`` (reps, cells): each cell's last event, 2 * time + 1
+    when an agent entered it (or stood on it at the start, time 0), 2 * time when it was left,
+    with time t + 1 for step t. A cell is occupied at the start of a step if its last event is an
+    entry, and taken or being left this step if its last event is this step's: one load decides a
+    forward move. ``lines`` (reps, H + W): the occupancy as bit lines (rows by y, then columns by
+    x; see :func:`gridworld.kernels.world_tables`), what the sensors read."""
+
+    event: np.ndarray
+    lines: np.ndarray
+
+
+class Actor(NamedTuple):
+    """Genome ``g``'s actor as the decision step takes it: the batch's ``u``, ``hidden``, ``out``
+    (:class:`GridNetworks` ``a_*``), ``prefix`` (H_a, 2^bits) its input-layer sums over the
+    first ``bits`` inputs (:func:`prefix_sums`), ``memo`` its decisions by input bits (-1: not
+    yet known), ``scratch`` (H_a) room for one decision."""
+
+    u: np.ndarray
+    hidden: np.ndarray
+    out: np.ndarray
+    g: int
+    prefix: np.ndarray
+    bits: int
+    memo: np.ndarray
+    scratch: np.ndarray
+
+
+class Predictor(NamedTuple):
+    """Genome ``g``'s predictor as the prediction steps take it: the batch's ``u``, ``hidden``,
+    ``self_loop``, ``out`` (:class:`GridNetworks` ``p_*``), ``outputs`` the sensor of each
+    output, ``prefix`` (H_p, 2^bits) its input-layer sums over the first ``bits`` inputs,
+    ``first`` the first step's (fixed) predictions as bits, sensor k at bit k, ``exact``: the
+    code's tanh in the hidden units."""
+
+    u: np.ndarray
+    hidden: np.ndarray
+    self_loop: np.ndarray
+    out: np.ndarray
+    outputs: np.ndarray
+    g: int
+    prefix: np.ndarray
+    bits: int
+    first: np.int64
+    exact: bool
+
+
+class Sums(NamedTuple):
+    """The prediction steps' working space per lane: ``low`` a lane's prefix table column
+    (unsigned, as every index of a per-lane loop: a signed index costs a check for negative
+    values that keeps the loop from being compiled tightly), ``acc`` ... ``acc4`` the sums of up
+    to four units."""
+
+    low: np.ndarray
+    acc: np.ndarray
+    acc2: np.ndarray
+    acc3: np.ndarray
+    acc4: np.ndarray
+
+
+# The steps of a run (simulate_genome's loop, each called once per time step) take structures
+# they read (nearly) all of, and plain arrays, and read the fields into locals at their top: a
+# compiled call costs about a nanosecond for each array of its arguments it does not use (passed
+# the batch-wide GridNetworks and one structure of every lane array, the steps made a generation
+# without a predictor 8% slower). The structures are made once per genome.
+
+
 @kernel
-def _move_run(
-    tables: WorldTables,
-    cell: np.ndarray,
-    head: np.ndarray,
-    a0: np.ndarray,
-    left: np.ndarray,
-    event_r: np.ndarray,
-    lines_r: np.ndarray,
-    lo: int,
-    n: int,
+def _actor(nets: GridNetworks, g: int, memo: np.ndarray) -> Actor:
+    """Genome g's :class:`Actor`, its decisions kept in ``memo``."""
+    a_u, a_hidden = nets.a_u, nets.a_hidden
+    bits = min(PREFIX_BITS, a_u.shape[2])
+    prefix = np.empty((a_hidden.shape[1], 1 << bits), dtype=np.float32)
+    prefix_sums(a_u, a_hidden, g, bits, prefix)
+    scratch = np.zeros(a_hidden.shape[1], dtype=np.float32)
+    return Actor(a_u, a_hidden, nets.a_out, g, prefix, bits, memo, scratch)
+
+
+@kernel
+def _predictor(nets: GridNetworks, g: int, exact: bool) -> Predictor:
+    """Genome g's :class:`Predictor`."""
+    p_u, p_hidden, fixed = nets.p_u, nets.p_hidden, nets.fixed
+    bits = min(PREFIX_BITS, p_u.shape[2])
+    prefix = np.empty((p_hidden.shape[1], 1 << bits), dtype=np.float32)
+    prefix_sums(p_u, p_hidden, g, bits, prefix)
+    first = np.int64(0)
+    for k in range(fixed.shape[0]):
+        first |= np.int64(fixed[k]) << k
+    return Predictor(
+        p_u, p_hidden, nets.p_self, nets.p_out, nets.outputs, g, prefix, bits, first, exact
+    )
+
+
+@kernel
+def _place_agents(torus: Torus, starts: np.ndarray) -> tuple[Agents, Occupancy]:
+    """The agents on their ``starts`` ((reps, N, 2): cell, heading) and the runs' occupancy."""
+    nb, width, tables = torus.nb, torus.width, torus.tables
+    row_of, col_of, row_bits, col_bits = (
+        tables.row_of,
+        tables.col_of,
+        tables.row_bits,
+        tables.col_bits,
+    )
+    cells = nb.shape[0]
+    reps, n = starts.shape[0], starts.shape[1]
+    lanes = reps * n
+    cell = np.empty(lanes, dtype=np.uint32)
+    head = np.empty(lanes, dtype=np.uint32)
+    for rep in range(reps):
+        for a in range(n):
+            cell[rep * n + a] = starts[rep, a, 0]
+            head[rep * n + a] = starts[rep, a, 1]
+    event = np.zeros((reps, cells), dtype=np.int32)
+    lines = np.zeros((reps, cells // width + width), dtype=np.uint64)
+    for rep in range(reps):
+        for a in range(rep * n, rep * n + n):
+            c = cell[a]
+            event[rep, c] = 1
+            lines[rep, row_of[c]] |= row_bits[c]
+            lines[rep, col_of[c]] |= col_bits[c]
+    a0 = np.zeros(lanes, dtype=np.int64)
+    left = np.zeros(lanes, dtype=np.int64)
+    return Agents(cell, head, a0, left), Occupancy(event, lines)
+
+
+@kernel
+def _record(trace: np.ndarray, t: int, agents: Agents, rep: int) -> None:
+    """Run rep's poses into ``trace[t]``."""
+    cell, head = agents.cell, agents.head
+    n = trace.shape[1]
+    for a in range(n):
+        trace[t, a, 0] = cell[rep * n + a]
+        trace[t, a, 1] = head[rep * n + a]
+
+
+@kernel(error_model="numpy")
+def _sense(
+    torus: Torus,
+    noise: Noise,
+    agents: Agents,
+    occupancy: Occupancy,
+    key: np.ndarray,
+    base: np.ndarray,
+    flips: np.ndarray,
     t: int,
+    steps: int,
 ) -> None:
-    """Step t's moves of the agents ``lo`` ... ``lo + n - 1`` of one run, in index order, against
-    the snapshot and the cells taken so far this step (``event_r``, ``lines_r``: the run's)."""
+    """Step t's sensor bits of every agent into ``key``, read on its run's snapshot: three 5-bit
+    windows of the run's bit lines per agent with a ``torus.window``, else sensor by sensor
+    (``base``: room per lane); then the noise's flips (``flips``: room for one run's)."""
+    nb, window, tables = torus.nb, torus.window, torus.tables
+    sense_line, sense_shift = tables.sense_line, tables.sense_shift
+    noise_threshold, noise_key = noise
+    cell, head = agents.cell, agents.head
+    event, lines = occupancy
+    reps, r = event.shape[0], nb.shape[2]
+    n = key.shape[0] // reps
+    five = np.uint64(31)
+    for rep in range(reps):
+        lo, hi = rep * n, rep * n + n
+        if window.shape[0] > 0:
+            lines_r = lines[rep]
+            for a in range(np.uint64(lo), np.uint64(hi)):
+                d = head[a]
+                i = np.uint32(2) * cell[a] + (d & np.uint32(1))
+                s0 = sense_shift[i]
+                w0 = (lines_r[sense_line[i, 0]] >> s0) & five
+                w1 = (lines_r[sense_line[i, 1]] >> s0) & five
+                w2 = (lines_r[sense_line[i, 2]] >> s0) & five
+                key[a] = window[d, 0, w0] | window[d, 1, w1] | window[d, 2, w2]
+        else:
+            event_r = event[rep]
+            nbf = nb.ravel()
+            for a in range(lo, hi):
+                base[a] = (cell[a] * 4 + head[a]) * r
+                key[a] = 0
+            for k in range(r):
+                for a in range(lo, hi):
+                    key[a] |= np.int64(event_r[nbf[base[a] + k]] & 1) << k
+        if noise_threshold > 0:
+            # reading k of agent a has the counter origin + (a - lo) * r + k: the flips of a
+            # whole run are drawn in one loop that vectorises, then set into the keys
+            origin = ((rep * steps) + t) * n * r
+            for m in range(n * r):
+                flips[m] = noise_bits(noise_key, origin + m) < noise_threshold
+            for a in range(lo, hi):
+                flipped = np.int64(0)
+                for k in range(r):
+                    flipped |= np.int64(flips[(a - lo) * r + k]) << k
+                key[a] ^= flipped
+
+
+@kernel
+def _score(
+    popcount: np.ndarray, key: np.ndarray, pmask: np.ndarray, r: int, correct: np.ndarray
+) -> None:
+    """Adds to ``correct[rep]`` how many of the R sensor bits of run rep's agents (``key``) last
+    step's predictions (``pmask``) got right (``popcount``: :class:`WorldTables`'s)."""
+    reps = correct.shape[0]
+    n = key.shape[0] // reps
+    for rep in range(reps):
+        wrong = 0
+        for a in range(rep * n, rep * n + n):
+            wrong += popcount[np.uint64(key[a] ^ pmask[a])]
+        correct[rep] += n * r - wrong
+
+
+@kernel(error_model="numpy")
+def _act(actor: Actor, agents: Agents, key: np.ndarray, pkey: np.ndarray) -> None:
+    """The actor's decisions for every lane's sensor bits (``key``) and last a0, into
+    ``agents.a0`` and ``agents.left``, and the predictor's inputs (``pkey``: ``key`` with the
+    new a0 above it): computed once per genome and input, looked up afterwards."""
+    a_u, a_hidden, a_out, g, prefix, bits, memo, scratch = actor
+    a0, left = agents.a0, agents.left
+    r = a_u.shape[2] - 1
+    inputs = r + 1
+    for a in range(key.shape[0]):
+        full = np.uint64(key[a] | (a0[a] << r))
+        m = memo[full]
+        if m < 0:
+            m = actor_decision(a_u, a_hidden, a_out, g, full, inputs, prefix, bits, scratch)
+            memo[full] = m
+        a0[a] = m & 1
+        left[a] = m >> 1
+        pkey[a] = np.int32(key[a] | ((m & 1) << r))
+
+
+@kernel(error_model="numpy")
+def _predict_hidden(predictor: Predictor, pkey: np.ndarray, hidden: np.ndarray, sums: Sums) -> None:
+    """The predictor's hidden units on all lanes (``hidden``: (H_p, lanes), their state) for
+    inputs ``pkey``: the input layer (the table's sums over the first inputs, continued in
+    order), then the self-loops."""
+    p_u, p_hidden, p_self, g = predictor.u, predictor.hidden, predictor.self_loop, predictor.g
+    p_prefix, bits, exact = predictor.prefix, predictor.bits, predictor.exact
+    low, acc = sums.low, sums.acc
+    lanes = pkey.shape[0]
+    inputs = p_u.shape[2]
+    hp = p_hidden.shape[1]
+    low_mask = (1 << bits) - 1
+    for a in range(lanes):
+        low[a] = np.uint32(pkey[a] & low_mask)
+    for j in range(hp):
+        row = p_prefix[j]
+        for a in range(lanes):
+            acc[a] = row[low[a]]
+        i = bits
+        while i + 4 <= inputs:  # four inputs per pass over the agents, added in order
+            u0, u1, u2, u3 = p_u[g, 0, i], p_u[g, 0, i + 1], p_u[g, 0, i + 2], p_u[g, 0, i + 3]
+            o0, o1, o2, o3 = p_u[g, 1, i], p_u[g, 1, i + 1], p_u[g, 1, i + 2], p_u[g, 1, i + 3]
+            w0, w1 = p_hidden[g, j, i], p_hidden[g, j, i + 1]
+            w2, w3 = p_hidden[g, j, i + 2], p_hidden[g, j, i + 3]
+            y0, y1, y2, y3 = u0 * w0, u1 * w1, u2 * w2, u3 * w3
+            x0, x1, x2, x3 = o0 * w0, o1 * w1, o2 * w2, o3 * w3
+            b0 = np.int32(1) << np.int32(i)
+            b1, b2, b3 = b0 << 1, b0 << 2, b0 << 3
+            for a in range(lanes):
+                k = pkey[a]
+                acc[a] = (
+                    acc[a]
+                    + (x0 if k & b0 else y0)
+                    + (x1 if k & b1 else y1)
+                    + (x2 if k & b2 else y2)
+                    + (x3 if k & b3 else y3)
+                )
+            i += 4
+        while i < inputs:
+            y0 = p_u[g, 0, i] * p_hidden[g, j, i]
+            x0 = p_u[g, 1, i] * p_hidden[g, j, i]
+            b0 = np.int32(1) << np.int32(i)
+            for a in range(lanes):
+                acc[a] += x0 if pkey[a] & b0 else y0
+            i += 1
+        v = p_self[g, j]
+        if exact:
+            for a in range(lanes):
+                hidden[j, a] = c_activation(acc[a] + hidden[j, a] * v)
+        else:
+            for a in range(lanes):
+                hidden[j, a] = tanh_fast(acc[a] + hidden[j, a] * v)
+
+
+@kernel(error_model="numpy")
+def _predict_outputs(
+    predictor: Predictor, hidden: np.ndarray, pmask: np.ndarray, ones: np.ndarray, sums: Sums
+) -> None:
+    """The predictor's outputs on all lanes, four at a time: the next step's predictions into
+    ``pmask`` (over the first step's fixed ones), each output's predictions of 1 counted in
+    ``ones`` (O, lanes)."""
+    p_out, outputs, g, first = predictor.out, predictor.outputs, predictor.g, predictor.first
+    acc, acc2, acc3, acc4 = sums.acc, sums.acc2, sums.acc3, sums.acc4
+    lanes = pmask.shape[0]
+    hp = hidden.shape[0]
+    o = outputs.shape[0]
+    if o > 0:
+        for a in range(lanes):
+            pmask[a] = first
+    for q in range(0, o, 4):
+        qa = min(q + 1, o - 1)
+        qb = min(q + 2, o - 1)
+        qc = min(q + 3, o - 1)
+        for a in range(lanes):
+            acc[a] = 0.0
+            acc2[a] = 0.0
+            acc3[a] = 0.0
+            acc4[a] = 0.0
+        for j in range(0, hp - 1, 2):
+            w, w1 = p_out[g, q, j], p_out[g, q, j + 1]
+            x, x1 = p_out[g, qa, j], p_out[g, qa, j + 1]
+            y, y1 = p_out[g, qb, j], p_out[g, qb, j + 1]
+            z, z1 = p_out[g, qc, j], p_out[g, qc, j + 1]
+            for a in range(lanes):
+                h, h1 = hidden[j, a], hidden[j + 1, a]
+                acc[a] = acc[a] + h * w + h1 * w1
+                acc2[a] = acc2[a] + h * x + h1 * x1
+                acc3[a] = acc3[a] + h * y + h1 * y1
+                acc4[a] = acc4[a] + h * z + h1 * z1
+        if hp % 2 == 1:
+            w, x = p_out[g, q, hp - 1], p_out[g, qa, hp - 1]
+            y, z = p_out[g, qb, hp - 1], p_out[g, qc, hp - 1]
+            for a in range(lanes):
+                h = hidden[hp - 1, a]
+                acc[a] += h * w
+                acc2[a] += h * x
+                acc3[a] += h * y
+                acc4[a] += h * z
+        read_outputs(acc, outputs[q], q, pmask, ones)
+        if qa != q:
+            read_outputs(acc2, outputs[qa], qa, pmask, ones)
+        if qb != qa:
+            read_outputs(acc3, outputs[qb], qb, pmask, ones)
+        if qc != qb:
+            read_outputs(acc4, outputs[qc], qc, pmask, ones)
+
+
+@kernel
+def _move(tables: WorldTables, agents: Agents, occupancy: Occupancy, t: int) -> None:
+    """Step t's moves, run by run and in index order, against the run's snapshot and the cells
+    taken so far this step; turns always succeed."""
     front_of, row_of, col_of = tables.front_of, tables.row_of, tables.col_of
     row_bits, col_bits = tables.row_bits, tables.col_bits
+    cell, head, a0, left = agents
+    event, lines = occupancy
+    reps = event.shape[0]
+    n = cell.shape[0] // reps
     now = 2 * (t + 1)
-    for a in range(np.uint64(lo), np.uint64(lo + n)):
-        c = cell[a]
-        h = head[a]
-        # a turn adds 1 (left) or 3 (right) to the heading, a move or a block adds 0
-        head[a] = (h + a0[a] * (3 - 2 * left[a])) & 3
-        front = front_of[c * np.uint32(4) + h]
-        e = event_r[front]
-        if (a0[a] == 0) & (e < now) & (e & 1 == 0):
-            event_r[front] = now + 1
-            event_r[c] = now
-            cell[a] = front
-            # the mover's bits leave its cell's row and column for the front cell's
-            lines_r[row_of[c]] ^= row_bits[c]
-            lines_r[col_of[c]] ^= col_bits[c]
-            lines_r[row_of[front]] ^= row_bits[front]
-            lines_r[col_of[front]] ^= col_bits[front]
+    for rep in range(reps):
+        event_r = event[rep]
+        lines_r = lines[rep]
+        lo = rep * n
+        for a in range(np.uint64(lo), np.uint64(lo + n)):
+            c = cell[a]
+            h = head[a]
+            # a turn adds 1 (left) or 3 (right) to the heading, a move or a block adds 0
+            head[a] = (h + a0[a] * (3 - 2 * left[a])) & 3
+            front = front_of[c * np.uint32(4) + h]
+            e = event_r[front]
+            if (a0[a] == 0) & (e < now) & (e & 1 == 0):
+                event_r[front] = now + 1
+                event_r[c] = now
+                cell[a] = front
+                # the mover's bits leave its cell's row and column for the front cell's
+                lines_r[row_of[c]] ^= row_bits[c]
+                lines_r[col_of[c]] ^= col_bits[c]
+                lines_r[row_of[front]] ^= row_bits[front]
+                lines_r[col_of[front]] ^= col_bits[front]
 
 
 @kernel
 def _tally(
     nets: GridNetworks,
-    ones: np.ndarray,
+    agents: Agents,
     pmask: np.ndarray,
-    cell: np.ndarray,
-    head: np.ndarray,
+    ones: np.ndarray,
     steps: int,
-    n: int,
     out: RunOutcome,
 ) -> None:
     """After the last step: each run's final poses and its scored predictions per sensor (the
     first step's fixed one, then those made before the last step; ``ones`` counts every
     prediction of 1 made, ``pmask`` holds the last step's, never scored)."""
     outputs, fixed = nets.outputs, nets.fixed
+    cell, head = agents.cell, agents.head
     predsum, final = out.predsum, out.final
-    reps, r, o = final.shape[0], fixed.shape[0], outputs.shape[0]
+    reps, n, r, o = final.shape[0], final.shape[1], fixed.shape[0], outputs.shape[0]
     lanes = reps * n
     for q in range(o):
         for a in range(lanes):
@@ -168,223 +517,50 @@ def simulate_genome(
     """Genome ``g`` of ``nets`` on every start configuration of ``starts`` ((reps, N, 2): cell,
     heading), the runs side by side so the networks work on reps x N agents at once; results
     into ``out`` (:class:`RunOutcome`). ``memo`` caches the actor's decisions by input bits (-1:
-    not yet known). With a ``window`` the sensors are read from bit rows and columns of the
-    occupancy; without, cell by cell.
+    not yet known). With a ``torus.window`` the sensors are read from bit rows and columns of
+    the occupancy; without, cell by cell.
     """
-    nb, window, width, tables = torus
-    a_u, a_hidden, a_out = nets.a_u, nets.a_hidden, nets.a_out
-    p_u, p_hidden, p_self, p_out = nets.p_u, nets.p_hidden, nets.p_self, nets.p_out
-    outputs, fixed = nets.outputs, nets.fixed
-    noise_threshold, noise_key = noise
+    tables = torus.tables
+    popcount = tables.popcount
     correct, trace, trace_rep = out.correct, out.trace, out.trace_rep
-    cells, r = nb.shape[0], nb.shape[2]
-    reps, n = starts.shape[0], starts.shape[1]
+    reps, n, r = starts.shape[0], starts.shape[1], torus.nb.shape[2]
     lanes = reps * n
-    inputs = r + 1
-    hp = p_hidden.shape[1]
-    o = outputs.shape[0]
-    cell = np.empty(lanes, dtype=np.uint32)
-    head = np.empty(lanes, dtype=np.uint32)
-    for rep in range(reps):
-        for a in range(n):
-            cell[rep * n + a] = starts[rep, a, 0]
-            head[rep * n + a] = starts[rep, a, 1]
-    a0 = np.zeros(lanes, dtype=np.int64)
-    left = np.zeros(lanes, dtype=np.int64)
-    # the last event of each cell of each run: 2 * time + 1 when an agent entered it (or stood
-    # on it at the start, time 0), 2 * time when it was left, with time t + 1 for step t. A cell
-    # is occupied at the start of a step if its last event is an entry, and taken or being left
-    # this step if its last event is this step's: one load decides a forward move.
-    event = np.zeros((reps, cells), dtype=np.int32)
-    nbf = nb.ravel()
-    # per agent: the sensor bits read this step with this step's a0 above them (the predictor's
-    # inputs), and the bits of the prediction to be scored at the next step
-    pkey = np.zeros(lanes, dtype=np.int32)
-    scratch = np.zeros(a_hidden.shape[1], dtype=np.float32)
+    agents, occupancy = _place_agents(torus, starts)
+    actor = _actor(nets, g, memo)
+    predictor = _predictor(nets, g, exact)
+    outputs = predictor.outputs.shape[0]
+    # per lane: the sensor bits read this step; the predictor's inputs (those bits with this
+    # step's a0 above them), its hidden state and the bits of its prediction to be scored at the
+    # next step; per output and lane: how many of its predictions said 1
     key = np.zeros(lanes, dtype=np.int64)
+    pkey = np.zeros(lanes, dtype=np.int32)
+    hidden = np.zeros((predictor.hidden.shape[1], lanes), dtype=np.float32)
+    pmask = np.full(lanes, predictor.first, dtype=np.int64)
+    ones = np.zeros((max(outputs, 1), lanes), dtype=np.int32)
     base = np.zeros(lanes, dtype=np.int64)
     flips = np.zeros(n * r, dtype=np.uint8)
-    # each run's occupancy as bit lines (rows by y, then columns by x; see world_tables)
-    bits_ok = window.shape[0] > 0
-    lines = np.zeros((reps, cells // width + width), dtype=np.uint64)
-    sense_line, sense_shift, popcount = tables.sense_line, tables.sense_shift, tables.popcount
-    row_of, col_of, row_bits, col_bits = (
-        tables.row_of,
-        tables.col_of,
-        tables.row_bits,
-        tables.col_bits,
+    sums = Sums(
+        np.zeros(lanes, dtype=np.uint32),
+        np.empty(lanes, dtype=np.float32),
+        np.empty(lanes, dtype=np.float32),
+        np.empty(lanes, dtype=np.float32),
+        np.empty(lanes, dtype=np.float32),
     )
-    five = np.uint64(31)
-    first = np.int64(0)
-    for k in range(r):
-        first |= np.int64(fixed[k]) << k
-    pmask = np.full(lanes, first, dtype=np.int64)
-    hidden = np.zeros((hp, lanes), dtype=np.float32)
-    bits = min(PREFIX_BITS, inputs)
-    low_mask = (1 << bits) - 1
-    # both networks' input-layer sums over the first inputs, for every pattern of their bits
-    a_prefix = np.empty((a_hidden.shape[1], 1 << bits), dtype=np.float32)
-    prefix_sums(a_u, a_hidden, g, bits, a_prefix)
-    p_prefix = np.empty((hp, 1 << bits), dtype=np.float32)
-    prefix_sums(p_u, p_hidden, g, bits, p_prefix)
-    # each agent's table column (unsigned, as every index of a per-agent loop: a signed index
-    # costs a check for negative values that keeps the loop from being compiled tightly)
-    low = np.zeros(lanes, dtype=np.uint32)
-    acc = np.empty(lanes, dtype=np.float32)
-    acc2 = np.empty(lanes, dtype=np.float32)
-    acc3 = np.empty(lanes, dtype=np.float32)
-    acc4 = np.empty(lanes, dtype=np.float32)
-    # per output and agent: how many of its predictions said 1
-    ones = np.zeros((max(o, 1), lanes), dtype=np.int32)
     for rep in range(reps):
         correct[rep] = 0
-        for a in range(rep * n, rep * n + n):
-            c = cell[a]
-            event[rep, c] = 1
-            lines[rep, row_of[c]] |= row_bits[c]
-            lines[rep, col_of[c]] |= col_bits[c]
     for t in range(steps):
         if trace_rep >= 0:
-            for a in range(n):
-                trace[t, a, 0] = cell[trace_rep * n + a]
-                trace[t, a, 1] = head[trace_rep * n + a]
-        # sensing on each run's snapshot (three 5-bit windows of its bit lines per agent, or
-        # sensor by sensor), scoring last step's predictions
-        for rep in range(reps):
-            event_r = event[rep]
-            lines_r = lines[rep]
-            lo, hi = rep * n, rep * n + n
-            if bits_ok:
-                for a in range(np.uint64(lo), np.uint64(hi)):
-                    d = head[a]
-                    i = np.uint32(2) * cell[a] + (d & np.uint32(1))
-                    s0 = sense_shift[i]
-                    w0 = (lines_r[sense_line[i, 0]] >> s0) & five
-                    w1 = (lines_r[sense_line[i, 1]] >> s0) & five
-                    w2 = (lines_r[sense_line[i, 2]] >> s0) & five
-                    key[a] = window[d, 0, w0] | window[d, 1, w1] | window[d, 2, w2]
-            else:
-                for a in range(lo, hi):
-                    base[a] = (cell[a] * 4 + head[a]) * r
-                    key[a] = 0
-                for k in range(r):
-                    for a in range(lo, hi):
-                        key[a] |= np.int64(event_r[nbf[base[a] + k]] & 1) << k
-            if noise_threshold > 0:
-                # reading k of agent a has the counter origin + (a - lo) * r + k: the flips of a
-                # whole run are drawn in one loop that vectorises, then set into the keys
-                origin = ((rep * steps) + t) * n * r
-                for m in range(n * r):
-                    flips[m] = noise_bits(noise_key, origin + m) < noise_threshold
-                for a in range(lo, hi):
-                    flipped = np.int64(0)
-                    for k in range(r):
-                        flipped |= np.int64(flips[(a - lo) * r + k]) << k
-                    key[a] ^= flipped
-            wrong = 0
-            for a in range(lo, hi):
-                wrong += popcount[np.uint64(key[a] ^ pmask[a])]
-            correct[rep] += n * r - wrong
-        # the actor: its decision for these input bits, computed once per genome and input
-        for a in range(lanes):
-            full = np.uint64(key[a] | (a0[a] << r))
-            m = memo[full]
-            if m < 0:
-                m = actor_decision(a_u, a_hidden, a_out, g, full, inputs, a_prefix, bits, scratch)
-                memo[full] = m
-            a0[a] = m & 1
-            left[a] = m >> 1
-            pkey[a] = np.int32(key[a] | ((m & 1) << r))
-        # predictor on all agents of all runs: the input layer (the table's sums over the
-        # first inputs, continued in order), the hidden units with self-loops, the outputs;
-        # the predictions made before the last step are counted for the mean per sensor
-        for a in range(lanes):
-            low[a] = np.uint32(pkey[a] & low_mask)
-        for j in range(hp):
-            row = p_prefix[j]
-            for a in range(lanes):
-                acc[a] = row[low[a]]
-            i = bits
-            while i + 4 <= inputs:  # four inputs per pass over the agents, added in order
-                u0, u1, u2, u3 = p_u[g, 0, i], p_u[g, 0, i + 1], p_u[g, 0, i + 2], p_u[g, 0, i + 3]
-                o0, o1, o2, o3 = p_u[g, 1, i], p_u[g, 1, i + 1], p_u[g, 1, i + 2], p_u[g, 1, i + 3]
-                w0, w1 = p_hidden[g, j, i], p_hidden[g, j, i + 1]
-                w2, w3 = p_hidden[g, j, i + 2], p_hidden[g, j, i + 3]
-                y0, y1, y2, y3 = u0 * w0, u1 * w1, u2 * w2, u3 * w3
-                x0, x1, x2, x3 = o0 * w0, o1 * w1, o2 * w2, o3 * w3
-                b0 = np.int32(1) << np.int32(i)
-                b1, b2, b3 = b0 << 1, b0 << 2, b0 << 3
-                for a in range(lanes):
-                    k = pkey[a]
-                    acc[a] = (
-                        acc[a]
-                        + (x0 if k & b0 else y0)
-                        + (x1 if k & b1 else y1)
-                        + (x2 if k & b2 else y2)
-                        + (x3 if k & b3 else y3)
-                    )
-                i += 4
-            while i < inputs:
-                y0 = p_u[g, 0, i] * p_hidden[g, j, i]
-                x0 = p_u[g, 1, i] * p_hidden[g, j, i]
-                b0 = np.int32(1) << np.int32(i)
-                for a in range(lanes):
-                    acc[a] += x0 if pkey[a] & b0 else y0
-                i += 1
-            v = p_self[g, j]
-            if exact:
-                for a in range(lanes):
-                    hidden[j, a] = c_activation(acc[a] + hidden[j, a] * v)
-            else:
-                for a in range(lanes):
-                    hidden[j, a] = tanh_fast(acc[a] + hidden[j, a] * v)
-        if o > 0:
-            for a in range(lanes):
-                pmask[a] = first
-        for q in range(0, o, 4):
-            qa = min(q + 1, o - 1)
-            qb = min(q + 2, o - 1)
-            qc = min(q + 3, o - 1)
-            for a in range(lanes):
-                acc[a] = 0.0
-                acc2[a] = 0.0
-                acc3[a] = 0.0
-                acc4[a] = 0.0
-            for j in range(0, hp - 1, 2):
-                w, w1 = p_out[g, q, j], p_out[g, q, j + 1]
-                x, x1 = p_out[g, qa, j], p_out[g, qa, j + 1]
-                y, y1 = p_out[g, qb, j], p_out[g, qb, j + 1]
-                z, z1 = p_out[g, qc, j], p_out[g, qc, j + 1]
-                for a in range(lanes):
-                    h, h1 = hidden[j, a], hidden[j + 1, a]
-                    acc[a] = acc[a] + h * w + h1 * w1
-                    acc2[a] = acc2[a] + h * x + h1 * x1
-                    acc3[a] = acc3[a] + h * y + h1 * y1
-                    acc4[a] = acc4[a] + h * z + h1 * z1
-            if hp % 2 == 1:
-                w, x = p_out[g, q, hp - 1], p_out[g, qa, hp - 1]
-                y, z = p_out[g, qb, hp - 1], p_out[g, qc, hp - 1]
-                for a in range(lanes):
-                    h = hidden[hp - 1, a]
-                    acc[a] += h * w
-                    acc2[a] += h * x
-                    acc3[a] += h * y
-                    acc4[a] += h * z
-            read_outputs(acc, outputs[q], q, pmask, ones)
-            if qa != q:
-                read_outputs(acc2, outputs[qa], qa, pmask, ones)
-            if qb != qa:
-                read_outputs(acc3, outputs[qb], qb, pmask, ones)
-            if qc != qb:
-                read_outputs(acc4, outputs[qc], qc, pmask, ones)
-        # moves in index order against the snapshot and the cells taken so far this step
-        for rep in range(reps):
-            _move_run(tables, cell, head, a0, left, event[rep], lines[rep], rep * n, n, t)
-    _tally(nets, ones, pmask, cell, head, steps, n, out)
+            _record(trace, t, agents, trace_rep)
+        _sense(torus, noise, agents, occupancy, key, base, flips, t, steps)
+        _score(popcount, key, pmask, r, correct)
+        _act(actor, agents, key, pkey)
+        if outputs > 0:  # without outputs every prediction is fixed
+            _predict_hidden(predictor, pkey, hidden, sums)
+            _predict_outputs(predictor, hidden, pmask, ones, sums)
+        _move(tables, agents, occupancy, t)
+    _tally(nets, agents, pmask, ones, steps, out)
     if trace_rep >= 0:
-        for a in range(n):
-            trace[steps, a, 0] = cell[trace_rep * n + a]
-            trace[steps, a, 1] = head[trace_rep * n + a]
+        _record(trace, steps, agents, trace_rep)
 
 
 @kernel
@@ -405,9 +581,7 @@ def final_sensors(nb: np.ndarray, state: np.ndarray, out: np.ndarray) -> None:
 
 @kernel
 def evaluate_batch(
-    nb: np.ndarray,
-    window: np.ndarray,
-    width: int,
+    torus: Torus,
     starts: np.ndarray,
     steps: int,
     nets: GridNetworks,
@@ -415,7 +589,8 @@ def evaluate_batch(
     exact: bool,
     out: BatchOutcome,
 ) -> None:
-    """Every genome of ``nets`` on every start configuration (``starts``: (reps, N, 2)).
+    """Every genome of ``nets`` on every start configuration (``starts``: (reps, N, 2)) in
+    ``torus`` (:func:`build_torus`).
 
     Writes into ``out`` (:class:`BatchOutcome`), per genome g and run r: ``fitness[g, r]`` (share
     of correct predictions, Eq. 1), ``predmean[g, r, k]`` (mean scored prediction of sensor k),
@@ -424,10 +599,10 @@ def evaluate_batch(
     recorded into ``out.trace``.
     """
     fitness, predmean, final, behaviour, trace, trace_run = out
+    nb = torus.nb
     genomes = nets.a_u.shape[0]
     reps, n = starts.shape[0], starts.shape[1]
     r = nb.shape[2]
-    torus = Torus(nb, window, width, world_tables(nb, width, window.shape[0] > 0))
     memo = np.empty(1 << (r + 1), dtype=np.int8)
     correct = np.empty(reps, dtype=np.int64)
     predsum = np.empty((reps, r), dtype=np.float64)
