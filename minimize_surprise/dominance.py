@@ -33,9 +33,6 @@ from minimize_surprise.safety import (
 
 __all__ = ["ACTIONABLE_REASONS", "Dominance", "dominance"]
 
-#: Reasons whose dominance is a fault of the set-up, for a person to act on.
-ACTIONABLE_REASONS: Final = frozenset({REASON_GROUND, REASON_FORCE, REASON_STALE, REASON_SENSOR})
-
 #: What to check, per actionable reason.
 _CHECK: Final[dict[str, str]] = {
     REASON_GROUND: "the ground rule tripped: check safety.ground_threshold and "
@@ -45,6 +42,8 @@ _CHECK: Final[dict[str, str]] = {
     REASON_STALE: "stale sensor readings: the sensors do not keep up with the step period",
     REASON_SENSOR: "sensor values that are not numbers: a sensor is failing",
 }
+#: Reasons whose dominance is a fault of the set-up, for a person to act on.
+ACTIONABLE_REASONS: Final = frozenset(_CHECK)
 
 #: What the behaviour is, per reason that is the evolved networks' doing.
 _OUTCOME: Final[dict[str, str]] = {

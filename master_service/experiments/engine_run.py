@@ -65,13 +65,13 @@ class FastRun:
         self.swarm = Swarm(
             world_config(experiment), simulated_safety(experiment), self.spec, experiment.seed
         )
-        self.ids = list(self.swarm.ids)
+        self.evaluator = EngineEvaluator(self.swarm, experiment)
+        self.ids = self.evaluator.ids
         # The configuration snapshot of the run directory: what the master of ``--engine
         # agents`` would hold for this swarm (config.yaml has one format for both engines).
         self.config = MasterConfig(
             experiment=experiment, host="127.0.0.1", port=0, allowed_robots=self.ids
         )
-        self.evaluator = EngineEvaluator(self.swarm, experiment)
 
     def run(
         self,
