@@ -14,6 +14,17 @@ if TYPE_CHECKING:
 
 
 @dataclass(frozen=True, slots=True)
+class PartReading:
+    """One part of a body read on its own (a preflight check): its ``sensors`` and ``values``
+    (normalised, in that order), or the ``error`` that kept it from answering."""
+
+    part: str
+    sensors: tuple[str, ...]
+    values: tuple[float, ...] = ()
+    error: str | None = None
+
+
+@dataclass(frozen=True, slots=True)
 class SensorFrame:
     """One reading of every sensor of a body.
 
@@ -60,6 +71,22 @@ class Body(ABC):
     async def read(self) -> SensorFrame:
         """Read every sensor once. Raises ``minimize_surprise.errors.HardwareError`` on failure."""
 
+    async def read_parts(self) -> list[PartReading]:
+        """Each part read on its own, so that one broken part does not hide the others (a
+        preflight check); never raises. A body of one part reads itself whole."""
+        try:
+            frame = await self.read()
+        except Exception as exc:
+            return [PartReading("body", self.sensors, error=describe_error(exc))]
+        values = tuple(float(v) for v in frame.values)
+        return [PartReading("body", self.sensors, values)]
+
+    async def read_battery(self) -> float | None:
+        """The battery's voltage, or None where this body cannot tell (never a guess). Raises
+        ``HardwareError`` when the robot does not answer. Read between evaluations, not per step.
+        """
+        return None
+
     @abstractmethod
     async def drive(self, left: float, right: float) -> None:
         """Set the wheel speeds, normalised to [-1, 1]."""
@@ -79,6 +106,12 @@ class Body(ABC):
         tb: TracebackType | None,
     ) -> None:
         await self.close()
+
+
+def describe_error(exc: BaseException) -> str:
+    """An exception in one line for a person: its message, or its type when it has none."""
+    text = str(exc)
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
 
 def clamp_unit(value: float) -> float:

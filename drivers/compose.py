@@ -6,10 +6,11 @@ import asyncio
 import logging
 import time
 from collections.abc import Awaitable, Sequence
+from typing import Final
 
 import numpy as np
 
-from drivers.body import Body, SensorFrame
+from drivers.body import Body, PartReading, SensorFrame, describe_error
 from drivers.config import BodyConfig
 from drivers.force import ForceSensor
 from drivers.i2c import I2CBuses, I2CDevice, SMBusFactory
@@ -20,6 +21,11 @@ from minimize_surprise.errors import HardwareError
 from minimize_surprise.sensors import ALL_SENSORS, LIGHT_SENSORS
 
 log = logging.getLogger(__name__)
+
+#: Seconds one part may take to answer a check: each driver bounds its own calls well below this
+#: (a Thymio read waits one sensor period, an I2C transfer milliseconds); a part that takes longer
+#: is reported as not answering rather than holding the check up.
+PART_READ_TIMEOUT: Final = 2.0
 
 
 class RobotBody(Body):
@@ -93,6 +99,31 @@ class RobotBody(Body):
         values = await gather_all(*(part.read() for part in self.parts))
         timestamp = time.monotonic()
         return SensorFrame(values=np.concatenate(values)[self._order], timestamp=timestamp)
+
+    async def read_parts(self) -> list[PartReading]:
+        """Every part read on its own and at once, each bounded by :data:`PART_READ_TIMEOUT`:
+        the Thymio (``thymio``: medulla and the robot), the force sensor, each light sensor."""
+
+        async def one(part: Part) -> PartReading:
+            name = "thymio" if part is self.thymio else part.sensors[0]
+            if part not in self._opened:
+                return PartReading(name, part.sensors, error="not open (it failed to start)")
+            try:
+                async with asyncio.timeout(PART_READ_TIMEOUT):
+                    values = await part.read()
+            except TimeoutError:
+                return PartReading(
+                    name, part.sensors, error=f"no answer within {PART_READ_TIMEOUT} s"
+                )
+            except Exception as exc:
+                return PartReading(name, part.sensors, error=describe_error(exc))
+            return PartReading(name, part.sensors, tuple(float(v) for v in values))
+
+        return list(await asyncio.gather(*(one(part) for part in self.parts)))
+
+    async def read_battery(self) -> float | None:
+        """The Thymio's battery voltage (None where medulla's robot does not declare ``_vbat``)."""
+        return await self.thymio.read_battery()
 
     async def drive(self, left: float, right: float) -> None:
         """Set the wheel speeds (normalised; clamped, NaN is 0)."""

@@ -41,7 +41,12 @@ from xml.sax.saxutils import quoteattr
 from drivers.body import clamp_unit
 from drivers.config import CALL_TIMEOUT, PROGRAM_NODE, ThymioConfig
 from drivers.parts import gather_all
-from minimize_surprise.errors import HardwareError, HardwareTimeoutError, RobotUnreachableError
+from minimize_surprise.errors import (
+    DBusReplyError,
+    HardwareError,
+    HardwareTimeoutError,
+    RobotUnreachableError,
+)
 from minimize_surprise.files import write_atomic
 from minimize_surprise.sensors import GROUND_SENSORS, IR_SENSORS
 
@@ -66,6 +71,13 @@ MOTOR_RIGHT = "motor.right.target"
 IR_MAX = 4500.0
 #: Full scale of the ground sensors' 10-bit readings.
 GROUND_MAX = 1023.0
+#: The firmware's battery measurement, two raw values; their sum / VBAT_SCALE is about the
+#: battery's voltage (docs/thymio.md). Aseba Playground's Thymio does not declare it.
+VBAT = "_vbat"
+VBAT_SCALE = 397.8
+#: How medulla answers ``GetVariable`` for a name the robot does not declare, at once and without
+#: asking the robot: ``variable _vbat does not exists in node thymio-II`` (sic).
+UNKNOWN_VARIABLE_ERROR = "org.freedesktop.DBus.Error.InvalidArgs"
 #: The programs shipped next to this module, and the variable the host refreshes.
 FAILSAFE_PROGRAM = "failsafe.aesl"
 EMPTY_PROGRAM = "empty.aesl"
@@ -266,6 +278,20 @@ class ThymioBase:
 
         ir, ground = await gather_all(self.read_ir(), self.read_ground())
         return np.concatenate([ir, ground])
+
+    async def read_battery(self) -> float | None:
+        """The battery's voltage from ``_vbat``, or None when the robot does not declare it.
+
+        A robot that does not answer raises as any read does (:class:`RobotUnreachableError` or
+        :class:`HardwareTimeoutError`): an unknown battery is never a lost robot, nor the reverse.
+        """
+        try:
+            raw = await self._get(VBAT, 2)
+        except DBusReplyError as exc:
+            if exc.name == UNKNOWN_VARIABLE_ERROR:
+                return None
+            raise
+        return round((raw[0] + raw[1]) / VBAT_SCALE, 3)
 
     # -- motors ------------------------------------------------------------------------------------
 
@@ -487,7 +513,9 @@ class ThymioBase:
                     raise RobotUnreachableError(
                         f"{operation}: asebamedulla {gone} ({answer.error_name})"
                     )
-                raise HardwareError(f"{operation}: {answer.error_name}: {text}")
+                raise DBusReplyError(
+                    f"{operation}: {answer.error_name}: {text}", answer.error_name or ""
+                )
             return list(answer.body)
 
         return await _bounded(operation, exchange(), self.config.timeout)

@@ -2,10 +2,15 @@
 
 Subcommands::
 
-    surprise-master run --config FILE [--out DIR]   start a run (DIR: runs/<time>-<scenario>)
-    surprise-master resume DIR                      continue a run from its checkpoint
-    surprise-master report DIR                      write metrics.json and plots/
+    surprise-master run --config FILE [--out DIR] [--pause-before-post]
+                                                    start a run (DIR: runs/<time>-<scenario>)
+    surprise-master resume DIR [--pause-before-post]
+                                                    continue a run from its checkpoint
+    surprise-master report DIR [--positions CSV]   write metrics.json and plots/
     surprise-master status DIR                      where a run stands
+    surprise-master check CONFIG [--json]           preflight: is every robot fit for a run?
+    surprise-master continue DIR                    let a paused run go on (a battery swapped,
+                                                    the robots placed: --pause-before-post)
     surprise-master sim [--scenario S] [--robots N] [--evaluations N] [--seed S] [--out DIR]
                         [--realtime] [--config FILE]
                                                     a whole experiment on a simulated swarm
@@ -14,6 +19,8 @@ Subcommands::
     surprise-master report DIR --baseline BASE      ... and evolved against random
     surprise-master watch --broker URL [--prefix P] [--once]
                                                     live view of a run's MQTT telemetry
+    surprise-master dashboard DIR [--host H] [--port P] [--open]
+                                                    live web page of a run (only reads DIR)
 
 Exit status: 0 done; 1 the run stopped on an error (a busy port, a full disk: one line naming the
 file and what to do, the run can be resumed); 2 bad configuration or run directory (one message
@@ -35,7 +42,8 @@ from collections.abc import Awaitable, Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Final, TypeVar
 
-from master_service.config import MasterConfig, load_master_config, load_secret
+from master_service import cli_lab
+from master_service.config import load_master_config, required_secret
 from master_service.master import Master
 from master_service.progress import ProgressDisplay
 from master_service.rundir import CONFIG_SNAPSHOT, SIMULATION_FILE, RunDir, RunDirError
@@ -70,15 +78,37 @@ def _parser() -> argparse.ArgumentParser:
     run = sub.add_parser("run", help="start an experiment with real robots")
     run.add_argument("--config", required=True, type=Path, help="master configuration (YAML)")
     run.add_argument("--out", type=Path, help="run directory (must not exist or be empty)")
+    _pause_option(run)
     run.set_defaults(handler=_run)
 
     resume = sub.add_parser("resume", help="continue a run from its checkpoint")
     resume.add_argument("dir", type=Path, metavar="DIR", help="the run directory")
+    _pause_option(resume)
     resume.set_defaults(handler=_resume)
+
+    check = sub.add_parser(
+        "check", help="preflight: is every robot of a configuration fit for a run?"
+    )
+    check.add_argument("config", type=Path, metavar="CONFIG", help="master configuration (YAML)")
+    check.add_argument(
+        "--timeout",
+        type=float,
+        default=None,
+        metavar="S",
+        help="seconds to wait for the robots to connect (default: 40)",
+    )
+    check.add_argument("--json", action="store_true", help="print the rows as JSON")
+    check.set_defaults(handler=cli_lab.check_command)
+
+    go_on = sub.add_parser(
+        "continue", help="let a paused run go on (after a battery swap, or the robots placed)"
+    )
+    go_on.add_argument("dir", type=Path, metavar="DIR", help="the run directory")
+    go_on.set_defaults(handler=cli_lab.continue_command)
 
     report = sub.add_parser("report", help="write metrics.json and plots of a run")
     report.add_argument("dir", type=Path, metavar="DIR", help="the run directory")
-    report.set_defaults(handler=_report)
+    report.set_defaults(handler=cli_lab.report_command)
 
     report.add_argument(
         "--baseline",
@@ -90,6 +120,12 @@ def _parser() -> argparse.ArgumentParser:
         "--animate",
         action="store_true",
         help="also animate the post-evaluation of a simulated run (plots/post_evaluation.gif)",
+    )
+    report.add_argument(
+        "--positions", type=Path, metavar="CSV", help="a tracker's time,robot,x,y,heading file"
+    )
+    report.add_argument(
+        "--positions-offset", type=float, metavar="SECONDS", help="its time at the first step"
     )
 
     sim = sub.add_parser("sim", help="run an experiment on a simulated swarm (no robots needed)")
@@ -120,14 +156,34 @@ def _parser() -> argparse.ArgumentParser:
 
     status = sub.add_parser("status", help="show where a run stands")
     status.add_argument("dir", type=Path, metavar="DIR", help="the run directory")
-    status.set_defaults(handler=_status)
+    status.set_defaults(handler=cli_lab.status_command)
 
     watch = sub.add_parser("watch", help="live view of a swarm's MQTT telemetry")
     watch.add_argument("--broker", required=True, metavar="URL", help="mqtt://host[:port]")
     watch.add_argument("--prefix", default="surprise", help="topic prefix (default: surprise)")
     watch.add_argument("--once", action="store_true", help="print one snapshot and exit")
-    watch.set_defaults(handler=_watch)
+    watch.set_defaults(handler=cli_lab.watch_command)
+
+    dashboard = sub.add_parser("dashboard", help="live web page of a run (only reads its files)")
+    dashboard.add_argument("dir", type=Path, metavar="DIR", help="the run directory")
+    dashboard.add_argument(
+        "--host", default="127.0.0.1", help="address to serve on (default: 127.0.0.1, this machine)"
+    )
+    dashboard.add_argument(
+        "--port", type=int, default=5006, help="port to serve on (default: 5006; 0: any free one)"
+    )
+    dashboard.add_argument("--open", action="store_true", help="open the page in a browser")
+    dashboard.set_defaults(handler=cli_lab.dashboard_command)
     return parser
+
+
+def _pause_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--pause-before-post",
+        action="store_true",
+        help="after the evolution, wait (motors stopped, checkpoint written) for `surprise-master "
+        "continue DIR` or Enter before the post-evaluation, so the robots can be placed",
+    )
 
 
 def _experiment_options(parser: argparse.ArgumentParser) -> None:
@@ -176,20 +232,10 @@ def _os_error_text(exc: OSError) -> str:
     return str(exc)
 
 
-def _secret(config: MasterConfig, source: Path) -> bytes:
-    if config.secret_file is None:
-        raise ConfigError(
-            "the robots' shared secret is needed: name its file",
-            file=str(source),
-            key="secret_file",
-        )
-    return load_secret(config.secret_file)
-
-
 def _run(args: argparse.Namespace) -> int:
     config = load_master_config(args.config)
     assert config.experiment is not None
-    secret = _secret(config, args.config)
+    secret = required_secret(config, args.config)
     out = args.out
     if out is None:
         out = Path("runs") / f"{time.strftime('%Y%m%d-%H%M%S')}-{config.experiment.scenario}"
@@ -218,12 +264,14 @@ def _resume(args: argparse.Namespace) -> int:
             args.verbose,
             resume=True,
         )
-    secret = _secret(config, run.file("config.yaml"))
+    secret = required_secret(config, run.file("config.yaml"))
     return _serve(Master(config, args.dir, secret=secret, resume=True), args)
 
 
 def _serve(master: Master, args: argparse.Namespace) -> int:
     level = logging.DEBUG if args.verbose else logging.INFO
+    master.evolution.pause_before_post = args.pause_before_post
+    master.evolution.pauses.console = True
     try:
         with ProgressDisplay(level=level) as display:
             master.add_progress_listener(display.update)
@@ -489,48 +537,3 @@ def _baseline(args: argparse.Namespace) -> int:
     print(f"wrote {Path(out) / 'baseline.json'}")
     print(f"next: compare an evolved run with `surprise-master report RUN_DIR --baseline {out}`")
     return 0
-
-
-def _report(args: argparse.Namespace) -> int:
-    from master_service.reporting.report import (
-        baseline_text,
-        behaviour_line,
-        safety_lines,
-        write_report,
-    )
-
-    metrics = write_report(args.dir, baseline=args.baseline, animate=args.animate)
-    best = metrics.get("best_fitness")
-    post = (metrics.get("post_evaluation") or {}).get("swarm_fitness")
-    drawn = metrics.get("pictures", [])
-    print(
-        f"wrote {Path(args.dir) / 'metrics.json'} and {plural(len(drawn), 'picture')} in "
-        f"{Path(args.dir) / 'plots'}: {plural(metrics['evaluations'], 'evaluation')}, best "
-        "fitness "
-        + ("-" if best is None else f"{best:.4f}")
-        + ("" if post is None else f", post-evaluation fitness {post:.4f}")
-    )
-    behaviour = behaviour_line(metrics)
-    if behaviour is not None:
-        print(behaviour)
-    for line in safety_lines(metrics):
-        print(line)
-    comparison = metrics.get("baseline")
-    if comparison:
-        print(baseline_text(comparison))
-    if args.animate:
-        print(f"animation: {Path(args.dir) / 'plots' / 'post_evaluation.gif'}")
-    return 0
-
-
-def _status(args: argparse.Namespace) -> int:
-    from master_service.reporting.report import status_text
-
-    print(status_text(args.dir))
-    return 0
-
-
-def _watch(args: argparse.Namespace) -> int:
-    from master_service.reporting.watch import run_watch  # rich and aiomqtt only for this command
-
-    return run_watch(args.broker, prefix=args.prefix, once=args.once)

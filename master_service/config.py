@@ -37,6 +37,7 @@ from minimize_surprise.config import (
 from minimize_surprise.errors import ConfigError
 from minimize_surprise.wire import (
     DEFAULT_PORT,
+    MAX_BATTERY_V,
     MAX_FRAME_SIZE,
     MAX_HEARTBEAT_INTERVAL,
     MIN_HEARTBEAT_INTERVAL,
@@ -46,6 +47,7 @@ from telemetry.config import TelemetryConfig
 from transport.tls import ServerTlsConfig, server_context
 
 __all__ = [
+    "DEFAULT_BATTERY_MIN_V",
     "DEFAULT_HANDSHAKE_TIMEOUT",
     "DEFAULT_HEARTBEAT_INTERVAL",
     "DEFAULT_MAX_PENDING_CONNECTIONS",
@@ -54,6 +56,7 @@ __all__ = [
     "build_ssl_context",
     "load_master_config",
     "load_secret",
+    "required_secret",
 ]
 
 #: protocol.md: the whole handshake (TLS included) has a 10 s deadline; generous for a Pi on a busy
@@ -72,6 +75,10 @@ DEFAULT_HEARTBEAT_INTERVAL: Final = 2.0
 #: Pi, the Result's transfer and a few late control steps, yet loses little time when a robot is
 #: stuck.
 DEFAULT_ROUND_MARGIN: Final = 5.0
+#: Volts below which a robot's battery pauses the run for a swap: the Thymio's own second
+#: low-battery step (its steps are 3.9, 3.6 and 3.4 V; at 3.4 V it soon switches itself off, and
+#: a robot that dies mid-evaluation costs the round).
+DEFAULT_BATTERY_MIN_V: Final = 3.6
 
 _PositiveSeconds = Annotated[float, msgspec.Meta(gt=0.0, le=86400.0)]
 _HeartbeatInterval = Annotated[
@@ -130,6 +137,11 @@ class MasterConfig(Strict, frozen=True):
     max_frame_size: Annotated[int, msgspec.Meta(ge=1024)] = MAX_FRAME_SIZE
     #: live telemetry of the run's status over MQTT (docs/telemetry.md)
     telemetry: TelemetryConfig | None = None
+    #: volts: a robot whose battery reads below this after an evaluation pauses the run for a
+    #: swap (docs/runs.md); ``null``: never pause. Robots that report no battery never pause it.
+    battery_min_v: Annotated[float, msgspec.Meta(ge=0.0, le=MAX_BATTERY_V)] | None = (
+        DEFAULT_BATTERY_MIN_V
+    )
 
     def __post_init__(self) -> None:
         if (self.experiment is None) == (self.experiment_file is None):
@@ -214,6 +226,18 @@ def _named_files(config: MasterConfig) -> list[tuple[str, str]]:
         if config.tls.ca_file is not None:
             files.append(("tls.ca_file", config.tls.ca_file))
     return files
+
+
+def required_secret(config: MasterConfig, source: str | Path) -> bytes:
+    """The shared secret ``config`` names; a :class:`ConfigError` naming ``source`` (the file the
+    configuration came from) and the key when it names none."""
+    if config.secret_file is None:
+        raise ConfigError(
+            "the robots' shared secret is needed: name its file",
+            file=str(source),
+            key="secret_file",
+        )
+    return load_secret(config.secret_file)
 
 
 def load_secret(path: str | Path) -> bytes:

@@ -23,21 +23,21 @@ import contextlib
 import logging
 import statistics
 import time
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
-from pathlib import Path
-from typing import Any, Final, Protocol
+from collections.abc import Callable
+from typing import Final
 
 import numpy as np
 
 from master_service.config import MasterConfig
+from master_service.evaluation import Evaluation, Evaluator, Progress, RunSummary, format_duration
+from master_service.pause import Pause, PauseGate, low_batteries
 from master_service.rundir import (
-    EVALUATION_COLUMNS,
     FILE_ONLY,
     POST_EVALUATION,
-    Phase,
+    ROBOT_STAT_PREFIXES,
     RunDir,
     RunState,
+    evaluation_header,
     format_row,
 )
 from minimize_surprise.dominance import dominance
@@ -45,19 +45,8 @@ from minimize_surprise.errors import FileWriteError
 from minimize_surprise.evolution import OnePlusOne
 from minimize_surprise.fitness import swarm_fitness
 from minimize_surprise.network import GenomeLayout, NetworkSpec
-from minimize_surprise.wire import Result
 
-__all__ = [
-    "ETA_WINDOW",
-    "RETRY_PAUSE",
-    "RETRY_PAUSE_MAX",
-    "Evaluation",
-    "Evaluator",
-    "EvolutionRun",
-    "Progress",
-    "RunSummary",
-    "format_duration",
-]
+__all__ = ["ETA_WINDOW", "RETRY_PAUSE", "RETRY_PAUSE_MAX", "EvolutionRun"]
 
 #: Pause before the third and later attempt of the same genome, doubling up to the cap. A robot
 #: that fails at once (a broken sensor answers Failed immediately) would otherwise be retried in a
@@ -67,100 +56,6 @@ RETRY_PAUSE_MAX: Final = 10.0
 #: Counted evaluations the time-left estimate averages over: recent enough to follow a robot that
 #: became slow, long enough to smooth one retried round.
 ETA_WINDOW: Final = 20
-
-
-@dataclass(frozen=True)
-class Progress:
-    """Where a run stands; handed to progress listeners on every change.
-
-    ``phase`` is the checkpoint's phase; ``waiting`` is true while the swarm is incomplete.
-    ``time_left_s`` is an estimate (None when unknown).
-    """
-
-    run_id: str
-    phase: Phase
-    waiting: bool
-    evaluations: int
-    total: int
-    best_fitness: float | None
-    last_fitness: float | None
-    robots_connected: int
-    robots_expected: int
-    failed_attempts: int
-    elapsed_s: float
-    time_left_s: float | None
-    #: share of the last counted evaluation's steps in which the safety layer drove
-    safety_share: float | None = None
-
-
-@dataclass(frozen=True)
-class RunSummary:
-    """What a finished run returns (:meth:`EvolutionRun.run`)."""
-
-    run_dir: Path
-    evaluations: int
-    best_fitness: float | None
-    best_genome: np.ndarray | None
-    failed_attempts: int
-    post_evaluation_fitness: float | None
-
-
-@dataclass(frozen=True)
-class Evaluation:
-    """One attempt at evaluating a genome on the swarm, as an :class:`Evaluator` reports it.
-
-    ``failure`` is None when every robot answered (the attempt counts) and says why otherwise.
-    ``fitnesses`` are the robots' in the order of ``robots``; ``results`` holds every robot's
-    :class:`~minimize_surprise.wire.Result` for a recorded attempt (its trace). ``seconds`` is
-    the attempt's duration, ``safety_share`` the share of the robots' steps the safety layer drove.
-    """
-
-    evaluation_id: int
-    robots: tuple[str, ...]
-    failure: str | None
-    fitnesses: Sequence[float] = ()
-    seconds: float = 0.0
-    safety_share: float = 0.0
-    results: dict[str, Result] | None = None
-
-
-class Evaluator(Protocol):
-    """What an :class:`EvolutionRun` drives: evaluations of one genome on the whole swarm."""
-
-    @property
-    def robots_connected(self) -> int:
-        """Robots able to evaluate now."""
-
-    @property
-    def robots_expected(self) -> int:
-        """Robots the swarm has."""
-
-    @property
-    def waiting(self) -> bool:
-        """True while the run waits for robots (the swarm incomplete)."""
-
-    def missing_robots(self) -> list[str]:
-        """The swarm's robots not able to evaluate now."""
-
-    async def swarm(self, state: RunState) -> list[str]:
-        """Wait until every robot of the swarm can evaluate; its robots, in a fixed order. The
-        first time, fix the swarm in ``state.roster``."""
-
-    async def evaluate(
-        self, evaluation_id: int, genome: np.ndarray, steps: int, *, record: bool
-    ) -> Evaluation:
-        """Evaluate ``genome`` on ``robots`` for ``steps`` control steps."""
-
-    async def before_post_evaluation(self) -> None:
-        """Called before each attempt of the post-evaluation, every robot idle (a simulator
-        resets its arena here, as the paper does before this run)."""
-
-    async def after_post_evaluation(self, run_dir: RunDir) -> None:
-        """Called once the post-evaluation's traces are written into ``run_dir``."""
-
-    def snapshot(self) -> dict[str, Any] | None:
-        """A simulator's state, kept in every checkpoint so a resumed run goes on exactly;
-        None for real robots. Called between evaluations, every robot idle."""
 
 
 class EvolutionRun:
@@ -209,6 +104,13 @@ class EvolutionRun:
         self._intervals: collections.deque[float] = collections.deque(maxlen=ETA_WINDOW)
         self._last_fitness: float | None = None
         self._last_safety_share: float | None = None
+        #: waits for a person between evaluations (master_service.pause)
+        self.pauses = PauseGate(run_dir, log)
+        #: wait for the robots to be placed before the post-evaluation (``--pause-before-post``)
+        self.pause_before_post = False
+        # Whether the CSV holds the robots' statistics: as its header says once written (a run
+        # started before those columns keeps its shape), else as the evaluator reports.
+        self._robot_stats = evaluator.reports_robot_stats
 
     # -- opening -----------------------------------------------------------------------------
 
@@ -253,6 +155,10 @@ class EvolutionRun:
                 self.run_dir.commit(state.to_json(), None, ())
         else:
             self.run_dir.create(self.config)
+        header = self.run_dir.csv_header()
+        if header is not None:
+            self._robot_stats = any(c.startswith(ROBOT_STAT_PREFIXES[1]) for c in header)
+        self.pauses.clear_stale()
         self.run_dir.open_log(self.log)
         if self.log.getEffectiveLevel() > logging.INFO:
             self.log.setLevel(logging.INFO)
@@ -362,6 +268,7 @@ class EvolutionRun:
                     attempt.seconds,
                     attempt.safety_share,
                     attempt.fitnesses,
+                    attempt.stats if self._robot_stats else None,
                 )
             )
             self._best_changed |= outcome.accepted
@@ -382,6 +289,9 @@ class EvolutionRun:
             )
             state.attempts = 0
             self.emit()
+            pause = low_batteries(attempt.robots, attempt.stats, self.config.battery_min_v)
+            if pause is not None:
+                await self._pause(pause)
         state.phase = "post-evaluation" if experiment.post_evaluation_steps > 0 else "done"
         state.attempts = 0
         await self._commit()
@@ -392,6 +302,9 @@ class EvolutionRun:
         opt = state.optimizer
         assert opt.best is not None, "a post-evaluation needs a counted evaluation"
         steps = self.experiment.post_evaluation_steps
+        if self.pause_before_post:
+            text = "the evolution is done: place the robots for the post-evaluation"
+            await self._pause(Pause("before-post-evaluation", text))
         self.log.info("post-evaluation of the best genome for %d steps", steps)
         while True:
             evaluation_id = self._reserve_attempt()
@@ -424,6 +337,14 @@ class EvolutionRun:
         state.phase = "done"
         state.attempts = 0
         await self._commit()
+
+    async def _pause(self, pause: Pause) -> None:
+        """Wait for a person with the checkpoint on disk (docs/runs.md)."""
+        await self._commit()
+        await self._flush()
+        await self.pauses.wait(pause, self.emit)
+        # The wait is no evaluation's duration: keep it out of the time-left estimate.
+        self._last_counted_at = None
 
     def _reserve_attempt(self) -> int:
         state = self._require_state()
@@ -478,7 +399,7 @@ class EvolutionRun:
         if simulation is not None:
             state.simulation = simulation
         data = state.to_json()
-        header = [*EVALUATION_COLUMNS, *(f"fitness_{robot}" for robot in state.roster or [])]
+        header = evaluation_header(state.roster or [], robot_stats=self._robot_stats)
         best = _best(state.optimizer) if best_changed else None
         text = "".join(rows) or None
         self._last_commit = time.monotonic()
@@ -525,6 +446,7 @@ class EvolutionRun:
             elapsed_s=self.elapsed_s,
             time_left_s=self.time_left(),
             safety_share=self._last_safety_share,
+            paused=None if self.pauses.current is None else self.pauses.current.text,
         )
 
     def time_left(self) -> float | None:
@@ -575,18 +497,6 @@ class EvolutionRun:
         if self.state is None:
             raise RuntimeError("the run is not loaded")
         return self.state
-
-
-def format_duration(seconds: float) -> str:
-    """``1h02m``, ``5m07s`` or ``42s``."""
-    seconds = max(0, round(seconds))
-    hours, rest = divmod(seconds, 3600)
-    minutes, secs = divmod(rest, 60)
-    if hours:
-        return f"{hours}h{minutes:02d}m"
-    if minutes:
-        return f"{minutes}m{secs:02d}s"
-    return f"{secs}s"
 
 
 def _best(opt: OnePlusOne) -> tuple[np.ndarray, float, int] | None:

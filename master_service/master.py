@@ -44,14 +44,22 @@ from typing import Any, Final
 import numpy as np
 
 from master_service.config import MasterConfig, build_ssl_context
-from master_service.evolution_run import Evaluation, EvolutionRun, Progress, RunSummary
+from master_service.evaluation import Evaluation, Progress, RunSummary
+from master_service.evolution_run import EvolutionRun
 from master_service.rounds import RoundRunner
 from master_service.rundir import FILE_ONLY, RunDir, RunState
 from master_service.server import RobotServer, Session
 from minimize_surprise.errors import ConfigError
 from minimize_surprise.network import GenomeLayout, spec_from_config
 from minimize_surprise.session import TAG_SIZE
-from minimize_surprise.wire import REFUSED_UNKNOWN_ROBOT, Evaluate, Failed, Result, encode_payload
+from minimize_surprise.wire import (
+    REFUSED_UNKNOWN_ROBOT,
+    CheckReport,
+    Evaluate,
+    Failed,
+    Result,
+    encode_payload,
+)
 from telemetry.config import require_client_library
 from telemetry.payloads import RunStatus, master_status_suffix, now, run_status_suffix
 from telemetry.publisher import TelemetryPublisher
@@ -78,6 +86,9 @@ class Master:
     :meth:`run` evolves and post-evaluates; :meth:`close` says Bye to the robots and closes
     everything.
     """
+
+    #: Robots report their overruns, read failures and battery (columns of evaluations.csv).
+    reports_robot_stats = True
 
     def __init__(
         self,
@@ -126,6 +137,8 @@ class Master:
         # (tests, the sim command) keep separate logs and there is no global state.
         self.log = logging.getLogger(f"master_service.run.{self.run_id}")
         self._live_changed = asyncio.Event()
+        #: each robot's battery, overruns and read failures in its last counted evaluation
+        self._robot_state: dict[str, dict[str, Any]] = {}
         #: the run's evolution loop, with this master as its evaluator
         self.evolution = EvolutionRun(
             config,
@@ -331,6 +344,13 @@ class Master:
         )
         if not attempt.ok:
             return Evaluation(evaluation_id, attempt.robots, attempt.failure or "failed")
+        for robot in attempt.robots:
+            stats = attempt.results[robot].stats
+            self._robot_state[robot] = {
+                "battery_v": stats.battery_v,
+                "overruns": stats.overruns,
+                "read_failures": stats.read_failures,
+            }
         return Evaluation(
             evaluation_id,
             attempt.robots,
@@ -339,6 +359,7 @@ class Master:
             seconds=attempt.completed - attempt.started,
             safety_share=attempt.safety_share(),
             results=dict(attempt.results) if record else None,
+            stats=tuple(attempt.results[robot].stats for robot in attempt.robots),
         )
 
     async def before_post_evaluation(self) -> None:
@@ -379,7 +400,11 @@ class Master:
         self._swarm_changed.set()
         self.evolution.emit()
 
-    def _on_message(self, session: Session, msg: Result | Failed) -> None:
+    def _on_message(self, session: Session, msg: Result | Failed | CheckReport) -> None:
+        if isinstance(msg, CheckReport):
+            # Only `surprise-master check` asks for one; a robot sending it unasked is ignored.
+            self.log.debug("robot %s: an unasked check report ignored", session.robot_id)
+            return
         self.rounds.on_message(session, msg)
 
     # -- progress ----------------------------------------------------------------------------
@@ -422,6 +447,7 @@ class Master:
             failed_attempts=progress.failed_attempts,
             elapsed_s=round(progress.elapsed_s, 3),
             time_left_s=None if progress.time_left_s is None else round(progress.time_left_s, 1),
+            paused=progress.paused,
         )
         self.telemetry.publish_nowait(run_status_suffix(), status, retain=True)
 
@@ -429,6 +455,7 @@ class Master:
 
     def _live_data(self, *, running: bool) -> dict[str, Any]:
         state = self._require_state()
+        pause = self.evolution.pauses.current
         return {
             "pid": os.getpid(),
             "running": running,
@@ -439,6 +466,8 @@ class Master:
             "waiting": self._waiting,
             "evaluations": state.optimizer.evaluations,
             "time_left_s": self.evolution.time_left(),
+            "paused": None if pause is None else pause.describe(),
+            "robot_state": dict(self._robot_state),
             "updated_at": time.time(),
         }
 

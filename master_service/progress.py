@@ -11,7 +11,7 @@ import logging
 import sys
 from typing import IO, Any
 
-from master_service.evolution_run import Progress, format_duration
+from master_service.evaluation import Progress, format_duration
 from master_service.rundir import for_console
 from minimize_surprise.safety import SAFETY_DOMINATES
 

@@ -8,6 +8,7 @@ Layout::
     best_genome.json       the current best genome with its fitness and network spec
     master.log             the master's log
     live.json              while the master runs: pid, address, connected robots (refreshed)
+    pause.json             while the run waits for a person: why, which robots, since when
     post_evaluation.json   the post-evaluation's per-robot fitness and statistics
     traces/<robot>.npz     the post-evaluation trace of each robot
     metrics.json, plots/   written by ``surprise-master report`` (and at the end of ``sim``)
@@ -33,7 +34,12 @@ The ``attempts`` column counts the attempts sent for that evaluation (an attempt
 master stopped counts too), ``duration_s`` is the time from the counted attempt's Evaluate to its
 last Result, ``safety_share`` the share of the robots' steps in which the safety layer changed the
 network's command, and ``fitness_<robot id>`` holds each robot's fitness, the swarm's
-``fitness`` being their mean. The ``kind`` column holds ``initial`` for the first row (the random
+``fitness`` being their mean. With robots (not the compiled engine) three more columns per robot
+follow (:func:`robot_stat_columns`): ``battery_v_<robot id>``, the battery read after the
+evaluation (empty where the robot does not report one), ``overruns_<robot id>``, the control steps
+that missed their deadline, and ``read_failures_<robot id>``, the sensor reads that failed or
+timed out. A run started before these columns existed keeps its own header on resume.
+The ``kind`` column holds ``initial`` for the first row (the random
 initial genome is neither an offspring nor a re-evaluation), then ``offspring`` or
 ``reevaluation``.
 """
@@ -63,7 +69,7 @@ from minimize_surprise.config import ExperimentConfig, load_yaml
 from minimize_surprise.errors import ConfigError, FileWriteError, SurpriseError
 from minimize_surprise.evolution import EvolutionStateError, OnePlusOne
 from minimize_surprise.network import NetworkSpec
-from minimize_surprise.wire import Result
+from minimize_surprise.wire import EvaluationStats, Result
 
 __all__ = [
     "BASELINE_FILE",
@@ -77,8 +83,10 @@ __all__ = [
     "LIVE",
     "LOG",
     "METRICS",
+    "PAUSE",
     "PLOTS",
     "POST_EVALUATION",
+    "ROBOT_STAT_PREFIXES",
     "SIMULATION_FILE",
     "TRACES",
     "Phase",
@@ -86,8 +94,11 @@ __all__ = [
     "RunDirError",
     "RunLog",
     "RunState",
+    "evaluation_header",
     "for_console",
+    "format_row",
     "load_baseline",
+    "robot_stat_columns",
     # the run directory's writers, for the modules that write files into a run
     "write_atomic",
     "writing",
@@ -101,6 +112,8 @@ EVALUATIONS: Final = "evaluations.csv"
 BEST_GENOME: Final = "best_genome.json"
 LOG: Final = "master.log"
 LIVE: Final = "live.json"
+#: While a run waits for a person: why, and which robots (master_service.pause).
+PAUSE: Final = "pause.json"
 POST_EVALUATION: Final = "post_evaluation.json"
 TRACES: Final = "traces"
 METRICS: Final = "metrics.json"
@@ -260,6 +273,21 @@ class RunState:
             raise RunDirError(f"the checkpoint cannot be read: {exc}") from None
 
 
+#: The per-robot statistics robots report, each a column per robot after the fitness columns.
+ROBOT_STAT_PREFIXES: Final = ("battery_v_", "overruns_", "read_failures_")
+
+
+def evaluation_header(roster: Sequence[str], *, robot_stats: bool) -> list[str]:
+    """The header of a new ``evaluations.csv`` for the swarm ``roster``."""
+    header = [*EVALUATION_COLUMNS, *(f"fitness_{robot}" for robot in roster)]
+    return header + (robot_stat_columns(roster) if robot_stats else [])
+
+
+def robot_stat_columns(roster: Sequence[str]) -> list[str]:
+    """The per-robot statistics' columns: every robot's battery, then overruns, read failures."""
+    return [f"{prefix}{robot}" for prefix in ROBOT_STAT_PREFIXES for robot in roster]
+
+
 def format_row(
     evaluation: int,
     kind: str,
@@ -270,8 +298,13 @@ def format_row(
     duration_s: float,
     safety_share: float,
     robot_fitness: Iterable[float],
+    robot_stats: Sequence[EvaluationStats] | None = None,
 ) -> str:
-    """One line of ``evaluations.csv``; floats in repr form so they read back bit for bit."""
+    """One line of ``evaluations.csv``; floats in repr form so they read back bit for bit.
+
+    ``robot_stats`` (the robots' in roster order) fills :func:`robot_stat_columns`; None for a
+    file without them.
+    """
     fields = [
         str(evaluation),
         kind,
@@ -283,6 +316,10 @@ def format_row(
         f"{safety_share:.4f}",
         *(repr(float(f)) for f in robot_fitness),
     ]
+    if robot_stats is not None:
+        fields += ["" if s.battery_v is None else f"{s.battery_v:.3f}" for s in robot_stats]
+        fields += [str(s.overruns) for s in robot_stats]
+        fields += [str(s.read_failures) for s in robot_stats]
     return ",".join(fields) + "\n"
 
 
@@ -349,6 +386,15 @@ class RunDir:
         """The checkpointed :class:`RunState`, or None before the first commit."""
         data = self.read_checkpoint_data()
         return None if data is None else RunState.from_json(config, data)
+
+    def csv_header(self) -> list[str] | None:
+        """The header of ``evaluations.csv`` as written, None while it has none."""
+        try:
+            with open(self.file(EVALUATIONS), encoding="utf-8", newline="") as file:
+                line = file.readline()
+        except FileNotFoundError:
+            return None
+        return line.rstrip("\r\n").split(",") if line.endswith("\n") else None
 
     def prepare_resume(self, state: RunState) -> None:
         """Cut ``evaluations.csv`` back to the rows the checkpoint accounts for.

@@ -52,6 +52,7 @@ from minimize_surprise.wire import (
     Authenticate,
     Bye,
     Challenge,
+    CheckReport,
     Error,
     Failed,
     Hello,
@@ -184,7 +185,8 @@ class RobotServer:
     one more arrives). ``admit(robot_id)`` returns None or a ``(code, reason)``
     refusal; it is asked after the secret was verified. ``on_join(session)`` and
     ``on_leave(session, reason)`` are called once per session; ``on_message(session, msg)`` gets
-    every Result and Failed. Callbacks run in the event loop and must not block.
+    every Result, Failed and CheckReport, ``on_pong(session, pong)`` (optional) every Pong.
+    Callbacks run in the event loop and must not block.
     """
 
     def __init__(
@@ -203,8 +205,9 @@ class RobotServer:
         admit: Admit,
         on_join: Callable[[Session], None],
         on_leave: Callable[[Session, str], None],
-        on_message: Callable[[Session, Result | Failed], None],
+        on_message: Callable[[Session, Result | Failed | CheckReport], None],
         logger: logging.Logger,
+        on_pong: Callable[[Session, Pong], None] | None = None,
     ) -> None:
         self.host = host
         self.requested_port = port
@@ -220,6 +223,7 @@ class RobotServer:
         self._on_join = on_join
         self._on_leave = on_leave
         self._on_message = on_message
+        self._on_pong = on_pong
         self.log = logger
         #: What happens to connections that have not authenticated: anyone can cause it.
         self.unauthenticated_log = ThrottledLog(
@@ -574,12 +578,13 @@ class RobotServer:
             if session.closed:
                 return session.close_reason or "closed"
             session.last_received = loop.time()
-            if isinstance(msg, Result | Failed):
+            if isinstance(msg, Result | Failed | CheckReport):
                 self._on_message(session, msg)
             elif isinstance(msg, Ping):
                 self._write(session, encode_payload(Pong(seq=msg.seq)))
             elif isinstance(msg, Pong):
-                pass
+                if self._on_pong is not None:
+                    self._on_pong(session, msg)
             elif isinstance(msg, Bye):
                 return f"the robot said bye: {printable(msg.reason)}"
             elif isinstance(msg, Error):

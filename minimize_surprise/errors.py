@@ -81,6 +81,15 @@ class HardwareError(SurpriseError, OSError):
     """A robot part failed: a D-Bus call, an I2C transfer, a missing device."""
 
 
+class DBusReplyError(HardwareError):
+    """A D-Bus service (asebamedulla) answered a call with an error; ``name`` is the error's
+    D-Bus name, so that callers can tell an unknown variable from a failure."""
+
+    def __init__(self, message: str, name: str) -> None:
+        self.name = name
+        super().__init__(message)
+
+
 class HardwareTimeoutError(HardwareError, TimeoutError):
     """A call to a robot part did not answer in time; ``operation`` and ``timeout`` (s) say so."""
 

@@ -47,6 +47,7 @@ __all__ = [
     "HANDSHAKE_MAX_FRAME_SIZE",
     "HEADER_SIZE",
     "LOGGED_TEXT_LIMIT",
+    "MAX_BATTERY_V",
     "MAX_FRAME_SIZE",
     "MAX_HEARTBEAT_INTERVAL",
     "MAX_NAME_LENGTH",
@@ -67,6 +68,8 @@ __all__ = [
     "Authenticate",
     "Bye",
     "Challenge",
+    "Check",
+    "CheckReport",
     "Error",
     "Evaluate",
     "EvaluationStats",
@@ -74,6 +77,7 @@ __all__ = [
     "FrameDecoder",
     "Hello",
     "Message",
+    "PartCheck",
     "Ping",
     "Pong",
     "Refused",
@@ -120,6 +124,9 @@ MAX_VERSION_LENGTH: Final = 64
 MAX_RUN_ID_LENGTH: Final = 255
 #: The longest reason a Refused may give, in characters; the master cuts its reasons to it.
 MAX_REASON_LENGTH: Final = 512
+#: Highest battery voltage a robot may report: a Thymio's Li-ion cell is 4.2 V full; anything
+#: far above is a broken reading, not a battery.
+MAX_BATTERY_V: Final = 10.0
 #: How many characters of a text a peer sent (a reason, a message) go into a log line.
 LOGGED_TEXT_LIMIT: Final = 200
 
@@ -302,12 +309,15 @@ class EvaluationStats(msgspec.Struct, frozen=True, kw_only=True):
 
     ``overruns`` counts steps that missed their deadline, ``interventions`` counts safety
     interventions by reason and ``read_failures`` sensor reads that failed or timed out.
+    ``battery_v`` is the robot's battery voltage read after the evaluation, None where the robot
+    does not report one (Aseba Playground, a simulated robot): unknown, never a guess.
     """
 
     steps_run: _NonNegative
     overruns: _NonNegative
     interventions: Annotated[dict[_Name, _NonNegative], msgspec.Meta(max_length=MAX_REASONS)]
     read_failures: _NonNegative = 0
+    battery_v: Annotated[float, msgspec.Meta(ge=0.0, le=MAX_BATTERY_V)] | None = None
 
 
 #: Columns of each of a :class:`Trace`'s arrays; None: the trace's ``width`` (its sensors).
@@ -444,6 +454,42 @@ class Abort(_Message, tag="abort", frozen=True):
     reason: str
 
 
+class Check(_Message, tag="check", frozen=True):
+    """Master -> robot, between evaluations (``surprise-master check``): read every part of the
+    body once and answer a :class:`CheckReport` with the same ``seq``. Never drives."""
+
+    seq: _NonNegative
+
+
+class PartCheck(msgspec.Struct, frozen=True, kw_only=True):
+    """One part of a robot's body as read for a check: its ``sensors`` and their normalised
+    ``values``, or the ``error`` that kept it from answering (``values`` then empty)."""
+
+    part: _Name
+    sensors: Annotated[tuple[_Name, ...], msgspec.Meta(max_length=MAX_SENSORS)]
+    values: Annotated[tuple[float, ...], msgspec.Meta(max_length=MAX_SENSORS)] = ()
+    error: Annotated[str, msgspec.Meta(max_length=MAX_REASON_LENGTH)] | None = None
+
+
+class CheckReport(_Message, tag="check-report", frozen=True):
+    """Robot -> master: the answer to :class:`Check` ``seq``.
+
+    ``time`` is the robot's wall clock (Unix seconds) when it answered, for the clock offset;
+    ``battery_v`` None where the robot reports no battery; ``parts`` each part's reading;
+    ``forward_safety`` the reason the robot's safety layer would stop a forward drive on this
+    reading (None: it would let it pass), with ``ground_rule`` saying what its ground rule takes
+    for the arena's boundary. ``busy``: an evaluation runs, nothing was read.
+    """
+
+    seq: _NonNegative
+    time: float
+    battery_v: Annotated[float, msgspec.Meta(ge=0.0, le=MAX_BATTERY_V)] | None = None
+    parts: Annotated[tuple[PartCheck, ...], msgspec.Meta(max_length=MAX_SENSORS)] = ()
+    forward_safety: _Name | None = None
+    ground_rule: Annotated[str, msgspec.Meta(max_length=MAX_NAME_LENGTH)] = ""
+    busy: bool = False
+
+
 class Ping(_Message, tag="ping", frozen=True):
     """Either way: liveness probe; the peer answers with a Pong of the same ``seq``."""
 
@@ -480,6 +526,8 @@ Message = (
     | Result
     | Failed
     | Abort
+    | Check
+    | CheckReport
     | Ping
     | Pong
     | Error

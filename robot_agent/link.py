@@ -4,7 +4,8 @@ The conversation is fixed by ``docs/protocol.md``::
 
     Hello(nonce) -> (Challenge(nonce, proof) | Refused) -> Authenticate(proof)
     -> (Welcome | Refused); then, every frame tagged:
-    Evaluate -> Result | Failed;  Abort;  Ping -> Pong;  Bye / Error close the session
+    Evaluate -> Result | Failed;  Abort;  Check -> CheckReport;  Ping -> Pong;
+    Bye / Error close the session
 
 The robot trusts nothing from a master that has not proved the shared secret: it checks the
 Challenge's proof before it sends anything else, and from then on accepts only frames tagged with
@@ -50,6 +51,7 @@ from minimize_surprise.wire import (
     Authenticate,
     Bye,
     Challenge,
+    Check,
     Error,
     Evaluate,
     Failed,
@@ -318,6 +320,10 @@ class Link:
                         # Late or duplicate: that attempt already ended (its result may be in
                         # flight; the master ignores it by id).
                         self.log.debug("abort of evaluation %d ignored: not running", eid)
+                case Check():
+                    # In its own task: the reads take up to a few seconds, the link's
+                    # heartbeat must not wait for them.
+                    self.spawn(self._answer_check(stream, msg, dead_after), name="check")
                 case Ping(seq=seq):
                     await self._send(stream, Pong(seq=seq), dead_after)
                 case Pong():
@@ -333,6 +339,16 @@ class Link:
                     text = f"unexpected {_kind(msg)} in a welcomed session"
                     await self._send_quietly(stream, Error(code=_CODE_PROTOCOL, message=text))
                     raise ProtocolError(text)
+
+    async def _answer_check(self, stream: MessageStream, msg: Check, timeout: float) -> None:
+        try:
+            report = await self.runner.check(msg.seq)
+            self.log.info("check %d answered%s", msg.seq, " (busy)" * report.busy)
+            await self._send(stream, report, timeout)
+        except (OSError, ProtocolError) as exc:
+            self.log.warning("could not send the answer to check %d: %s", msg.seq, exc)
+        except Exception:  # never let a bug escape into the agent's task group
+            self.log.exception("check %d: unexpected error", msg.seq)
 
     async def _send(self, stream: MessageStream, msg: Message, timeout: float) -> None:
         # One sender at a time: the evaluation task and the receive loop both send.

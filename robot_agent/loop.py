@@ -29,6 +29,7 @@ import logging
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Final
 
 import numpy as np
 
@@ -87,6 +88,12 @@ def sensor_index(needed: tuple[str, ...], available: tuple[str, ...]) -> np.ndar
     return index
 
 
+#: Seconds past its deadline a step still counts as on time: deadlines computed as t0 + k * period
+#: and a clock that adds up its steps (a simulated one) differ by rounding, 1e-16 s, which made
+#: every simulated run report overruns that never happened. A real overrun is milliseconds.
+DEADLINE_SLACK: Final = 1e-9
+
+
 class Deadlines:
     """Absolute deadlines ``t0 + (k + 1) * period`` on a :class:`Clock`, with overrun counting.
 
@@ -119,7 +126,7 @@ class Deadlines:
         """End the current step: sleep to its deadline, or count an overrun and return at once."""
         deadline = self.t0 + (self.slot + 1) * self.period
         now = self.clock.now()
-        if now <= deadline:
+        if now <= deadline + DEADLINE_SLACK:
             await self.clock.sleep_until(deadline)
             self.slot += 1
             return

@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from typing import TYPE_CHECKING
+import time
+from typing import TYPE_CHECKING, Final
 
+import msgspec
 import numpy as np
 
 from drivers.body import Body
@@ -19,8 +21,17 @@ from drivers.clock import Clock
 from minimize_surprise.errors import HardwareError, ProtocolError, RobotUnreachableError
 from minimize_surprise.network import NetworkPair
 from minimize_surprise.safety import SafetyConfig, SafetyLayer
-from minimize_surprise.wire import Evaluate, EvaluationStats, Failed, Result, genome_from_bytes
+from minimize_surprise.wire import (
+    MAX_BATTERY_V,
+    CheckReport,
+    Evaluate,
+    EvaluationStats,
+    Failed,
+    Result,
+    genome_from_bytes,
+)
 from robot_agent.bounded import finish
+from robot_agent.checkup import check_body
 from robot_agent.config import MAX_PERIOD, LoopConfig
 from robot_agent.loop import (
     FAILED_UNREACHABLE,
@@ -64,6 +75,10 @@ FAILED_STEPS = "steps"
 FAILED_HARDWARE = "hardware"
 #: a bug (an unexpected exception); the log holds the traceback
 FAILED_INTERNAL = "internal"
+#: Seconds the battery read after an evaluation may take: a present robot answers one
+#: ``GetVariable`` within a sensor period (0.1 s). An unread battery is reported unknown and
+#: never fails the evaluation (the motor stop's read-back already proved the robot is there).
+BATTERY_READ_TIMEOUT: Final = 1.0
 
 
 async def stop_motors(body: Body, timeout: float) -> BaseException | None:
@@ -239,13 +254,18 @@ class EvaluationRunner:
             return failed
         assert outcome is not None
         stats = outcome.stats
+        battery = await self._read_battery()
+        if battery is not None:
+            stats = msgspec.structs.replace(stats, battery_v=battery)
         log.info(
-            "evaluation %d: fitness %.4f, %d overruns, %d read failures, interventions %s",
+            "evaluation %d: fitness %.4f, %d overruns, %d read failures, interventions %s, "
+            "battery %s",
             msg.evaluation_id,
             outcome.fitness,
             stats.overruns,
             stats.read_failures,
             stats.interventions or "none",
+            "unknown" if stats.battery_v is None else f"{stats.battery_v:.2f} V",
         )
         result = Result(
             evaluation_id=msg.evaluation_id,
@@ -255,6 +275,26 @@ class EvaluationRunner:
         )
         self._summarise(msg, result, stats, duration)
         return result
+
+    async def check(self, seq: int) -> CheckReport:
+        """A preflight check's report (:mod:`robot_agent.checkup`); ``busy`` while an
+        evaluation runs, which it never disturbs."""
+        if self._lock.locked():
+            return CheckReport(seq=seq, time=time.time(), busy=True)
+        async with self._lock:
+            return await check_body(self.body, self.layer, self.safety_state, seq)
+
+    async def _read_battery(self) -> float | None:
+        try:
+            async with asyncio.timeout(BATTERY_READ_TIMEOUT):
+                volts = await self.body.read_battery()
+        except Exception as exc:  # an unknown battery, never a failed evaluation
+            log.warning("the battery could not be read: %r", exc)
+            return None
+        # The wire's bounds; a reading outside them is a broken one, reported as unknown.
+        if volts is None or not 0.0 <= volts <= MAX_BATTERY_V:
+            return None
+        return float(volts)
 
     def _summarise(
         self,
@@ -275,5 +315,6 @@ class EvaluationRunner:
             interventions=stats.interventions if stats is not None else None,
             overruns=stats.overruns if stats is not None else 0,
             read_failures=stats.read_failures if stats is not None else 0,
+            battery_v=stats.battery_v if stats is not None else None,
             duration_s=duration,
         )

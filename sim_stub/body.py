@@ -43,6 +43,7 @@ import numpy as np
 
 from drivers.body import Body, SensorFrame, clamp_unit
 from drivers.clock import Clock, MonotonicClock
+from sim_stub.battery import SimBattery
 from sim_stub.world import World
 
 # Deadlines computed as t0 + k * dt may land a rounding error above the world time steps * dt.
@@ -287,6 +288,8 @@ class SimBody(Body):
         self._sensors = tuple(sensors)
         self._columns = np.array([world_sensors.index(s) for s in self._sensors], dtype=np.intp)
         self._clock: Clock = swarm.clock if swarm.realtime else LockstepClock(swarm, index)
+        #: the robot's battery; None: it reports none, as Aseba Playground's Thymio
+        self.battery: SimBattery | None = None
 
     @property
     def sensors(self) -> tuple[str, ...]:
@@ -323,8 +326,14 @@ class SimBody(Body):
         values = self._swarm.world.sensor_matrix()[self._index, self._columns]
         return SensorFrame(values=values, timestamp=self._clock.now())
 
+    async def read_battery(self) -> float | None:
+        """The simulated battery's voltage, None without one."""
+        return None if self.battery is None else round(self.battery.volts, 3)
+
     async def drive(self, left: float, right: float) -> None:
         """Set the wheel speeds for this step, normalised to [-1, 1] (clamped; NaN is 0)."""
+        if self.battery is not None:
+            self.battery.step()
         self._swarm.submit(self._index, clamp_unit(left), clamp_unit(right))
 
     async def stop(self) -> None:

@@ -238,6 +238,9 @@ class FakeMedulla:
         self.max_in_flight = 0
         #: The program variables this medulla knows (declared by programs it loaded).
         self.known: set[str] = set()
+        #: Variables of the robot's firmware besides the sensors and motors, read from
+        #: ``model.variables``: a real Thymio declares ``_vbat``; empty, as Aseba Playground's.
+        self.native: set[str] = set()
         self._in_flight = 0
         self._hang = False
         self._robot_connected = True
@@ -297,6 +300,7 @@ class FakeMedulla:
         return (
             variable in MOTOR_TARGETS
             or variable in self.known
+            or variable in self.native
             or variable == "prox.horizontal"
             or variable in GROUND_VARIABLES
         )

@@ -3,27 +3,36 @@
 ::
 
     surprise-sim-robots --scenario basic --robots 4 --seed 1 --dir robots \\
+        [--backend sim|playground] [--arena 1.0] \\
         [--master-host 127.0.0.1] [--master-port 7474] [--secret-file secret.key] \\
         [--reconnect-initial 0.5] [--reconnect-max 30] [--speed-scale 265] [--poses]
 
-One process holds a real-time world (:class:`~sim_stub.body.SimSwarm`, one step every 0.1 s of
-wall-clock time) and serves each of its robots as an asebamedulla-like service
-(:mod:`sim_stub.medulla_model`) on a private ``dbus-daemon`` of its own. In ``--dir`` it writes
-one ready-to-use agent configuration per robot, ``agent-sim-<i>.yaml`` (robot id ``sim-<i>``,
-the master's address and secret, ``body.thymio.bus`` set to that robot's bus), so that
-``surprise-agent --config DIR/agent-sim-<i>.yaml`` drives the simulated robot with the real
-Thymio driver, in its own process, exactly as on a robot's Pi. ``DIR/robots.json`` announces the
-running service (process id, each robot's bus and configuration); it is written once every
-robot is served and removed on exit. The command lines to start the agents are printed.
+Each robot is served on a private ``dbus-daemon`` of its own, by one of two backends:
 
-It runs until SIGTERM or SIGINT, then stops the world, hangs up and stops every dbus-daemon it
-started (exit code 0). With ``--poses`` the poses of every step are written to
-``DIR/poses.npy`` (shape: steps + 1, robots, 3 for x, y, theta) on exit.
+- ``sim`` (the default): one process holds a real-time world (:class:`~sim_stub.body.SimSwarm`,
+  one step every 0.1 s of wall-clock time) and serves each of its robots as an
+  asebamedulla-like service (:mod:`sim_stub.medulla_model`).
+- ``playground``: Aseba Playground's simulated Thymios, each behind Debian's real
+  ``asebamedulla``, restarted like systemd's ``Restart=always`` (:mod:`sim_stub.playground`), in
+  the scenario's arena with walls: a lab day rehearsed without robots (docs/rehearsal.md). Its
+  files (world, ground texture, every process's log) are in ``DIR/playground``.
 
-Exit codes: 0 stopped by a signal; 1 could not start (no dbus-daemon, DIR not writable, another
-server on DIR); 2 bad arguments (argparse's usage error), or the ``robot`` extra (``dbus-fast``)
-is not installed: the D-Bus modules are imported only once the arguments are parsed, so ``--help``
-works without it.
+In ``--dir`` it writes one ready-to-use agent configuration per robot, ``agent-sim-<i>.yaml``
+(robot id ``sim-<i>``, the master's address and secret, ``body.thymio.bus`` set to that robot's
+bus, and the Thymio settings the backend needs), so that ``surprise-agent --config
+DIR/agent-sim-<i>.yaml`` drives the simulated robot with the real Thymio driver, in its own
+process, exactly as on a robot's Pi. ``DIR/robots.json`` announces the running service (process
+id, each robot's bus and configuration); it is written once every robot is served and removed on
+exit. The command lines to start the agents are printed.
+
+It runs until SIGTERM or SIGINT, then stops every process it started (the world, Playground,
+the medullas, every dbus-daemon; exit code 0). With ``--poses`` (``sim`` only) the poses of every
+step are written to ``DIR/poses.npy`` (shape: steps + 1, robots, 3 for x, y, theta) on exit.
+
+Exit codes: 0 stopped by a signal; 1 could not start (no dbus-daemon, no Aseba, DIR not writable,
+another server on DIR) or Playground ended by itself; 2 bad arguments (argparse's usage error),
+or the ``robot`` extra (``dbus-fast``) is not installed: the D-Bus modules are imported only once
+the arguments are parsed, so ``--help`` works without it.
 
 Without ``--secret-file``, ``DIR/secret.key`` is used and created with a random secret if
 absent; the master's ``secret_file`` must name the same file. Only scenarios whose robots carry
@@ -39,6 +48,7 @@ import json
 import logging
 import os
 import secrets
+import shutil
 import signal
 import sys
 from collections.abc import Sequence
@@ -53,10 +63,12 @@ from minimize_surprise.errors import ConfigError
 from minimize_surprise.files import PRIVATE_MODE, write_atomic
 from minimize_surprise.sensors import GROUND_SENSORS, IR_SENSORS
 from minimize_surprise.wire import DEFAULT_PORT
-from sim_stub.scenarios import SCENARIOS, scenario_config
+from sim_stub.playground import PLAYGROUND_SPEED_SCALE, speed_scale_for
+from sim_stub.scenarios import SCENARIOS, WorldConfig, scenario_config
 
 if TYPE_CHECKING:
     from sim_stub.medulla_model import SignallingWorld
+    from sim_stub.playground import PlaygroundLab
 
 __all__ = ["EXIT_FAILURE", "EXIT_OK", "EXIT_USAGE", "main", "serve"]
 
@@ -76,6 +88,9 @@ ROBOT_ID_PREFIX = "sim-"
 ROBOTS_FILE = "robots.json"
 POSES_FILE = "poses.npy"
 SECRET_FILE = "secret.key"
+#: The subdirectory of DIR with the playground backend's files.
+PLAYGROUND_DIR = "playground"
+BACKENDS = ("sim", "playground")
 #: The agents' reconnection backoff, as ``robot_agent.config.BackoffConfig`` defaults it.
 RECONNECT_INITIAL = 0.5
 RECONNECT_MAX = 30.0
@@ -133,7 +148,20 @@ def _parser() -> argparse.ArgumentParser:
         choices=servable_scenarios(),
         help="the world (default: basic; scenarios with force or light sensors cannot be served)",
     )
+    parser.add_argument(
+        "--backend",
+        default="sim",
+        choices=BACKENDS,
+        help="sim: this process simulates the world; playground: Aseba Playground's Thymios "
+        "behind real asebamedulla processes (default: sim)",
+    )
     parser.add_argument("--robots", type=_count, help="number of robots (default: the scenario's)")
+    parser.add_argument(
+        "--arena",
+        type=_positive,
+        metavar="METRES",
+        help="side of the square carpet in metres (default: the scenario's, 1.0)",
+    )
     parser.add_argument("--seed", type=int, default=0, help="the world's seed (default: 0)")
     parser.add_argument(
         "--dir", required=True, type=Path, help="where the agent configurations are written"
@@ -162,12 +190,14 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--speed-scale",
         type=_positive,
-        default=SPEED_SCALE,
         help=f"motor units for full speed, in the robots and their configs (default: "
-        f"{SPEED_SCALE:g})",
+        f"{SPEED_SCALE:g} with sim, {PLAYGROUND_SPEED_SCALE:g} with playground: its Thymios "
+        "drive the lab's 10.6 cm/s at full speed)",
     )
     parser.add_argument(
-        "--poses", action="store_true", help=f"write every step's poses to DIR/{POSES_FILE}"
+        "--poses",
+        action="store_true",
+        help=f"write every step's poses to DIR/{POSES_FILE} (sim only)",
     )
     parser.add_argument(
         "--log-level",
@@ -180,9 +210,14 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def agent_config(
-    args: argparse.Namespace, index: int, bus: str, secret_file: Path
+    args: argparse.Namespace,
+    index: int,
+    bus: str,
+    secret_file: Path,
+    thymio: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """The agent configuration (plain data) of robot ``index`` served on ``bus``."""
+    """The agent configuration (plain data) of robot ``index`` served on ``bus``; ``thymio``
+    adds to its ``body.thymio`` settings."""
     return {
         "robot_id": robot_id(index),
         "master": {
@@ -190,8 +225,7 @@ def agent_config(
             "port": args.master_port,
             "secret_file": str(secret_file),
         },
-        # No failsafe program: the simulated Thymio does not run Aseba code.
-        "body": {"thymio": {"bus": bus, "speed_scale": args.speed_scale}},
+        "body": {"thymio": {"bus": bus, "speed_scale": args.speed_scale, **(thymio or {})}},
         "safety": {"profile": "stop"},
         "reconnect": {
             "initial": args.reconnect_initial,
@@ -200,6 +234,38 @@ def agent_config(
             "jitter": RECONNECT_JITTER,
         },
     }
+
+
+#: ``body.thymio`` of the sim backend's agents: no failsafe program, since the simulated Thymio
+#: runs no Aseba code, and no medulla to restart.
+SIM_THYMIO: dict[str, Any] = {}
+#: ``body.thymio`` of the playground backend's agents, as on a lab's robot
+#: (deploy/examples/agent-thymio-1.yaml): Playground's Thymios run the failsafe program, and an
+#: agent ends a medulla that lost its robot, which the server restarts as systemd would
+#: (docs/rehearsal.md).
+PLAYGROUND_THYMIO: dict[str, Any] = {"failsafe": True, "restart_medulla": True}
+
+
+def _write_agent_config(
+    args: argparse.Namespace,
+    directory: Path,
+    index: int,
+    bus: str,
+    secret_file: Path,
+    what: str,
+    thymio: dict[str, Any],
+) -> dict[str, Any]:
+    """Write robot ``index``'s agent configuration (``what`` the robot is, for its header); the
+    robot's entry in robots.json."""
+    path = directory / f"agent-{robot_id(index)}.yaml"
+    header = (
+        f"# Written by surprise-sim-robots (pid {os.getpid()}): {what}.\n"
+        "# Valid while that process runs: the bus below is its private dbus-daemon.\n"
+    )
+    text = yaml.safe_dump(agent_config(args, index, bus, secret_file, thymio), sort_keys=False)
+    # Readers (the tests, a script waiting for robots.json) see the whole file or none.
+    write_atomic(path, (header + text).encode("utf-8"), durable=False)
+    return {"robot_id": robot_id(index), "index": index, "bus": bus, "config": str(path)}
 
 
 def _secret_file(given: Path | None, directory: Path) -> Path:
@@ -249,13 +315,16 @@ def _prepare_dir(directory: Path) -> None:
 
 
 def _announce(args: argparse.Namespace, robots: list[dict[str, Any]], scenario: str) -> None:
+    kind = "Aseba Playground Thymios" if args.backend == "playground" else "simulated Thymios"
     print(
-        f"surprise-sim-robots: {len(robots)} simulated Thymios of scenario {scenario} "
+        f"surprise-sim-robots: {len(robots)} {kind} of scenario {scenario} "
         f"(seed {args.seed}) in real time, master {args.master_host}:{args.master_port}",
         flush=True,
     )
     for robot in robots:
-        print(f"  {robot['robot_id']}: D-Bus {robot['bus']}", flush=True)
+        port = robot.get("medulla_port")
+        medulla = f", asebamedulla on TCP {port}" if port else ""
+        print(f"  {robot['robot_id']}: D-Bus {robot['bus']}{medulla}", flush=True)
     print("start one agent per robot (each in its own terminal, or with &):", flush=True)
     for robot in robots:
         print(f"  surprise-agent --config {robot['config']}", flush=True)
@@ -268,18 +337,19 @@ async def serve(args: argparse.Namespace) -> int:
     Must run in the main thread (signal handlers can only be set there). Needs ``dbus-fast``
     (the ``robot`` extra).
     """
-    # Imported here, not at the top: they need dbus-fast, which --help must do without.
-    from sim_stub.body import SimSwarm
-    from sim_stub.fake_medulla import private_bus
-    from sim_stub.medulla_model import SignallingWorld, SimThymio, serve_sim_thymio
-    from sim_stub.warmup import warm_up
-
-    overrides = {} if args.robots is None else {"robots": args.robots}
+    overrides: dict[str, Any] = {}
+    if args.robots is not None:
+        overrides["robots"] = args.robots
+    if args.arena is not None:
+        overrides["arena_side"] = args.arena
     try:
         config = scenario_config(args.scenario, overrides)
     except ConfigError as exc:
         print(f"surprise-sim-robots: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    playground = args.backend == "playground"
+    if args.speed_scale is None:
+        args.speed_scale = speed_scale_for(config.max_speed) if playground else SPEED_SCALE
     directory: Path = args.dir.expanduser().resolve()
     try:
         _prepare_dir(directory)
@@ -301,55 +371,50 @@ async def serve(args: argparse.Namespace) -> int:
 
     for sig in _SIGNALS:
         loop.add_signal_handler(sig, on_signal, sig)
-    # Compile (or load) the world's kernels before any robot is served: a first step that
-    # compiles would stall the real-time world for seconds, and the agents' reads time out.
-    await asyncio.to_thread(warm_up)
-    world = SignallingWorld(config, args.seed, record=args.poses)
+    world: SignallingWorld | None = None
     announced = False
     try:
         async with contextlib.AsyncExitStack() as stack:
-            robots: list[dict[str, Any]] = []
-            for index in range(world.n_robots):
-                bus = await stack.enter_async_context(private_bus())
-                model = SimThymio(world, index, speed_scale=args.speed_scale)
-                await stack.enter_async_context(serve_sim_thymio(bus, model))
-                path = directory / f"agent-{robot_id(index)}.yaml"
-                header = (
-                    f"# Written by surprise-sim-robots (pid {os.getpid()}): simulated Thymio "
-                    f"{index} of scenario {args.scenario}, seed {args.seed}.\n"
-                    "# Valid while that process runs: the bus below is its private dbus-daemon.\n"
-                )
-                text = yaml.safe_dump(agent_config(args, index, bus, secret_file), sort_keys=False)
-                # Readers (the tests, a script waiting for robots.json) see the whole file or none.
-                write_atomic(path, (header + text).encode("utf-8"), durable=False)
-                robots.append(
-                    {"robot_id": robot_id(index), "index": index, "bus": bus, "config": str(path)}
-                )
-            # The exit stack stops the world before the services hang up and the buses go.
-            await stack.enter_async_context(SimSwarm(world, realtime=True))
-            info = {
+            info: dict[str, Any] = {
                 "pid": os.getpid(),
+                "backend": args.backend,
                 "scenario": args.scenario,
                 "seed": args.seed,
                 "dt": config.dt,
+                "arena_side": config.arena_side,
+                "speed_scale": args.speed_scale,
                 "master": {"host": args.master_host, "port": args.master_port},
                 "secret_file": str(secret_file),
-                "robots": robots,
             }
+            lab: PlaygroundLab | None = None
+            if playground:
+                lab = await _serve_playground(stack, args, config, directory, secret_file, info)
+            else:
+                world = await _serve_sim(stack, args, config, directory, secret_file, info)
             text = json.dumps(info, indent=2) + "\n"
             write_atomic(directory / ROBOTS_FILE, text.encode("utf-8"), durable=False)
             announced = True
-            _announce(args, robots, args.scenario)
-            await asyncio.Event().wait()  # until a signal cancels this task
-        return EXIT_OK  # not reached: the wait ends only by cancellation
+            _announce(args, info["robots"], args.scenario)
+            if lab is None:
+                await asyncio.Event().wait()  # until a signal cancels this task
+                return EXIT_OK  # not reached: the wait ends only by cancellation
+            code = await lab.watch()  # until a signal cancels this task, or Playground ends
+            print(
+                f"surprise-sim-robots: asebaplayground ended by itself (exit code {code}): every "
+                f"robot is gone; see its log in {lab.directory}",
+                file=sys.stderr,
+            )
+            return EXIT_FAILURE
     except asyncio.CancelledError:
         if not received:
             raise
         # Our own signal handler cancelled us: that is the normal way to stop.
         task.uncancel()
-        log.info("stopped after %d steps (%.1f s of world time)", world.steps, world.time)
+        if world is not None:
+            log.info("stopped after %d steps (%.1f s of world time)", world.steps, world.time)
         return EXIT_OK
-    except (OSError, RuntimeError) as exc:  # e.g. dbus-daemon missing or failing to start
+    except (OSError, RuntimeError, TimeoutError) as exc:
+        # e.g. dbus-daemon or Aseba missing, or a robot that never came up
         print(f"surprise-sim-robots: cannot serve the robots: {exc}", file=sys.stderr)
         return EXIT_FAILURE
     finally:
@@ -358,8 +423,82 @@ async def serve(args: argparse.Namespace) -> int:
         if announced:
             with contextlib.suppress(OSError):
                 (directory / ROBOTS_FILE).unlink()
-        if args.poses:
+        if args.poses and world is not None:
             _save_poses(directory / POSES_FILE, world)
+
+
+async def _serve_sim(
+    stack: contextlib.AsyncExitStack,
+    args: argparse.Namespace,
+    config: WorldConfig,
+    directory: Path,
+    secret_file: Path,
+    info: dict[str, Any],
+) -> SignallingWorld:
+    """Serve a real-time world's robots (entered on ``stack``), their entries in ``info``."""
+    # Imported here, not at the top: they need dbus-fast, which --help must do without.
+    from sim_stub.body import SimSwarm
+    from sim_stub.fake_medulla import private_bus
+    from sim_stub.medulla_model import SignallingWorld, SimThymio, serve_sim_thymio
+    from sim_stub.warmup import warm_up
+
+    # Compile (or load) the world's kernels before any robot is served: a first step that
+    # compiles would stall the real-time world for seconds, and the agents' reads time out.
+    await asyncio.to_thread(warm_up)
+    world = SignallingWorld(config, args.seed, record=args.poses)
+    robots = []
+    for index in range(world.n_robots):
+        bus = await stack.enter_async_context(private_bus())
+        model = SimThymio(world, index, speed_scale=args.speed_scale)
+        await stack.enter_async_context(serve_sim_thymio(bus, model))
+        what = f"simulated Thymio {index} of scenario {args.scenario}, seed {args.seed}"
+        robots.append(
+            _write_agent_config(args, directory, index, bus, secret_file, what, SIM_THYMIO)
+        )
+    # The exit stack stops the world before the services hang up and the buses go.
+    await stack.enter_async_context(SimSwarm(world, realtime=True))
+    info["robots"] = robots
+    return world
+
+
+async def _serve_playground(
+    stack: contextlib.AsyncExitStack,
+    args: argparse.Namespace,
+    config: WorldConfig,
+    directory: Path,
+    secret_file: Path,
+    info: dict[str, Any],
+) -> PlaygroundLab:
+    """Start Playground and a medulla per robot (entered on ``stack``), their entries in
+    ``info``."""
+    from sim_stub.playground import PROGRAMS, Arena, PlaygroundLab
+
+    for program in PROGRAMS:
+        if shutil.which(program) is None:
+            package = "dbus-daemon" if program == "dbus-daemon" else "aseba"
+            raise RuntimeError(f"{program} is not installed (apt-get install {package})")
+    arena = Arena.of(config, args.seed)
+    lab = await stack.enter_async_context(PlaygroundLab(directory / PLAYGROUND_DIR, arena))
+    assert lab.playground is not None and lab.world_bus is not None
+    robots = []
+    for robot in lab.robots:
+        what = (
+            f"Aseba Playground Thymio {robot.index} of scenario {args.scenario}, seed "
+            f"{args.seed}, behind asebamedulla"
+        )
+        entry = _write_agent_config(
+            args, directory, robot.index, robot.bus.address, secret_file, what, PLAYGROUND_THYMIO
+        )
+        entry.update(robot_port=robot.robot_port, medulla_port=robot.medulla.port)
+        robots.append(entry)
+    info["robots"] = robots
+    info["playground"] = {
+        "pid": lab.playground.pid,
+        "world": str(lab.playground.world),
+        "bus": lab.world_bus.address,
+        "directory": str(lab.directory),
+    }
+    return lab
 
 
 def _save_poses(path: Path, world: SignallingWorld) -> None:
@@ -373,7 +512,10 @@ def _save_poses(path: Path, world: SignallingWorld) -> None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``surprise-sim-robots``; returns the exit code."""
-    args = _parser().parse_args(argv)
+    parser = _parser()
+    args = parser.parse_args(argv)
+    if args.poses and args.backend != "sim":
+        parser.error("--poses needs --backend sim (Playground's poses are on its D-Bus)")
     try:
         import dbus_fast  # noqa: F401  # the D-Bus services need it; --help does not
     except ImportError:

@@ -79,7 +79,7 @@ class EvaluationSummary(Payload, kw_only=True):
     one of the agent's failure words: ``sensor-read``, ``watchdog``, ``hardware``, ``genome``,
     ``missing-sensors``, ``internal``). ``steps`` ran of ``requested``; ``interventions`` counts
     the safety layer's interventions by reason; ``duration_s`` is on the robot's clock (simulated
-    time in simulation).
+    time in simulation); ``battery_v`` the battery read after it (None: unknown).
     """
 
     t: float
@@ -92,6 +92,7 @@ class EvaluationSummary(Payload, kw_only=True):
     overruns: int = 0
     read_failures: int = 0
     duration_s: float | None = None
+    battery_v: float | None = None
 
 
 class StepSample(Payload, kw_only=True):
@@ -136,6 +137,8 @@ class RunStatus(Payload, kw_only=True):
     failed_attempts: int = 0
     elapsed_s: float = 0.0
     time_left_s: float | None = None
+    #: why the run waits for a person (a battery swap, robots to place); None while it runs
+    paused: str | None = None
 
 
 def now() -> float:

@@ -134,6 +134,7 @@ class RobotTelemetry:
         interventions: Mapping[str, int] | None = None,
         overruns: int = 0,
         read_failures: int = 0,
+        battery_v: float | None = None,
         duration_s: float | None = None,
     ) -> None:
         """Queue the summary of one evaluation (never raises, never waits)."""
@@ -148,6 +149,7 @@ class RobotTelemetry:
                 interventions=dict(interventions or {}),
                 overruns=overruns,
                 read_failures=read_failures,
+                battery_v=battery_v,
                 duration_s=None if duration_s is None else round(duration_s, 3),
             )
         except Exception:

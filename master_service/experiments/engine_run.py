@@ -26,7 +26,8 @@ from typing import Any, Final
 import numpy as np
 
 from master_service.config import MasterConfig
-from master_service.evolution_run import Evaluation, EvolutionRun, Progress
+from master_service.evaluation import Evaluation, Progress
+from master_service.evolution_run import EvolutionRun
 from master_service.experiments.simulation_setup import (
     SimulatedRun,
     simulated_safety,
@@ -134,8 +135,11 @@ class FastRun:
 
 
 class EngineEvaluator:
-    """The engine as an :class:`~master_service.evolution_run.Evaluator`: a whole swarm's
+    """The engine as an :class:`~master_service.evaluation.Evaluator`: a whole swarm's
     evaluation in one compiled call; its robots are always there."""
+
+    #: The engine keeps neither overruns nor read failures, and has no batteries.
+    reports_robot_stats = False
 
     def __init__(self, swarm: Swarm, experiment: ExperimentConfig) -> None:
         self.engine = swarm

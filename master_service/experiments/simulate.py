@@ -18,14 +18,14 @@ import contextlib
 import logging
 import random
 import secrets
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from master_service.config import MasterConfig
-from master_service.evolution_run import Progress
+from master_service.evaluation import Progress
 from master_service.experiments.simulation_setup import (
     SimulatedRun,
     robot_ids,
@@ -43,6 +43,7 @@ from minimize_surprise.safety import SafetyState
 from robot_agent.agent import Agent
 from robot_agent.config import AgentConfig, LoopConfig
 from robot_agent.config import MasterConfig as AgentMasterConfig
+from sim_stub.battery import SimBattery
 from sim_stub.body import SimSwarm
 from sim_stub.scenarios import SCENARIOS
 from sim_stub.world import World, box_frame_steps
@@ -69,7 +70,9 @@ class SimulatedSwarm:
     """A master and ``experiment.robots`` agents on simulated Thymios in one shared world.
 
     ``await run(run_dir)`` evolves, post-evaluates and writes the report; ``on_progress`` sees the
-    master's progress.
+    master's progress. ``batteries`` (optional, robot by robot) give the robots batteries that
+    drain as they drive, to rehearse a battery swap (docs/runs.md); ``pause_before_post`` waits
+    for ``surprise-master continue`` before the post-evaluation.
     """
 
     def __init__(
@@ -78,10 +81,16 @@ class SimulatedSwarm:
         *,
         realtime: bool = False,
         on_progress: Callable[[Progress], None] | None = None,
+        batteries: Sequence[SimBattery | None] = (),
+        pause_before_post: bool = False,
     ) -> None:
         self.experiment = experiment
         self.realtime = realtime
         self.on_progress = on_progress
+        #: the robots' batteries, in robot order (none: the robots report no battery)
+        self.batteries = list(batteries)
+        #: wait for ``surprise-master continue`` before the post-evaluation, as a lab does
+        self.pause_before_post = pause_before_post
         self.world = World(world_config(experiment), seed=experiment.seed)
         self.ids = robot_ids(experiment.robots)
         # Nobody outside this process talks to this master: a fresh random secret per run.
@@ -156,6 +165,7 @@ class SimulatedSwarm:
             before_post_evaluation=self._reset_arena,
             snapshot=self._snapshot,
         )
+        master.evolution.pause_before_post = self.pause_before_post
         self._agents = []
         failure: Exception | None = None
         async with contextlib.AsyncExitStack() as stack:
@@ -166,6 +176,8 @@ class SimulatedSwarm:
                 await stack.enter_async_context(swarm)
             for index, robot_id in enumerate(self.ids):
                 body = await stack.enter_async_context(swarm.body(index))
+                if index < len(self.batteries):
+                    body.battery = self.batteries[index]
                 agent = Agent(
                     self.agent_config(robot_id, master.port),
                     body,

@@ -15,7 +15,7 @@ from typing import Any, Final
 
 import numpy as np
 
-from master_service.evolution_run import RunSummary
+from master_service.evaluation import RunSummary
 from master_service.rundir import BOX_TRACK, SIMULATION_FILE, RunDirError, write_atomic
 from minimize_surprise.config import ExperimentConfig, decode_experiment, read_yaml
 from minimize_surprise.errors import ConfigError

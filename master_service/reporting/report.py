@@ -6,7 +6,7 @@ mean over the run, over its last tenth and over the post-evaluation, with a warn
 dominates), and from the post-evaluation traces each sensor's mean prediction and reading; when
 the traces hold poses (simulation) the behaviour metrics of docs/method.md (d_R, c_o, mean
 cluster size and their classes, the box displacement d_B from ``simulation.json``) and per robot
-its path length and rotation.
+its path length and rotation; a real run's the same from a tracker's file (:mod:`.tracker`).
 
 Pictures (``plots/``, each as PNG and PDF; :mod:`master_service.reporting.pictures`): ``fitness``,
 ``robot_fitness``, ``predictions``, in simulation ``trajectories`` on the arena, with a baseline
@@ -17,8 +17,6 @@ from __future__ import annotations
 
 import collections
 import json
-import os
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Final
@@ -26,12 +24,10 @@ from typing import Any, Final
 import msgspec
 import numpy as np
 
-from master_service.evolution_run import format_duration
-from master_service.master import LIVE_INTERVAL
-from master_service.reporting import pictures
+from master_service.reporting import pictures, tracker
+from master_service.reporting.robot_stats import parse_robot_stats, robot_stats
 from master_service.rundir import (
     BOX_TRACK,
-    LIVE,
     METRICS,
     PLOTS,
     POST_EVALUATION,
@@ -46,7 +42,6 @@ from minimize_surprise.config import ExperimentConfig
 from minimize_surprise.dominance import dominance
 from minimize_surprise.errors import ConfigError
 from minimize_surprise.safety import intervention_reasons, intervention_share
-from minimize_surprise.text import plural
 from sim_stub import metrics as sim_metrics
 from sim_stub.experiment import world_config
 
@@ -56,7 +51,6 @@ __all__ = [
     "behaviour_line",
     "compute_metrics",
     "safety_lines",
-    "status_text",
     "write_report",
 ]
 
@@ -66,8 +60,6 @@ NO_POSITIONS: Final = (
     "the post-evaluation's traces hold no positions (a real robot does not know where it is), "
     "and the behaviour metrics are computed from them"
 )
-#: A live.json older than this many refresh periods means the master is gone.
-_STALE_PERIODS: Final = 5
 
 
 def _rows(run: RunDir, limit: int | None) -> tuple[list[dict[str, Any]], list[str]]:
@@ -95,6 +87,7 @@ def _rows(run: RunDir, limit: int | None) -> tuple[list[dict[str, Any]], list[st
                     else None
                 ),
                 "robots": {robot: float(row[f"fitness_{robot}"]) for robot in robots},
+                "robot_stats": parse_robot_stats(row, robots),
             }
         )
     return typed, robots
@@ -237,9 +230,12 @@ class _Run:
     post: dict[str, Any] | None
     traces: dict[str, dict[str, np.ndarray]]
     simulation: dict[str, Any] | None
+    tracked: dict[str, Any] | None = None  # where a tracker's file gave the poses
 
 
-def _load(path: str | Path) -> _Run:
+def _load(
+    path: str | Path, positions: str | Path | None = None, offset: float | None = None
+) -> _Run:
     run = RunDir(path)
     config = run.load_config()
     assert config.experiment is not None
@@ -247,9 +243,12 @@ def _load(path: str | Path) -> _Run:
     rows, robots = _rows(run, checkpoint.get("csv_rows"))
     post = run.read_json(POST_EVALUATION)
     simulation = run.read_json(SIMULATION_FILE)
-    return _Run(
-        run, config.experiment, checkpoint, rows, robots, post, _traces(run, post), simulation
+    traces = _traces(run, post)
+    # A tracker's poses stand where a simulated trace holds them: all is computed as for one.
+    tracked = tracker.add_tracked_poses(
+        positions, traces, config.experiment.step_period, offset=offset, ignore=robots
     )
+    return _Run(run, config.experiment, checkpoint, rows, robots, post, traces, simulation, tracked)
 
 
 def compute_metrics(path: str | Path) -> dict[str, Any]:
@@ -287,6 +286,7 @@ def _metrics(data: _Run) -> dict[str, Any]:
                 for robot in robots
             },
         )
+    metrics["robot_stats"] = robot_stats(rows, robots)
     metrics["safety"] = _safety_metrics(rows, data.post)
     metrics["warnings"] = list((metrics["safety"] or {}).get("warnings", []))
     metrics["post_evaluation"] = (
@@ -300,6 +300,8 @@ def _metrics(data: _Run) -> dict[str, Any]:
             data.experiment.step_period,
         )
     )
+    if data.tracked is not None and metrics["post_evaluation"] is not None:
+        metrics["post_evaluation"]["positions"] = data.tracked
     return metrics
 
 
@@ -336,6 +338,8 @@ def write_report(
     baseline: str | Path | None = None,
     plots: bool = True,
     animate: bool = False,
+    positions: str | Path | None = None,
+    positions_offset: float | None = None,
 ) -> dict[str, Any]:
     """Write ``metrics.json`` and (with ``plots``) the pictures of the run in ``path``; return
     the metrics (``pictures``: the files drawn, relative to ``path``).
@@ -343,8 +347,10 @@ def write_report(
     ``baseline`` names a ``surprise-master baseline`` directory: the metrics then compare the
     evolved best fitness with the random pairs' (``baseline`` key), with a picture. ``animate``
     also writes an animation of a simulated post-evaluation (``plots/post_evaluation.gif``).
+    ``positions``: a tracker's CSV file giving a real run's poses, its time ``positions_offset``
+    the first step's (:func:`.tracker.add_tracked_poses`; a bad file writes nothing).
     """
-    data = _load(path)
+    data = _load(path, positions, positions_offset)
     metrics = _metrics(data)
     if baseline is not None:
         try:
@@ -378,6 +384,8 @@ def behaviour_line(metrics: dict[str, Any]) -> str | None:
     kind = f"{b['motion']}, {b['grouping']}"
     if b.get("box_displacement") is not None:
         kind += ", pushing" if b["pushing"] else ", not pushing"
+    if post.get("positions"):
+        kind += f" (positions from {post['positions']['file']})"
     return f"behaviour: {kind}"
 
 
@@ -424,9 +432,9 @@ def _title(data: _Run, metrics: dict[str, Any]) -> str:
 
 
 def _arena(data: _Run) -> pictures.Arena | None:
-    """The simulated world of the run, as the pictures draw it (None for real robots)."""
+    """The run's world as the pictures draw it (real robots: their experiment's, if tracked)."""
     if data.simulation is None:
-        return None
+        return pictures.Arena(world_config(data.experiment)) if data.tracked else None
     config = world_config(data.experiment)
     boxes = data.simulation.get("post_evaluation_boxes") or {}
     track, every = None, 1
@@ -491,71 +499,3 @@ def _draw(data: _Run, metrics: dict[str, Any], *, plots: bool, animate: bool) ->
             )
         )
     return drawn
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
-def status_text(path: str | Path) -> str:
-    """Where the run in ``path`` stands, in a few lines."""
-    run = RunDir(path)
-    config = run.load_config()
-    assert config.experiment is not None
-    planned = config.experiment.evolution.evaluations
-    checkpoint = run.read_checkpoint_data()
-    lines = [f"run {run.path.resolve().name} ({run.path})"]
-    if checkpoint is None:
-        lines.append(f"phase: not started, 0/{planned} evaluations")
-    else:
-        optimizer = checkpoint.get("optimizer", {})
-        best = optimizer.get("best_fitness")
-        lines.append(
-            f"phase: {checkpoint['phase']}, {optimizer.get('evaluations', 0)}/{planned} "
-            f"evaluations counted, "
-            f"{plural(checkpoint.get('failed_attempts', 0), 'failed attempt')}"
-        )
-        lines.append("best fitness: " + ("-" if best is None else f"{best:.4f}"))
-        rows = run.read_rows()[: checkpoint.get("csv_rows", 0)]
-        if rows:
-            last = rows[-1]
-            lines.append(
-                f"last evaluation: {last['evaluation']} {last['kind']}, fitness "
-                f"{float(last['fitness']):.4f}, accepted {last['accepted']}"
-            )
-        lines.append(f"served for {format_duration(float(checkpoint.get('elapsed_s', 0.0)))}")
-    live = run.read_json(LIVE)
-    fresh = (
-        isinstance(live, dict)
-        and live.get("running")
-        and time.time() - float(live.get("updated_at", 0)) < _STALE_PERIODS * LIVE_INTERVAL
-        and _alive(int(live.get("pid", -1)))
-    )
-    if fresh:
-        assert isinstance(live, dict)
-        robots = live.get("robots", [])
-        lines.append(
-            f"master: running (pid {live['pid']}, {live['host']}:{live['port']}), "
-            f"robots connected {len(robots)}/{config.robot_count}: {', '.join(robots) or '-'}"
-        )
-        if live.get("time_left_s") is not None:
-            lines.append(f"time left: ~{format_duration(live['time_left_s'])}")
-    elif checkpoint is None or checkpoint.get("phase") != "done":
-        lines.append(f"master: not running; continue with `surprise-master resume {run.path}`")
-    else:
-        lines.append("master: not running; the run is complete")
-    post = run.read_json(POST_EVALUATION)
-    if post is not None:
-        fitness = post.get("swarm_fitness")
-        lines.append(
-            "post-evaluation: done, swarm fitness "
-            + ("-" if fitness is None else f"{fitness:.4f}")
-            + f", traces of {len(post.get('robots', {}))} robots"
-        )
-    return "\n".join(lines)

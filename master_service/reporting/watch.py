@@ -35,7 +35,7 @@ from rich.panel import Panel
 from rich.table import Table
 from rich.text import Text
 
-from master_service.evolution_run import format_duration
+from master_service.evaluation import format_duration
 from minimize_surprise.backoff import Backoff, BackoffConfig
 from telemetry.config import (
     DEFAULT_PREFIX,
@@ -181,6 +181,8 @@ def _run_panel(state: SwarmState) -> Panel:
     grid.add_column(style="bold")
     grid.add_column()
     grid.add_row("phase", what + ("" if run.online else " (master stopped)"))
+    if run.paused:
+        grid.add_row("paused", Text(run.paused, style="yellow"))
     grid.add_row("evaluations", f"{run.evaluations}/{run.total}")
     grid.add_row("fitness", f"best {_number(run.best_fitness)}, last {_number(run.last_fitness)}")
     robots = f"{run.robots_connected}/{run.robots_expected}"
@@ -213,12 +215,20 @@ def _robots_table(state: SwarmState, now: float) -> Table:
         robot = state.robots[robot_id]
         seen = "-" if robot.last_seen is None else f"{format_duration(now - robot.last_seen)} ago"
         ev = robot.evaluation
+        state_text = _state_text(robot)
         if ev is None:
             evaluation = fitness = steps = safety = "-"
         else:
             evaluation = str(ev.evaluation)
             fitness = _number(ev.fitness) if ev.failure is None else f"failed: {ev.failure}"
-            steps = f"{ev.steps}/{ev.requested}"
+            # Late steps and failed reads only when there were any: the table stays narrow.
+            steps = f"{ev.steps}/{ev.requested}" + "".join(
+                f", {n} {what}"
+                for n, what in ((ev.overruns, "late"), (ev.read_failures, "failed reads"))
+                if n
+            )
+            if ev.battery_v is not None:
+                state_text.append(f" {ev.battery_v:.2f} V")
             safety = _interventions(ev.interventions)
         sample = robot.sample
         command = "-" if sample is None else f"{sample.command[0]:+.2f} {sample.command[1]:+.2f}"
@@ -227,7 +237,7 @@ def _robots_table(state: SwarmState, now: float) -> Table:
         dropped = "-" if status is None or status.dropped is None else str(status.dropped)
         table.add_row(
             robot_id,
-            _state_text(robot),
+            state_text,
             seen,
             evaluation,
             fitness,

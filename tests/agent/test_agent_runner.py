@@ -176,6 +176,21 @@ async def test_deadlines_class_skips_to_the_current_period():
     assert clock.now() == pytest.approx(5.5)
 
 
+async def test_a_clock_that_adds_up_its_steps_reports_no_overrun():
+    # A simulated clock reaches 0.31 + 3 * 0.01 as 0.34, the deadline computes 0.33999999999999997:
+    # rounding, not a late step.
+    clock = FakeClock(start=31 * 0.01)
+    deadlines = Deadlines(clock, 0.01)
+    deadlines.start()
+    for k in range(1, 41):
+        clock.t = (31 + k) * 0.01  # the world's time: its steps times its dt
+        await deadlines.wait()
+    assert deadlines.overruns == 0
+    clock.advance(0.012)  # a step 2 ms past its deadline is late
+    await deadlines.wait()
+    assert deadlines.overruns == 1
+
+
 # --------------------------------------------------------------------------- trace and safety
 
 

@@ -15,11 +15,12 @@ from pathlib import Path
 from typing import Any
 
 from master_service import Master, MasterConfig, Progress
-from master_service.rundir import format_row
+from master_service.rundir import evaluation_header, format_row
 from minimize_surprise.config import EvolutionConfig, ExperimentConfig
 from minimize_surprise.evolution import OnePlusOne
 from minimize_surprise.fitness import swarm_fitness
 from minimize_surprise.network import GenomeLayout, spec_from_config
+from minimize_surprise.wire import EvaluationStats
 from sim_stub.scripted_robots import ScriptedRobot, deterministic_fitness
 
 SECRET = b"test-secret"
@@ -88,13 +89,11 @@ def reference_rows(exp: ExperimentConfig, robots: list[str]) -> list[dict[str, s
     ``attempts`` and ``duration_s``)."""
     size = GenomeLayout(spec_from_config(exp)).size
     optimizer = OnePlusOne(exp.evolution, size, exp.seed)
-    header = [
-        *COMPARED,
-        "attempts",
-        "duration_s",
-        "safety_share",
-        *(f"fitness_{r}" for r in robots),
-    ]
+    header = evaluation_header(robots, robot_stats=True)
+    # The scripted robots keep every deadline, read every sensor and report no battery.
+    stats = [EvaluationStats(steps_run=exp.evaluation_steps, overruns=0, interventions={})] * len(
+        robots
+    )
     rows = []
     # The scripted robots' safety stops every fifth step from the first.
     share = ((exp.evaluation_steps + 4) // 5) / exp.evaluation_steps
@@ -104,7 +103,7 @@ def reference_rows(exp: ExperimentConfig, robots: list[str]) -> list[dict[str, s
         out = optimizer.tell(swarm_fitness(fitnesses))
         line = format_row(
             out.evaluation, out.kind, out.fitness, out.best_fitness, out.accepted, 1, 0.0, share,
-            fitnesses,
+            fitnesses, stats,
         )  # fmt: skip
         row = dict(zip(header, line.rstrip("\n").split(","), strict=True))
         rows.append(comparable(row))

@@ -12,7 +12,7 @@ import pytest
 
 from master_service.experiments.engine_run import FastRun
 from master_service.experiments.simulate import SimulatedSwarm, simulation_experiment
-from master_service.rundir import RunDir
+from master_service.rundir import ROBOT_STAT_PREFIXES, RunDir
 
 TRACE_ARRAYS = ("sensors", "predictions", "actions", "commands", "safety", "poses")
 
@@ -58,6 +58,13 @@ def test_engine_and_agents_give_the_same_run(tmp_path: Path, scenario: str, over
 
     fast_rows, agent_rows = rows(fast), rows(agents)
     assert len(fast_rows) == 12
+    # The agents add what robots report and the engine has not: no overrun, no failed read, no
+    # battery.
+    stats = [
+        {k: row.pop(k) for k in list(row) if k.startswith(ROBOT_STAT_PREFIXES)}
+        for row in agent_rows
+    ]
+    assert all(len(s) == 3 * config.robots and set(s.values()) <= {"", "0"} for s in stats)
     assert fast_rows == agent_rows
     best = RunDir(fast).read_json("best_genome.json")
     assert best == RunDir(agents).read_json("best_genome.json")

@@ -245,7 +245,7 @@ async def test_the_swarm_is_fixed_by_the_allow_list_order_independent(tmp_path):
         await run_with(master, robots)
         await close(robots)
     header = (tmp_path / "run" / "evaluations.csv").read_text().splitlines()[0]
-    assert header.endswith("fitness_r0,fitness_r1,fitness_r2")
+    assert "fitness_r0,fitness_r1,fitness_r2,battery_v_r0,battery_v_r1,battery_v_r2" in header
     assert_matches_reference(tmp_path / "run", exp, robot_ids(3))
 
 

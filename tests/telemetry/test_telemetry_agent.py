@@ -93,7 +93,7 @@ async def test_an_agent_publishes_status_evaluations_and_samples(mosquitto, subs
 
     assert set(summary) == {
         "v", "t", "evaluation", "requested", "steps", "fitness", "failure", "interventions",
-        "overruns", "read_failures", "duration_s",
+        "overruns", "read_failures", "duration_s", "battery_v",
     }  # fmt: skip
     assert summary["v"] == 1 and summary["evaluation"] == 7
     assert (summary["requested"], summary["steps"]) == (20, 20)

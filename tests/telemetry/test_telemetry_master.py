@@ -68,6 +68,7 @@ async def test_the_run_status_is_published_retained(mosquitto, subscriber, tmp_p
         "failed_attempts": 0,
         "elapsed_s": done["elapsed_s"],
         "time_left_s": 0.0,
+        "paused": None,
     }
     counts = [p["evaluations"] for p in live.payloads("run/status")]
     assert counts == sorted(counts) and counts[-1] == 6

@@ -75,6 +75,20 @@ def feed(state: SwarmState, topic: str, payload: object) -> bool:
     return state.apply(f"surprise/{topic}", data, received=NOW)
 
 
+def test_the_view_shows_a_pause_the_batteries_and_late_steps():
+    state = SwarmState()
+    reason = "battery below 3.60 V: swap the battery of r1 (3.52 V)"
+    assert feed(state, "run/status", run_status(paused=reason))
+    summary = EvaluationSummary(
+        t=NOW, evaluation=5, requested=100, steps=100, fitness=0.8, overruns=2, battery_v=3.52
+    )
+    assert feed(state, "robot/r1/evaluation", summary)
+    assert feed(state, "robot/r1/status", ClientStatus(online=True, t=NOW))
+    out = text(state)
+    assert f"paused       {reason}" in out
+    assert "online 3.52 V" in out and "100/100, 2 late" in out
+
+
 def test_an_empty_view_says_what_is_missing():
     out = text(SwarmState())
     assert "no run status yet" in out and "no robot seen yet" in out

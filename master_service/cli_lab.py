@@ -1,0 +1,113 @@
+"""The handlers of ``surprise-master``'s commands around a run: ``report``, ``status``,
+``check`` (the preflight), ``continue`` (after a pause), ``watch`` and ``dashboard``; the parser
+and the commands that run experiments are in :mod:`master_service.cli`."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+from pathlib import Path
+
+from master_service.config import load_master_config, required_secret
+from master_service.rundir import RunDir
+from minimize_surprise.text import plural
+
+__all__ = [
+    "check_command",
+    "continue_command",
+    "dashboard_command",
+    "report_command",
+    "status_command",
+    "watch_command",
+]
+
+
+def report_command(args: argparse.Namespace) -> int:
+    """``surprise-master report``."""
+    from master_service.reporting.report import (
+        baseline_text,
+        behaviour_line,
+        safety_lines,
+        write_report,
+    )
+    from master_service.reporting.robot_stats import robot_lines
+
+    metrics = write_report(
+        args.dir,
+        baseline=args.baseline,
+        animate=args.animate,
+        positions=args.positions,
+        positions_offset=args.positions_offset,
+    )
+    best = metrics.get("best_fitness")
+    post = (metrics.get("post_evaluation") or {}).get("swarm_fitness")
+    drawn = metrics.get("pictures", [])
+    print(
+        f"wrote {Path(args.dir) / 'metrics.json'} and {plural(len(drawn), 'picture')} in "
+        f"{Path(args.dir) / 'plots'}: {plural(metrics['evaluations'], 'evaluation')}, best "
+        "fitness "
+        + ("-" if best is None else f"{best:.4f}")
+        + ("" if post is None else f", post-evaluation fitness {post:.4f}")
+    )
+    behaviour = behaviour_line(metrics)
+    if behaviour is not None:
+        print(behaviour)
+    for line in safety_lines(metrics):
+        print(line)
+    for line in robot_lines(metrics.get("robot_stats")):
+        print(line)
+    comparison = metrics.get("baseline")
+    if comparison:
+        print(baseline_text(comparison))
+    if args.animate:
+        print(f"animation: {Path(args.dir) / 'plots' / 'post_evaluation.gif'}")
+    return 0
+
+
+def check_command(args: argparse.Namespace) -> int:
+    """``surprise-master check``."""
+    from master_service.preflight import CONNECT_TIMEOUT, format_table, run_check
+
+    config = load_master_config(args.config)
+    secret = required_secret(config, args.config)
+    timeout = CONNECT_TIMEOUT if args.timeout is None else args.timeout
+    if not args.json:
+        print(f"checking the robots of {args.config} (waiting up to {timeout:.0f} s for them)")
+    rows = asyncio.run(run_check(config, secret, timeout=timeout))
+    if args.json:
+        print(json.dumps([row.to_json() for row in rows], indent=2))
+    else:
+        print(format_table(rows))
+    return 0 if all(row.fit for row in rows) else 1
+
+
+def continue_command(args: argparse.Namespace) -> int:
+    """``surprise-master continue``."""
+    from master_service.pause import request_continue
+
+    pause = request_continue(RunDir(args.dir))
+    print(f"continuing {args.dir} (it was paused: {pause.get('reason', 'no reason given')})")
+    return 0
+
+
+def status_command(args: argparse.Namespace) -> int:
+    """``surprise-master status``."""
+    from master_service.reporting.status import status_text
+
+    print(status_text(args.dir))
+    return 0
+
+
+def watch_command(args: argparse.Namespace) -> int:
+    """``surprise-master watch``."""
+    from master_service.reporting.watch import run_watch  # rich and aiomqtt only for this command
+
+    return run_watch(args.broker, prefix=args.prefix, once=args.once)
+
+
+def dashboard_command(args: argparse.Namespace) -> int:
+    """``surprise-master dashboard``."""
+    from master_service.reporting.dashboard import run_dashboard  # bokeh only for this command
+
+    return run_dashboard(args.dir, args.host, args.port, open_browser=args.open)

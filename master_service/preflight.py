@@ -1,0 +1,381 @@
+"""``surprise-master check CONFIG``: is every robot fit for a run? (docs/preflight.md)
+
+The check listens where the run will (the master configuration's address, secret and robots),
+lets the robots' agents connect as they would for a run, and asks each of them, between
+evaluations and without driving, for a :class:`~minimize_surprise.wire.CheckReport`: every part
+of its body read on its own, its battery, and what its own safety layer would do to a forward
+drive on that reading. From the connection it measures the link's round trip (three pings) and
+the robot's clock offset. Then it says goodbye; the agents reconnect to the run that follows.
+
+A robot is **unfit** (the exit status is 1) when it did not connect, lacks a sensor the experiment
+uses, is busy with another master's evaluation, has a part that does not answer or answers out of
+range, reads a battery below ``battery_min_v``, or stands on a floor that its safety layer takes
+for the arena's boundary (it would never drive forward: the lab's floor is too bright for the
+ground rule's threshold). A slow link, a clock far off, an unknown battery, something in front of
+the robot or another software version are **notes**: worth knowing, no reason to stop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+import statistics
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any, Final
+
+import minimize_surprise
+from master_service.config import MasterConfig
+from master_service.server import RobotServer, Session
+from minimize_surprise.wire import (
+    REFUSED_UNKNOWN_ROBOT,
+    Check,
+    CheckReport,
+    Failed,
+    Ping,
+    Pong,
+    Result,
+    encode_payload,
+)
+
+__all__ = [
+    "CHECK_TIMEOUT",
+    "CLOCK_OFFSET_NOTE",
+    "CONNECT_TIMEOUT",
+    "PINGS",
+    "RTT_NOTE",
+    "RobotCheck",
+    "format_table",
+    "run_check",
+]
+
+#: Seconds to wait for the robots to connect: an agent that found no master backs off up to 30 s
+#: between tries (``reconnect.max``), so one that has waited long still comes within this.
+CONNECT_TIMEOUT: Final = 40.0
+#: Seconds a robot gets to answer its check: its parts answer within 2 s each (read at once), the
+#: battery within 2 s more.
+CHECK_TIMEOUT: Final = 10.0
+#: Pings per robot for the round trip; the median is reported.
+PINGS: Final = 3
+#: Seconds a ping may take before it counts as lost.
+PING_TIMEOUT: Final = 2.0
+#: A round trip above this is noted: the control loop runs on the robot, but a run's rounds wait
+#: for the slowest link, and Wi-Fi that slow tends to drop.
+RTT_NOTE: Final = 0.1
+#: A clock offset above this is noted: the robots' logs and the master's no longer line up.
+CLOCK_OFFSET_NOTE: Final = 1.0
+
+
+@dataclass
+class RobotCheck:
+    """One robot's row: what was measured, and what makes it unfit (``problems``) or is worth
+    knowing (``notes``)."""
+
+    robot: str
+    connected: bool = False
+    peer: str | None = None
+    software: str | None = None
+    rtt_s: float | None = None
+    clock_offset_s: float | None = None
+    battery_v: float | None = None
+    readings: dict[str, float] = field(default_factory=dict)
+    ground_rule: str = ""
+    problems: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def fit(self) -> bool:
+        """Whether nothing stands in the way of a run."""
+        return not self.problems
+
+    def to_json(self) -> dict[str, Any]:
+        """Plain data for ``--json``."""
+        return {
+            "robot": self.robot,
+            "fit": self.fit,
+            "connected": self.connected,
+            "peer": self.peer,
+            "software": self.software,
+            "rtt_ms": None if self.rtt_s is None else round(1000 * self.rtt_s, 1),
+            "clock_offset_s": None
+            if self.clock_offset_s is None
+            else round(self.clock_offset_s, 3),
+            "battery_v": self.battery_v,
+            "readings": {k: round(v, 4) for k, v in self.readings.items()},
+            "ground_rule": self.ground_rule,
+            "problems": self.problems,
+            "notes": self.notes,
+        }
+
+
+class _Checker:
+    """The server side of one check: sessions, pings and reports by robot."""
+
+    def __init__(self, config: MasterConfig, secret: bytes, log: logging.Logger) -> None:
+        self.config = config
+        self.log = log
+        self.joined = asyncio.Event()
+        self._pongs: dict[tuple[str, int], asyncio.Future[float]] = {}
+        self._reports: dict[tuple[str, int], asyncio.Future[CheckReport]] = {}
+        self.server = RobotServer(
+            host=config.host,
+            port=config.port,
+            secret=secret,
+            sensors=(),  # a robot lacking a sensor is reported, not refused unseen
+            run_id=f"check-{time.strftime('%Y%m%d-%H%M%S')}",
+            heartbeat_interval=config.heartbeat_interval,
+            handshake_timeout=config.handshake_timeout,
+            max_pending_connections=config.max_pending_connections,
+            max_frame_size=config.max_frame_size,
+            ssl_context=None if config.tls is None else _ssl(config),
+            admit=self._admit,
+            on_join=lambda session: self.joined.set(),
+            on_leave=lambda session, reason: None,
+            on_message=self._on_message,
+            on_pong=self._on_pong,
+            logger=log,
+        )
+
+    def _admit(self, robot_id: str) -> tuple[str, str] | None:
+        allowed = self.config.allowed_robots
+        if allowed and robot_id not in allowed:
+            return REFUSED_UNKNOWN_ROBOT, f"{robot_id} is not among the allowed robots"
+        return None
+
+    def _on_message(self, session: Session, msg: Result | Failed | CheckReport) -> None:
+        if isinstance(msg, CheckReport):
+            future = self._reports.get((session.robot_id, msg.seq))
+            if future is not None and not future.done():
+                future.set_result(msg)
+
+    def _on_pong(self, session: Session, pong: Pong) -> None:
+        future = self._pongs.get((session.robot_id, pong.seq))
+        if future is not None and not future.done():
+            future.set_result(time.monotonic())
+
+    async def wait_for_robots(self, expected: Sequence[str] | int, timeout: float) -> None:
+        """Until every expected robot (ids, or a count of any) is connected, or ``timeout``."""
+        deadline = time.monotonic() + timeout
+        while not self._complete(expected):
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return
+            self.joined.clear()
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(left):
+                    await self.joined.wait()
+
+    def _complete(self, expected: Sequence[str] | int) -> bool:
+        sessions = self.server.sessions
+        if isinstance(expected, int):
+            return len(sessions) >= expected
+        return all(robot in sessions for robot in expected)
+
+    async def round_trip(self, session: Session, seq: int) -> float | None:
+        """One ping's round trip in seconds, None when it got lost."""
+        loop = asyncio.get_running_loop()
+        future: asyncio.Future[float] = loop.create_future()
+        self._pongs[(session.robot_id, seq)] = future
+        sent = time.monotonic()
+        self.server.send([session.robot_id], encode_payload(Ping(seq=seq)))
+        try:
+            async with asyncio.timeout(PING_TIMEOUT):
+                return await future - sent
+        except TimeoutError:
+            return None
+        finally:
+            del self._pongs[(session.robot_id, seq)]
+
+    async def report(self, session: Session, seq: int) -> tuple[CheckReport, float] | None:
+        """The robot's report and the master's wall-clock midpoint of the exchange."""
+        loop = asyncio.get_running_loop()
+        future: asyncio.Future[CheckReport] = loop.create_future()
+        self._reports[(session.robot_id, seq)] = future
+        sent = time.time()
+        self.server.send([session.robot_id], encode_payload(Check(seq=seq)))
+        try:
+            async with asyncio.timeout(CHECK_TIMEOUT):
+                report = await future
+        except TimeoutError:
+            return None
+        finally:
+            del self._reports[(session.robot_id, seq)]
+        return report, (sent + time.time()) / 2
+
+
+async def run_check(
+    config: MasterConfig,
+    secret: bytes,
+    *,
+    timeout: float = CONNECT_TIMEOUT,
+    log: logging.Logger | None = None,
+    on_listening: Any = None,
+) -> list[RobotCheck]:
+    """Check every robot of ``config`` (see the module docstring); one row per robot, the
+    expected ones first in the order the configuration names them.
+
+    ``on_listening(port)`` (optional) is called once robots can connect.
+    """
+    assert config.experiment is not None, "the experiment must be loaded"
+    log = log if log is not None else logging.getLogger("master_service.preflight")
+    checker = _Checker(config, secret, log)
+    expected: Sequence[str] | int = list(config.allowed_robots) or config.robot_count
+    await checker.server.bind()
+    await checker.server.start_serving()
+    try:
+        if on_listening is not None:
+            on_listening(checker.server.port)
+        await checker.wait_for_robots(expected, timeout)
+        sessions = dict(checker.server.sessions)
+        rows = await asyncio.gather(
+            *(_check_one(checker, config, session) for session in sessions.values())
+        )
+    finally:
+        await checker.server.close("check done")
+    by_robot = {row.robot: row for row in rows}
+    if isinstance(expected, int):
+        ordered = sorted(by_robot.values(), key=lambda row: row.robot)
+        missing = max(0, expected - len(ordered))
+        for i in range(missing):
+            ordered.append(_missing(f"(robot {len(by_robot) + i + 1})", timeout))
+        return ordered
+    ordered = [by_robot.get(robot) or _missing(robot, timeout) for robot in expected]
+    return ordered + [row for robot, row in sorted(by_robot.items()) if robot not in expected]
+
+
+def _missing(robot: str, timeout: float) -> RobotCheck:
+    row = RobotCheck(robot)
+    row.problems.append(
+        f"not connected within {timeout:.0f} s: is its agent running (`systemctl status "
+        "surprise-agent` on its Pi) and does its configuration name this master's address?"
+    )
+    return row
+
+
+async def _check_one(checker: _Checker, config: MasterConfig, session: Session) -> RobotCheck:
+    assert config.experiment is not None
+    row = RobotCheck(session.robot_id, True, session.peer, session.hello.software_version)
+    if row.software != minimize_surprise.__version__:
+        row.notes.append(
+            f"agent software {row.software}, the master's {minimize_surprise.__version__}"
+        )
+    lacking = [s for s in config.experiment.sensors if s not in session.hello.sensors]
+    if lacking:
+        row.problems.append(f"lacks sensors the experiment uses: {', '.join(lacking)}")
+    trips = [await checker.round_trip(session, seq) for seq in range(1, PINGS + 1)]
+    answered = [t for t in trips if t is not None]
+    if answered:
+        row.rtt_s = statistics.median(answered)
+        if row.rtt_s > RTT_NOTE:
+            row.notes.append(f"slow link: round trip {1000 * row.rtt_s:.0f} ms")
+    if len(answered) < len(trips):
+        row.notes.append(f"{len(trips) - len(answered)} of {len(trips)} pings lost")
+    exchange = await checker.report(session, PINGS + 1)
+    if exchange is None:
+        row.problems.append(
+            f"no answer to the check within {CHECK_TIMEOUT:.0f} s (an agent older than the "
+            "check, or a hung robot: see its log)"
+        )
+        return row
+    report, midpoint = exchange
+    _judge(row, report, midpoint, config)
+    return row
+
+
+def _judge(row: RobotCheck, report: CheckReport, midpoint: float, config: MasterConfig) -> None:
+    row.clock_offset_s = report.time - midpoint
+    if abs(row.clock_offset_s) > CLOCK_OFFSET_NOTE:
+        row.notes.append(
+            f"clock {row.clock_offset_s:+.1f} s off the master's (logs will not line up; "
+            "enable NTP on the Pi)"
+        )
+    if report.busy:
+        row.problems.append("busy with an evaluation: is another master running this robot?")
+        return
+    row.ground_rule = report.ground_rule
+    for part in report.parts:
+        if part.error is not None:
+            row.problems.append(f"{part.part} does not answer: {part.error}")
+            continue
+        bad = [
+            f"{name} {value}"
+            for name, value in zip(part.sensors, part.values, strict=False)
+            if not (math.isfinite(value) and 0.0 <= value <= 1.0)
+        ]
+        if len(part.values) != len(part.sensors):
+            bad.append(f"{len(part.values)} values for {len(part.sensors)} sensors")
+        if bad:
+            row.problems.append(f"{part.part} reads out of range: {', '.join(bad)}")
+        row.readings.update(zip(part.sensors, part.values, strict=False))
+    row.battery_v = report.battery_v
+    threshold = config.battery_min_v
+    if report.battery_v is None:
+        row.notes.append("battery unknown (this robot does not report one)")
+    elif threshold is not None and report.battery_v < threshold:
+        row.problems.append(
+            f"battery {report.battery_v:.2f} V, below {threshold:.2f} V: swap it before the run"
+        )
+    reason = report.forward_safety
+    if reason == "ground":
+        ground = ", ".join(
+            f"{row.readings[g]:.2f}" for g in ("ground.0", "ground.1") if g in row.readings
+        )
+        row.problems.append(
+            f"the ground sensors read {ground}, which the safety layer ({report.ground_rule} is "
+            "the arena's boundary) takes for an edge: it will not drive forward here. If it "
+            "stands on the arena's floor, that floor is too bright for the threshold: set "
+            "safety.ground_threshold / ground_boundary in the agents' configuration, or darken "
+            "the floor"
+        )
+    elif reason in ("front", "rear"):
+        row.notes.append(f"something is close to its {reason} IR: move it free before the run")
+    elif reason is not None:
+        row.problems.append(f"the safety layer stops a forward drive on this reading ({reason})")
+
+
+def format_table(rows: Sequence[RobotCheck]) -> str:
+    """The rows as a table for a person, then each robot's problems and notes."""
+    header = ("robot", "verdict", "link", "clock", "battery", "IR max", "ground", "light", "force")
+    lines = [header]
+    for row in rows:
+        r = row.readings
+        ir = [v for k, v in r.items() if k.startswith("ir.")]
+        lines.append(
+            (
+                row.robot,
+                "fit" if row.fit else "UNFIT",
+                "-" if row.rtt_s is None else f"{1000 * row.rtt_s:.1f} ms",
+                "-" if row.clock_offset_s is None else f"{row.clock_offset_s:+.2f} s",
+                "?" if row.battery_v is None else f"{row.battery_v:.2f} V",
+                f"{max(ir):.2f}" if ir else "-",
+                _values(r, ("ground.0", "ground.1")),
+                _values(r, ("light.0", "light.1")),
+                _values(r, ("force",)),
+            )
+        )
+    widths = [max(len(line[i]) for line in lines) for i in range(len(header))]
+    text = ["  ".join(cell.ljust(w) for cell, w in zip(line, widths, strict=True)).rstrip()
+            for line in lines]  # fmt: skip
+    for row in rows:
+        text += [f"{row.robot}: {problem}" for problem in row.problems]
+        text += [f"{row.robot}: note: {note}" for note in row.notes]
+    fit = sum(row.fit for row in rows)
+    text.append(
+        f"{fit} of {len(rows)} robots fit" + ("" if fit == len(rows) else ": fix the above")
+    )
+    return "\n".join(text)
+
+
+def _values(readings: dict[str, float], names: tuple[str, ...]) -> str:
+    present = [f"{readings[n]:.2f}" for n in names if n in readings]
+    return "/".join(present) if present else "-"
+
+
+def _ssl(config: MasterConfig) -> Any:
+    from master_service.config import build_ssl_context
+
+    assert config.tls is not None
+    return build_ssl_context(config.tls)

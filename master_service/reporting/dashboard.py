@@ -1,0 +1,479 @@
+"""``surprise-master dashboard RUN_DIR``: a live web page of one run, served by Bokeh.
+
+::
+
+    surprise-master dashboard RUN_DIR [--host 127.0.0.1] [--port 5006] [--open]
+
+The page (docs/dashboard.md) shows where the run stands (phase, evaluations done of the planned,
+time left, a pause and its reason), the best and each evaluation's fitness over the evaluations,
+a table of the robots (connected, last fitness, battery, overruns, read failures, whatever
+per-robot columns the run has) and, once the post-evaluation is written, the robots' paths.
+
+It is a separate process that only reads the run directory (:mod:`.dashboard_data`), once every
+:data:`POLL_INTERVAL` for all open pages together, so it serves a running, paused or finished run
+of ``run``, ``resume`` or ``sim`` alike, and nothing it does, or fails to do, reaches the run.
+Every value the page shows stands in an element with a ``data-key`` (and, in the robots' table, its
+row's ``data-robot``) whose ``data-value`` holds the text read from the file, for a test or a
+script to read back.
+
+Bokeh is imported inside the functions that serve the page: the rest of ``master_service`` (and a
+robot's Pi) does without it. The HTML of the status and the table is built by plain functions
+(:func:`status_html`, :func:`robots_html`), tested without a browser.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import html
+import logging
+import signal
+import socket
+import sys
+import time
+import webbrowser
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Final
+
+from master_service.reporting.dashboard_data import (
+    RobotRow,
+    RunReader,
+    Snapshot,
+    Trajectories,
+    parse_value,
+)
+from master_service.rundir import RunDirError
+
+if TYPE_CHECKING:
+    from bokeh.document import Document
+
+__all__ = [
+    "DEFAULT_PORT",
+    "POLL_INTERVAL",
+    "robots_html",
+    "run_dashboard",
+    "status_html",
+]
+
+_log = logging.getLogger(__name__)
+
+#: Bokeh's own default port, so that a habit (and an ``ssh -L 5006:...``) carries over.
+DEFAULT_PORT: Final = 5006
+#: Seconds between two looks at the run directory: the master commits at most a few evaluations
+#: a second with robots, and a person reads no faster.
+POLL_INTERVAL: Final = 1.0
+
+#: Column titles of the robots' table for the keys known today; another key shows as it is named.
+_LABELS: Final = {
+    "fitness": "last fitness",
+    "safety_share": "safety share",
+    "battery_v": "battery (V)",
+    "overruns": "overruns",
+    "read_failures": "read failures",
+}
+#: Keys whose values are shares of steps, shown as percentages.
+_SHARES: Final = frozenset({"safety_share", "post_safety_share"})
+#: The loopback names a browser on this machine (or at the end of an ``ssh -L``) may use.
+_LOOPBACK: Final = ("localhost", "127.0.0.1")
+_CSS: Final = """
+:host { font-family: sans-serif; font-size: 14px; }
+.dash-grid { display: grid; grid-template-columns: repeat(3, max-content 16em); gap: 2px 12px; }
+.dash-label { color: #555; }
+.dash-pause { background: #fff3cd; border: 1px solid #e0b000; padding: 6px 10px; margin: 6px 0; }
+.dash-bar { width: 100%; max-width: 60em; height: 8px; background: #eee; margin-top: 4px; }
+.dash-bar > div { height: 8px; background: #1f77b4; }
+.dash-robots { border-collapse: collapse; }
+.dash-robots th, .dash-robots td { border-bottom: 1px solid #ddd; padding: 2px 8px; }
+.dash-robots td { text-align: right; font-variant-numeric: tabular-nums; }
+.dash-robots td[data-key=robot] { text-align: left; }
+.dash-problem { color: #a00; }
+"""
+
+
+# -- the page's text ---------------------------------------------------------------------------
+
+
+def _duration(seconds: float) -> str:
+    seconds = max(0, round(seconds))
+    hours, rest = divmod(seconds, 3600)
+    minutes, seconds = divmod(rest, 60)
+    if hours:
+        return f"{hours} h {minutes:02d} min"
+    return f"{minutes} min {seconds:02d} s" if minutes else f"{seconds} s"
+
+
+def _shown(key: str, text: str | None) -> str:
+    """How the page shows the value ``text`` (read from a file) of ``key``."""
+    value = None if text is None else parse_value(text)
+    if value is None:
+        return "–"
+    if isinstance(value, str):
+        return value
+    if key in _SHARES:
+        return f"{value:.1%}"
+    if key == "battery_v":
+        return f"{value:.2f}"
+    return str(value) if isinstance(value, int) else f"{value:.4f}"
+
+
+def _value(key: str, text: str | None, shown: str | None = None) -> str:
+    raw = "" if text is None else text
+    return (
+        f'<span class="dash-value" data-key="{html.escape(key)}" data-value="{html.escape(raw)}">'
+        f"{html.escape(_shown(key, text) if shown is None else shown)}</span>"
+    )
+
+
+def _item(label: str, key: str, text: str | None, shown: str | None = None) -> str:
+    return f'<span class="dash-label">{html.escape(label)}</span>' + _value(key, text, shown)
+
+
+def status_html(snapshot: Snapshot) -> str:
+    """Where the run stands: state, progress, fitness, time left, a pause and its reason."""
+    last = snapshot.last_row or {}
+    planned = snapshot.planned
+    done = f"{snapshot.evaluations} / {'?' if planned is None else planned}"
+    items = [
+        _item("state", "state", snapshot.state, snapshot.state),
+        _item("phase", "phase", snapshot.phase, snapshot.phase),
+        _item("evaluations", "evaluations", str(snapshot.evaluations), done),
+        _item("best fitness", "best_fitness", snapshot.best_fitness),
+        _item(
+            "last evaluation",
+            "last_evaluation",
+            last.get("evaluation"),
+            f"{last['evaluation']} ({last.get('kind', '?')})" if "evaluation" in last else "–",
+        ),
+        _item("its fitness", "last_fitness", last.get("fitness")),
+        _item("accepted", "accepted", last.get("accepted")),
+        _item("its safety share", "safety_share", last.get("safety_share")),
+    ]
+    if snapshot.time_left_s is not None:
+        left = snapshot.time_left_s
+        items.append(_item("time left", "time_left", repr(left), f"~{_duration(left)}"))
+    if snapshot.master is not None:
+        items.append(_item("master", "master", snapshot.master, snapshot.master))
+    if snapshot.post_fitness is not None:
+        items.append(_item("post-evaluation fitness", "post_fitness", repr(snapshot.post_fitness)))
+    parts = [f'<div class="dash-grid">{"".join(items)}</div>']
+    if planned:
+        share = min(1.0, snapshot.evaluations / planned)
+        parts.append(f'<div class="dash-bar"><div style="width: {share:.1%}"></div></div>')
+    if snapshot.pause is not None:
+        pause = snapshot.pause
+        robots = f" (robots: {', '.join(pause.robots)})" if pause.robots else ""
+        since = f", since {time.strftime('%H:%M:%S', time.localtime(pause.since))}"
+        parts.append(
+            f'<div class="dash-pause">paused: {_value("pause", pause.reason, pause.reason)}'
+            f"{html.escape(robots)}{since if pause.since is not None else ''}</div>"
+        )
+    return "".join(parts)
+
+
+def _robot_cells(robot: RobotRow, keys: list[str], post: dict[str, Any] | None) -> str:
+    connected = {None: ("", "–"), True: ("true", "yes"), False: ("false", "no")}[robot.connected]
+    cells = [
+        f'<td data-key="robot" data-value="{html.escape(robot.robot)}">'
+        f"{html.escape(robot.robot)}</td>",
+        f'<td data-key="connected" data-value="{connected[0]}">{connected[1]}</td>',
+    ]
+    values = dict(robot.values)
+    if post is not None:
+        for key in ("fitness", "safety_share"):
+            number = post.get(robot.robot, {}).get(key)
+            values[f"post_{key}"] = "" if number is None else repr(number)
+    for key in [*keys, *(("post_fitness", "post_safety_share") if post is not None else ())]:
+        text = values.get(key)
+        cells.append(
+            f'<td data-key="{html.escape(key)}" data-value="{html.escape(text or "")}">'
+            f"{html.escape(_shown(key, text))}</td>"
+        )
+    return f'<tr data-robot="{html.escape(robot.robot)}">{"".join(cells)}</tr>'
+
+
+def robots_html(snapshot: Snapshot) -> str:
+    """The robots' table: connected, the last row's per-robot columns (fitness, battery, ...),
+    the newer ``robot_state`` of a running master, and the post-evaluation's fitness."""
+    if not snapshot.robots:
+        return '<p data-key="robots" data-value="0">no robots yet</p>'
+    post = snapshot.post_robots or None
+    titles = ["robot", "connected", *(_LABELS.get(k, k.replace("_", " ")) for k in snapshot.keys)]
+    if post is not None:
+        titles += ["post-eval. fitness", "post-eval. safety share"]
+    head = "".join(f"<th>{html.escape(t)}</th>" for t in titles)
+    body = "".join(_robot_cells(r, snapshot.keys, post) for r in snapshot.robots)
+    return f'<table class="dash-robots"><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>'
+
+
+def _header_html(run_dir: Path, snapshot: Snapshot | None, error: str | None) -> str:
+    name = snapshot.name if snapshot is not None else run_dir.name
+    lines = [f"<h2>run {html.escape(name)}</h2><div>{html.escape(str(run_dir))}</div>"]
+    problems = ([] if snapshot is None else snapshot.problems) + ([error] if error else [])
+    lines += [f'<div class="dash-problem">{html.escape(p)}</div>' for p in problems]
+    return "".join(lines)
+
+
+def _trajectories_note(trajectories: Trajectories | None) -> str:
+    if trajectories is None:
+        return '<p data-key="trajectories" data-value="0">no post-evaluation trajectories yet</p>'
+    count = len(trajectories.xs)
+    return (
+        f'<p data-key="trajectories" data-value="{count}">post-evaluation: paths of {count} '
+        f"robots over {trajectories.steps} steps (the dot: where each ended)</p>"
+    )
+
+
+# -- the Bokeh document --------------------------------------------------------------------------
+
+
+class _Poller:
+    """One reader for every open page: a page asking within half a period of the last read gets
+    that read's snapshot. Bokeh runs every session's callbacks on one thread, so no lock."""
+
+    def __init__(self, reader: RunReader) -> None:
+        self.reader = reader
+        self._snapshot: Snapshot | None = None
+        self._at = 0.0
+
+    def snapshot(self) -> Snapshot:
+        now = time.monotonic()
+        if self._snapshot is None or now - self._at >= POLL_INTERVAL / 2:
+            self._snapshot, self._at = self.reader.read(), now
+        return self._snapshot
+
+
+class _Page:
+    """The models of one open page and their refresh from the poller's snapshot."""
+
+    def __init__(self, doc: Document, poller: _Poller, run_dir: Path) -> None:
+        from bokeh.layouts import column
+        from bokeh.models import ColumnDataSource, HoverTool
+        from bokeh.models.widgets.markups import Div
+        from bokeh.plotting import figure
+
+        self.poller, self.run_dir = poller, run_dir
+        css: list[Any] = [_CSS]  # a string is an inline style sheet for Bokeh
+        self.header = Div(name="header", stylesheets=css)
+        self.status = Div(name="status", stylesheets=css)
+        self.robots = Div(name="robots", stylesheets=css)
+        self.note = Div(name="trajectories_note", stylesheets=css)
+        self.curve = ColumnDataSource({"evaluation": [], "fitness": [], "best_fitness": []})
+        self.paths = ColumnDataSource({"xs": [], "ys": [], "robot": [], "colour": []})
+        self.ends = ColumnDataSource({"x": [], "y": [], "robot": [], "colour": []})
+        self.arena = ColumnDataSource({"x": [], "y": [], "side": []})
+        fitness = figure(
+            name="fitness",
+            title="fitness over the evaluations",
+            x_axis_label="evaluation",
+            y_axis_label="fitness",
+            height=320,
+            sizing_mode="stretch_width",
+            tools="pan,wheel_zoom,box_zoom,reset,save",
+        )
+        each = fitness.scatter(
+            "evaluation", "fitness", source=self.curve, size=4, alpha=0.5,
+            legend_label="fitness of the evaluation", color="#7f7f7f",
+        )  # fmt: skip
+        fitness.step(
+            "evaluation", "best_fitness", source=self.curve, mode="after", line_width=2,
+            legend_label="best fitness", color="#1f77b4",
+        )  # fmt: skip
+        tips = [("evaluation", "@evaluation"), ("fitness", "@fitness{0.0000}")]
+        fitness.add_tools(HoverTool(renderers=[each], tooltips=tips))
+        fitness.legend.location = "bottom_right"
+        fitness.legend.click_policy = "hide"
+        self.paths_plot = figure(
+            name="trajectories",
+            title="post-evaluation trajectories",
+            x_axis_label="x (m)",
+            y_axis_label="y (m)",
+            width=460,
+            height=460,
+            match_aspect=True,
+            visible=False,
+        )
+        plot = self.paths_plot
+        plot.rect("x", "y", "side", "side", source=self.arena, fill_alpha=0, line_dash="dashed",
+                  line_color="#555")  # fmt: skip
+        plot.multi_line("xs", "ys", source=self.paths, line_color="colour", line_width=1.5)
+        plot.scatter("x", "y", source=self.ends, color="colour", size=8)
+        plot.text("x", "y", text="robot", source=self.ends, text_font_size="9pt", x_offset=6,
+                  text_baseline="middle", text_color="colour")  # fmt: skip
+        plot.add_tools(HoverTool(tooltips=[("robot", "@robot")]))
+        self._generation: int | None = None
+        self._signature: tuple[Any, ...] | None = None
+        doc.title = f"run {run_dir.name}"
+        doc.add_root(
+            column(
+                self.header,
+                self.status,
+                self.robots,
+                fitness,
+                self.note,
+                plot,
+                sizing_mode="stretch_width",
+            )
+        )
+        self.refresh()
+        doc.add_periodic_callback(self.refresh, int(POLL_INTERVAL * 1000))
+
+    def refresh(self) -> None:
+        """Show the run directory as it is now; an error shows on the page, which goes on."""
+        try:
+            snapshot = self.poller.snapshot()
+            self._show(snapshot)
+        except Exception as exc:  # the page must outlive what it cannot show
+            _log.exception("dashboard: cannot show %s", self.run_dir)
+            _set(self.header, _header_html(self.run_dir, None, f"cannot show the run: {exc}"))
+
+    def _show(self, snapshot: Snapshot) -> None:
+        _set(self.header, _header_html(self.run_dir, snapshot, None))
+        _set(self.status, status_html(snapshot))
+        _set(self.robots, robots_html(snapshot))
+        _set(self.note, _trajectories_note(snapshot.trajectories))
+        curve = snapshot.curve
+        sent = len(self.curve.data["evaluation"])
+        if curve.generation == self._generation and len(curve.evaluation) >= sent:
+            if len(curve.evaluation) > sent:
+                self.curve.stream(
+                    {
+                        "evaluation": curve.evaluation[sent:],
+                        "fitness": curve.fitness[sent:],
+                        "best_fitness": curve.best_fitness[sent:],
+                    }
+                )
+        else:
+            self.curve.data = {
+                "evaluation": curve.evaluation,
+                "fitness": curve.fitness,
+                "best_fitness": curve.best_fitness,
+            }
+            self._generation = curve.generation
+        self._show_trajectories(snapshot.trajectories)
+
+    def _show_trajectories(self, trajectories: Trajectories | None) -> None:
+        signature = None if trajectories is None else trajectories.signature
+        if signature == self._signature:
+            return
+        self._signature = signature
+        self.paths_plot.visible = trajectories is not None
+        if trajectories is None:
+            self.paths.data = {"xs": [], "ys": [], "robot": [], "colour": []}
+            self.ends.data = {"x": [], "y": [], "robot": [], "colour": []}
+            return
+        robots = list(trajectories.xs)
+        colours = _colours(len(robots))
+        self.paths.data = {
+            "xs": [trajectories.xs[r] for r in robots],
+            "ys": [trajectories.ys[r] for r in robots],
+            "robot": robots,
+            "colour": colours,
+        }
+        self.ends.data = {
+            "x": [trajectories.xs[r][-1] for r in robots],
+            "y": [trajectories.ys[r][-1] for r in robots],
+            "robot": robots,
+            "colour": colours,
+        }
+        side = trajectories.arena_side
+        self.arena.data = (
+            {"x": [0.0], "y": [0.0], "side": [side]} if side else {"x": [], "y": [], "side": []}
+        )
+
+
+def _set(div: Any, text: str) -> None:
+    # Only a change goes over the websocket: most polls change nothing.
+    if div.text != text:
+        div.text = text
+
+
+def _colours(count: int) -> list[str]:
+    from bokeh.palettes import Category10_10, Category20_20
+
+    palette = Category10_10 if count <= 10 else Category20_20
+    return [palette[k % len(palette)] for k in range(count)]
+
+
+# -- serving ---------------------------------------------------------------------------------------
+
+
+def _origins(host: str, port: int) -> list[str]:
+    """The ``host:port`` a browser's page may open the websocket from (Bokeh checks the origin)."""
+    names = {*_LOOPBACK}
+    if ":" not in host:  # Bokeh's allowlist cannot hold an IPv6 address
+        names.add(host)
+    if host in ("0.0.0.0", ""):
+        names |= {socket.gethostname(), socket.getfqdn()}
+    return sorted(f"{name}:{port}" for name in names if name)
+
+
+def _url(host: str, port: int) -> str:
+    shown = "127.0.0.1" if host in ("0.0.0.0", "") else host
+    return f"http://[{shown}]:{port}/" if ":" in shown else f"http://{shown}:{port}/"
+
+
+def run_dashboard(
+    run_dir: Path, host: str = "127.0.0.1", port: int = DEFAULT_PORT, open_browser: bool = False
+) -> int:
+    """Serve the dashboard of ``run_dir`` on ``host:port`` (port 0: any free one) until SIGINT
+    or SIGTERM; prints ``dashboard: URL`` once it listens. Returns the exit status: 0, 1 when
+    the port cannot be bound, 2 without Bokeh.
+
+    Raises :class:`~master_service.rundir.RunDirError` when ``run_dir`` is not a directory; a
+    port that cannot be bound is one line on stderr and exit status 1.
+    """
+    if not run_dir.is_dir():
+        raise RunDirError(f"{run_dir} is not a run directory (no such directory)")
+    try:
+        import bokeh  # noqa: F401  # only this command needs it (the master extra)
+    except ImportError:
+        print(
+            "surprise-master: the dashboard needs bokeh: pip install -e '.[master]'",
+            file=sys.stderr,
+        )
+        return 2
+    return asyncio.run(_serve(run_dir, host, port, open_browser))
+
+
+async def _serve(run_dir: Path, host: str, port: int, open_browser: bool) -> int:
+    from bokeh.application import Application
+    from bokeh.application.handlers.function import FunctionHandler
+    from bokeh.server.server import BaseServer
+    from bokeh.server.tornado import BokehTornado
+    from bokeh.server.util import bind_sockets
+    from tornado.httpserver import HTTPServer
+    from tornado.ioloop import IOLoop
+
+    poller = _Poller(RunReader(run_dir))
+
+    def page(doc: Document) -> None:
+        _Page(doc, poller, run_dir)
+
+    application = Application(FunctionHandler(page))
+    # Bound before the application: with port 0 the allowed origins need the port chosen.
+    try:
+        sockets, port = bind_sockets(host, port)
+    except OSError as exc:
+        print(
+            f"surprise-master: cannot serve on {host}:{port}: {exc.strerror or exc}; choose "
+            "another --port (0: any free one)",
+            file=sys.stderr,
+        )
+        return 1
+    tornado = BokehTornado({"/": application}, extra_websocket_origins=_origins(host, port))
+    http = HTTPServer(tornado)
+    http.add_sockets(sockets)
+    server = BaseServer(IOLoop.current(), tornado, http)
+    server.start()
+    url = _url(host, port)
+    print(f"dashboard: {url}", flush=True)
+    if open_browser:
+        webbrowser.open(url)
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(signum, stop.set)
+    try:
+        await stop.wait()
+    finally:
+        server.stop()
+    return 0

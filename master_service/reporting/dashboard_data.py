@@ -1,0 +1,564 @@
+"""What ``surprise-master dashboard`` shows, read from a run directory into plain data.
+
+:class:`RunReader` looks at a run directory (rundir.py describes its files) and returns a
+:class:`Snapshot`: where the run stands, the fitness curve, one :class:`RobotRow` per robot and
+the post-evaluation's trajectories. It only reads, never writes, and re-reads a file only when its
+size, modification time or inode changed since the last look; ``evaluations.csv`` it reads from
+where it stopped last time, so a poll costs a few ``stat`` calls while nothing happens.
+
+Files are read while a master writes them. The JSON files are replaced atomically, but a file may
+be missing (an older run, the fast engine writes no ``live.json``), or hold what this code does
+not expect; then the snapshot leaves that part out and names the file in :attr:`Snapshot.problems`
+instead of failing. The CSV's last line may be half written: only lines ending in a newline count.
+
+The per-robot columns are discovered, not listed: every ``<key>_<robot id>`` column of the CSV
+whose robot id also has a ``fitness_<robot id>`` column, and every key of ``live.json``'s
+``robot_state`` entries, becomes a column of the robots' table (``battery_v``, ``overruns``,
+``read_failures`` from robots that report them; whatever is added later too). Bokeh is not needed
+here: this module is tested on its own (tests/master/test_dashboard_data.py).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import json
+import math
+import os
+import time
+import zipfile
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Final
+
+import numpy as np
+import yaml
+
+from master_service.master import LIVE_INTERVAL
+from master_service.rundir import (
+    CHECKPOINT,
+    CONFIG_SNAPSHOT,
+    EVALUATION_COLUMNS,
+    EVALUATIONS,
+    LIVE,
+    POST_EVALUATION,
+    SIMULATION_FILE,
+    TRACES,
+)
+
+__all__ = [
+    "ACTIVE_WINDOW",
+    "MAX_TRACE_POINTS",
+    "PAUSE_FILE",
+    "STALE_AFTER",
+    "Curve",
+    "Pause",
+    "RobotRow",
+    "RunReader",
+    "Snapshot",
+    "Trajectories",
+    "parse_value",
+    "robot_keys",
+]
+
+#: Written by the master while the run waits for a person (master_service.pause): why, which
+#: robots, since when. Read by name so that the dashboard also reads runs of other versions.
+PAUSE_FILE: Final = "pause.json"
+#: Seconds after which a ``live.json`` that says ``running`` is taken for a master that died: the
+#: master rewrites it at least every LIVE_INTERVAL, five missed refreshes are no hiccup (the same
+#: rule as ``surprise-master status``).
+STALE_AFTER: Final = 5 * LIVE_INTERVAL
+#: A run without ``live.json`` (the fast engine) counts as running while its checkpoint is younger
+#: than this many seconds: it commits every evaluation, which takes well under a second there.
+ACTIVE_WINDOW: Final = 10.0
+#: Points drawn per robot's trajectory: a 10,000-step post-evaluation thinned to this many still
+#: shows every turn at screen resolution, and keeps the page's data small.
+MAX_TRACE_POINTS: Final = 2000
+
+#: The order of the robots' table for the columns known today; others follow alphabetically.
+_KNOWN_KEYS: Final = ("fitness", "safety_share", "battery_v", "overruns", "read_failures")
+
+#: A cell of the CSV or a value of a JSON file, as :func:`parse_value` reads it.
+Value = int | float | str | None
+
+
+def parse_value(text: str) -> Value:
+    """A CSV cell as a number where it is one: ``""`` is None (unknown), ``"3"`` 3, ``"0.5"`` 0.5,
+    anything else the text itself."""
+    if text == "":
+        return None
+    try:
+        return int(text)
+    except ValueError:
+        pass
+    try:
+        return float(text)
+    except ValueError:
+        return text
+
+
+def robot_keys(header: Sequence[str]) -> tuple[list[str], list[str]]:
+    """The robots and the per-robot keys of an ``evaluations.csv`` header: robots are the ids of
+    the ``fitness_<id>`` columns, keys every prefix ``<key>`` of a ``<key>_<id>`` column."""
+    robots = [c.removeprefix("fitness_") for c in header if c.startswith("fitness_")]
+    keys: set[str] = set()
+    for column in header:
+        if column in EVALUATION_COLUMNS:
+            continue
+        key = _split_robot_column(column, robots)
+        if key is not None:
+            keys.add(key[0])
+    return robots, _ordered(keys)
+
+
+def _split_robot_column(column: str, robots: Sequence[str]) -> tuple[str, str] | None:
+    # The longest matching id wins: robot ids may themselves hold underscores ("lab_1", "lab_11").
+    found = [r for r in robots if column.endswith("_" + r) and len(column) > len(r) + 1]
+    if not found:
+        return None
+    robot = max(found, key=len)
+    return column[: -len(robot) - 1], robot
+
+
+def _ordered(keys: set[str]) -> list[str]:
+    known = [k for k in _KNOWN_KEYS if k in keys]
+    return known + sorted(keys - set(_KNOWN_KEYS))
+
+
+@dataclass(frozen=True)
+class Pause:
+    """A pause of the run: one line for a person, the robots concerned (none: the swarm)."""
+
+    reason: str
+    robots: tuple[str, ...] = ()
+    since: float | None = None
+
+
+@dataclass(frozen=True)
+class RobotRow:
+    """One robot's line: ``connected`` is None when unknown (no master, the fast engine);
+    ``values`` holds the raw text of each key (as in the CSV: exact, for a test to compare) and
+    ``numbers`` the parsed value."""
+
+    robot: str
+    connected: bool | None
+    values: dict[str, str] = field(default_factory=dict)
+    numbers: dict[str, Value] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Curve:
+    """The fitness over the counted evaluations; ``generation`` changes whenever earlier points
+    changed (the CSV was cut back on resume or replaced), so a plot redraws instead of appending."""
+
+    generation: int
+    evaluation: list[int]
+    fitness: list[float]
+    best_fitness: list[float]
+
+
+@dataclass(frozen=True)
+class Trajectories:
+    """The post-evaluation's paths: per robot the thinned x and y (metres), the steps, and the
+    carpet's side when ``simulation.json`` gives it (centred on the origin)."""
+
+    xs: dict[str, list[float]]
+    ys: dict[str, list[float]]
+    steps: int
+    arena_side: float | None
+    signature: tuple[Any, ...]
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """Everything the dashboard shows, as read at :attr:`read_at` (see the module docstring)."""
+
+    name: str
+    read_at: float
+    #: ``not started``, ``evolution``, ``post-evaluation`` or ``done``
+    phase: str
+    #: ``running``, ``waiting for robots``, ``paused``, ``finished``, ``stopped``, ``not started``
+    state: str
+    evaluations: int
+    planned: int | None
+    best_fitness: str | None
+    #: the last counted row of evaluations.csv, raw text by column
+    last_row: dict[str, str] | None
+    time_left_s: float | None
+    pause: Pause | None
+    master: str | None
+    robots: list[RobotRow]
+    keys: list[str]
+    curve: Curve
+    post_fitness: float | None
+    post_robots: dict[str, dict[str, Value]]
+    trajectories: Trajectories | None
+    problems: list[str]
+
+
+class _Csv:
+    """``evaluations.csv``, read incrementally: the header, every complete row."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.header: list[str] | None = None
+        self.rows: list[list[str]] = []
+        #: each row's (evaluation, fitness, best fitness), None where a cell is not a number
+        self.points: list[tuple[int, float, float] | None] = []
+        self.generation = 0
+        self._ino: int | None = None
+        self._offset = 0
+        self._last_line = b""
+
+    def _reset(self) -> None:
+        if self.header is not None or self.rows:
+            self.generation += 1
+        self.header, self.rows, self.points = None, [], []
+        self._ino, self._offset, self._last_line = None, 0, b""
+
+    def update(self) -> None:
+        try:
+            st = os.stat(self.path)
+        except FileNotFoundError:
+            self._reset()
+            return
+        if self._ino is not None and (st.st_ino != self._ino or st.st_size < self._offset):
+            self._reset()
+        if st.st_size == self._offset:
+            return
+        with open(self.path, "rb") as file:
+            if self._last_line:
+                # A resume cuts the rows past the checkpoint and appends others: what was read
+                # last must still be there, or everything is read again.
+                file.seek(self._offset - len(self._last_line))
+                if file.read(len(self._last_line)) != self._last_line:
+                    self._reset()
+                    file.seek(0)
+            data = file.read()
+        self._ino = st.st_ino
+        complete = data[: data.rfind(b"\n") + 1]  # a half-written last line waits for next time
+        if not complete:
+            return
+        self._offset += len(complete)
+        lines = complete.decode("utf-8", errors="replace").splitlines()
+        self._last_line = (lines[-1] + "\n").encode("utf-8")
+        for cells in csv.reader(lines):
+            if self.header is None:
+                self.header = cells
+            elif len(cells) == len(self.header):  # a damaged line is left out, not guessed at
+                self.rows.append(cells)
+                self.points.append(_point(self.header, cells))
+
+
+def _point(header: Sequence[str], cells: Sequence[str]) -> tuple[int, float, float] | None:
+    row = dict(zip(header, cells, strict=True))
+    try:
+        return int(row["evaluation"]), float(row["fitness"]), float(row["best_fitness"])
+    except (KeyError, ValueError):
+        return None
+
+
+class _Watched:
+    """A file re-read only when its (inode, size, mtime) changes; a read that fails keeps the
+    last good value and is tried again at the next look."""
+
+    def __init__(self, path: Path, load: Callable[[Path], Any]) -> None:
+        self.path = path
+        self._load = load
+        self._key: tuple[int, int, int] | None = None
+        self.value: Any = None
+        self.problem: str | None = None
+
+    def update(self) -> bool:
+        """Look again; True when the value changed."""
+        try:
+            st = os.stat(self.path)
+        except FileNotFoundError:
+            changed = self.value is not None
+            self._key, self.value, self.problem = None, None, None
+            return changed
+        key = (st.st_ino, st.st_size, st.st_mtime_ns)
+        if key == self._key:
+            return False
+        try:
+            self.value = self._load(self.path)
+        except (OSError, ValueError, KeyError, yaml.YAMLError) as exc:
+            self.problem = f"{self.path.name}: {exc}"
+            return False
+        self._key, self.problem = key, None
+        return True
+
+
+def _json(path: Path) -> Any:
+    return json.loads(path.read_text(encoding="utf-8"))
+
+
+def _yaml(path: Path) -> Any:
+    return yaml.safe_load(path.read_text(encoding="utf-8"))
+
+
+def _thin(points: np.ndarray) -> np.ndarray:
+    step = max(1, math.ceil(len(points) / MAX_TRACE_POINTS))
+    thinned = points[::step]
+    if len(points) and (len(points) - 1) % step:
+        thinned = np.concatenate([thinned, points[-1:]])  # the path ends where the robot stopped
+    return thinned
+
+
+class RunReader:
+    """Reads one run directory into :class:`Snapshot` objects (see the module docstring)."""
+
+    def __init__(self, path: str | Path, clock: Callable[[], float] = time.time) -> None:
+        self.path = Path(path)
+        self._clock = clock
+        self._csv = _Csv(self.path / EVALUATIONS)
+        self._config = _Watched(self.path / CONFIG_SNAPSHOT, _yaml)
+        self._checkpoint = _Watched(self.path / CHECKPOINT, _json)
+        self._live = _Watched(self.path / LIVE, _json)
+        self._pause = _Watched(self.path / PAUSE_FILE, _json)
+        self._post = _Watched(self.path / POST_EVALUATION, _json)
+        self._simulation = _Watched(self.path / SIMULATION_FILE, _json)
+        self._traces_key: tuple[Any, ...] = ()
+        self._trajectories: Trajectories | None = None
+
+    def read(self) -> Snapshot:
+        """Look at the run directory again and return what it holds now."""
+        problems: list[str] = []
+        files = (self._config, self._checkpoint, self._live, self._pause, self._post)
+        # The checkpoint before the CSV: the CSV then holds at least the rows it counts.
+        for watched in (*files, self._simulation):
+            watched.update()
+        try:
+            self._csv.update()
+        except OSError as exc:
+            problems.append(f"{EVALUATIONS}: {exc}")
+        problems += [w.problem for w in (*files, self._simulation) if w.problem]
+        try:
+            trajectories = self._read_trajectories()
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+            problems.append(f"{TRACES}: {exc}")  # a trace copied in by hand, cut short
+            trajectories = self._trajectories
+        return self._snapshot(trajectories, problems)
+
+    # -- the pieces --------------------------------------------------------------------------
+
+    def _snapshot(self, trajectories: Trajectories | None, problems: list[str]) -> Snapshot:
+        now = self._clock()
+        checkpoint = _mapping(self._checkpoint.value)
+        optimizer = _mapping(checkpoint.get("optimizer"))
+        header = self._csv.header or []
+        rows = self._csv.rows
+        counted = checkpoint.get("csv_rows")
+        if isinstance(counted, int) and 0 <= counted <= len(rows):
+            rows = rows[:counted]  # a row past the checkpoint is not counted yet (rundir.py)
+        last = dict(zip(header, rows[-1], strict=True)) if rows else None
+        evaluations = optimizer.get("evaluations")
+        if not isinstance(evaluations, int):
+            evaluations = len(rows)
+        live = _mapping(self._live.value)
+        fresh = _live_is_fresh(live, now)
+        pause_data = _mapping(self._pause.value)
+        if not pause_data and fresh:
+            pause_data = _mapping(live.get("paused"))
+        pause = _pause(pause_data)
+        phase = str(checkpoint.get("phase", "not started"))
+        best = last.get("best_fitness") if last else None
+        if best is None and isinstance(optimizer.get("best_fitness"), float):
+            best = repr(optimizer["best_fitness"])
+        post = _mapping(self._post.value)
+        post_robots = _post_robots(post)
+        # A master that stopped has no robot connected; without live.json nobody knows.
+        seen = live if fresh else {"robots": []} if live else {}
+        robots, keys = self._robots(header, last, seen, checkpoint, post_robots)
+        return Snapshot(
+            name=self.path.resolve().name,
+            read_at=now,
+            phase=phase,
+            state=_state(phase, fresh, live, pause, checkpoint, now),
+            evaluations=evaluations,
+            planned=_planned(self._config.value),
+            best_fitness=best,
+            last_row=last,
+            time_left_s=_number(live.get("time_left_s")) if fresh else None,
+            pause=pause,
+            master=f"{live.get('host')}:{live.get('port')} (pid {live.get('pid')})"
+            if fresh
+            else None,
+            robots=robots,
+            keys=keys,
+            curve=_curve(self._csv.points[: len(rows)], self._csv.generation),
+            post_fitness=_number(post.get("swarm_fitness")),
+            post_robots=post_robots,
+            trajectories=trajectories,
+            problems=problems,
+        )
+
+    def _robots(
+        self,
+        header: Sequence[str],
+        last: Mapping[str, str] | None,
+        live: Mapping[str, Any],
+        checkpoint: Mapping[str, Any],
+        post_robots: Mapping[str, Any],
+    ) -> tuple[list[RobotRow], list[str]]:
+        csv_robots, csv_keys = robot_keys(header)
+        state = _mapping(live.get("robot_state"))
+        connected = _list(live.get("robots")) if "robots" in live else None
+        roster = _list(checkpoint.get("roster"))
+        names = _unique([*roster, *csv_robots, *(connected or []), *state, *post_robots])
+        keys = set(csv_keys)
+        table = []
+        for robot in names:
+            values: dict[str, str] = {}
+            if last is not None:
+                for key in csv_keys:
+                    text = last.get(f"{key}_{robot}")
+                    if text is not None:
+                        values[key] = text
+            # While the master runs its robot_state is newer than the last row.
+            for key, value in _mapping(state.get(robot)).items():
+                keys.add(str(key))
+                values[str(key)] = "" if value is None else str(value)
+            table.append(
+                RobotRow(
+                    robot=str(robot),
+                    connected=None if connected is None else robot in map(str, connected),
+                    values=values,
+                    numbers={k: parse_value(v) for k, v in values.items()},
+                )
+            )
+        return table, _ordered(keys)
+
+    def _read_trajectories(self) -> Trajectories | None:
+        directory = self.path / TRACES
+        try:
+            entries = sorted(
+                (e for e in os.scandir(directory) if e.name.endswith(".npz")), key=lambda e: e.name
+            )
+        except FileNotFoundError:
+            self._traces_key, self._trajectories = (), None
+            return None
+        stats = [(e.name, e.stat()) for e in entries]
+        side = _mapping(_mapping(self._simulation.value).get("world")).get("arena_side")
+        key = (*((n, s.st_size, s.st_mtime_ns) for n, s in stats), side)
+        if key == self._traces_key:
+            return self._trajectories
+        xs: dict[str, list[float]] = {}
+        ys: dict[str, list[float]] = {}
+        steps = 0
+        for name, _ in stats:
+            with np.load(directory / name) as npz:
+                if "poses" not in npz.files:
+                    continue  # a real robot's trace: it does not know where it is
+                poses = np.asarray(npz["poses"], dtype=np.float64)
+            if poses.ndim != 2 or poses.shape[1] < 2 or not len(poses):
+                continue
+            steps = max(steps, len(poses))
+            path = _thin(poses[:, :2])
+            xs[name.removesuffix(".npz")] = path[:, 0].tolist()
+            ys[name.removesuffix(".npz")] = path[:, 1].tolist()
+        self._traces_key = key
+        self._trajectories = (
+            Trajectories(xs, ys, steps, _number(side), signature=key) if xs else None
+        )
+        return self._trajectories
+
+
+def _mapping(value: Any) -> dict[str, Any]:
+    return value if isinstance(value, dict) else {}
+
+
+def _list(value: Any) -> list[Any]:
+    return value if isinstance(value, list) else []
+
+
+def _number(value: Any) -> float | None:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    return float(value) if math.isfinite(value) else None
+
+
+def _unique(items: Sequence[Any]) -> list[str]:
+    return list(dict.fromkeys(str(item) for item in items))
+
+
+def _planned(config: Any) -> int | None:
+    evolution = _mapping(_mapping(_mapping(config).get("experiment")).get("evolution"))
+    planned = evolution.get("evaluations")
+    return planned if isinstance(planned, int) else None
+
+
+def _live_is_fresh(live: Mapping[str, Any], now: float) -> bool:
+    if not live.get("running"):
+        return False
+    updated = _number(live.get("updated_at"))
+    if updated is None or now - updated > STALE_AFTER:
+        return False
+    pid = live.get("pid")
+    if isinstance(pid, int) and pid > 0:
+        # A master on this machine that died leaves its file behind; one elsewhere (a copied
+        # run) cannot be asked, and its file's age alone decides.
+        with contextlib.suppress(PermissionError):
+            try:
+                os.kill(pid, 0)
+            except ProcessLookupError:
+                return False
+    return True
+
+
+def _pause(data: Mapping[str, Any]) -> Pause | None:
+    if not data:
+        return None
+    robots = data.get("robots")
+    return Pause(
+        reason=str(data.get("reason") or data.get("kind") or "paused"),
+        robots=tuple(str(r) for r in robots) if isinstance(robots, list) else (),
+        since=_number(data.get("since")),
+    )
+
+
+def _state(
+    phase: str,
+    fresh: bool,
+    live: Mapping[str, Any],
+    pause: Pause | None,
+    checkpoint: Mapping[str, Any],
+    now: float,
+) -> str:
+    if phase == "done":
+        return "finished"
+    if pause is not None:
+        return "paused"
+    if fresh:
+        return "waiting for robots" if live.get("waiting") else "running"
+    if live:
+        return "stopped"  # a master wrote live.json, and is gone
+    written = _number(checkpoint.get("written_at"))
+    if written is not None and now - written < ACTIVE_WINDOW:
+        return "running"
+    return "not started" if not checkpoint else "stopped"
+
+
+def _post_robots(post: Mapping[str, Any]) -> dict[str, dict[str, Value]]:
+    robots: dict[str, dict[str, Value]] = {}
+    for robot, entry in _mapping(post.get("robots")).items():
+        entry = _mapping(entry)
+        stats = _mapping(entry.get("stats"))
+        steps = stats.get("steps_run")
+        interventions = _mapping(stats.get("interventions"))
+        share = None
+        if isinstance(steps, int) and steps > 0:
+            share = sum(v for v in interventions.values() if isinstance(v, int)) / steps
+        robots[str(robot)] = {"fitness": _number(entry.get("fitness")), "safety_share": share}
+    return robots
+
+
+def _curve(points: Sequence[tuple[int, float, float] | None], generation: int) -> Curve:
+    kept = [p for p in points if p is not None]
+    return Curve(
+        generation,
+        [p[0] for p in kept],
+        [p[1] for p in kept],
+        [p[2] for p in kept],
+    )
