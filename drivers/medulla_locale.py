@@ -14,7 +14,7 @@ import ctypes
 import ctypes.util
 import functools
 
-__all__ = ["LOCALE_FIX", "MEDULLA_LOCALE", "locale_installed"]
+__all__ = ["LOCALE_FIX", "MEDULLA_LOCALE", "abort_reason", "locale_installed"]
 
 #: The locale medulla constructs to load a program.
 MEDULLA_LOCALE = "en_US.UTF-8"
@@ -51,3 +51,16 @@ def _libc() -> ctypes.CDLL | None:
     except (OSError, AttributeError):
         return None
     return libc
+
+
+def abort_reason(what: str, path: str) -> str:
+    """One line on a medulla that left the bus instead of answering ``LoadScripts``."""
+    if locale_installed() is False:
+        return (
+            f"Thymio: asebamedulla aborts loading any program, {what} included: the "
+            f"{MEDULLA_LOCALE} locale it needs is not installed; run: {LOCALE_FIX}"
+        )
+    return (
+        f"Thymio: asebamedulla ended while loading {what} {path} (it aborts on a malformed "
+        "program file; its own output, e.g. journalctl -u asebamedulla, says why)"
+    )

@@ -379,7 +379,9 @@ class ThymioBase:
             raise
         except HardwareError as exc:
             if _NO_REPLY in str(exc):
-                raise HardwareError(_abort_reason(what, path)) from exc
+                from drivers.medulla_locale import abort_reason  # only when medulla aborted
+
+                raise HardwareError(abort_reason(what, path)) from exc
             raise HardwareError(
                 f"Thymio: asebamedulla could not load {what} {path}: {exc}"
             ) from exc
@@ -460,9 +462,20 @@ class ThymioBase:
                 return await MessageBus(bus_type=bus_type).connect()
             return await MessageBus(bus_address=where).connect()
 
-        return await _bounded(
-            f"Thymio: connect to the D-Bus {where} bus", connect(), self.config.connect_timeout
-        )
+        try:
+            return await _bounded(
+                f"Thymio: connect to the D-Bus {where} bus", connect(), self.config.connect_timeout
+            )
+        except HardwareError as exc:
+            cause = exc.__cause__
+            if isinstance(cause, FileNotFoundError | ConnectionRefusedError | PermissionError):
+                # A configuration to fix, not a robot that went away: say which key.
+                raise HardwareError(
+                    f"Thymio: no D-Bus to reach at {where} ({cause.strerror or cause}): check "
+                    "body.thymio.bus in the agent's configuration, and that asebamedulla's bus "
+                    "is up"
+                ) from cause
+            raise
 
     async def _call(
         self,
@@ -519,21 +532,6 @@ class ThymioBase:
             return list(answer.body)
 
         return await _bounded(operation, exchange(), self.config.timeout)
-
-
-def _abort_reason(what: str, path: str) -> str:
-    """One line on a medulla that left the bus instead of answering ``LoadScripts``."""
-    from drivers.medulla_locale import LOCALE_FIX, MEDULLA_LOCALE, locale_installed
-
-    if locale_installed() is False:
-        return (
-            f"Thymio: asebamedulla aborts loading any program, {what} included: the "
-            f"{MEDULLA_LOCALE} locale it needs is not installed; run: {LOCALE_FIX}"
-        )
-    return (
-        f"Thymio: asebamedulla ended while loading {what} {path} (it aborts on a malformed "
-        "program file; its own output, e.g. journalctl -u asebamedulla, says why)"
-    )
 
 
 def program_path(name: str, node: str, directory: str | None) -> str:

@@ -14,6 +14,9 @@ Subcommands::
     surprise-master sim [--scenario S] [--robots N] [--evaluations N] [--seed S] [--out DIR]
                         [--realtime] [--config FILE]
                                                     a whole experiment on a simulated swarm
+    surprise-master replay SOURCE [--steps N] [--config FILE] [--out DIR]
+                                                    drive a stored genome again (simulated
+                                                    robots, or the configuration's robots)
     surprise-master baseline --scenario S --random N [--out DIR] [--seed S] [--config FILE]
                                                     random network pairs in the same arena
     surprise-master report DIR --baseline BASE      ... and evolved against random
@@ -38,28 +41,30 @@ import logging
 import signal
 import sys
 import time
-from collections.abc import Awaitable, Iterator, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Final, TypeVar
+
+import msgspec
 
 from master_service import cli_lab
 from master_service.config import load_master_config, required_secret
 from master_service.master import Master
 from master_service.progress import ProgressDisplay
 from master_service.rundir import CONFIG_SNAPSHOT, SIMULATION_FILE, RunDir, RunDirError
-from minimize_surprise.config import ExperimentConfig
+from master_service.stopping import cancelled_by_signal, stop_flag, until_signal
+from minimize_surprise.config import ExperimentConfig, load_experiment
 from minimize_surprise.errors import ConfigError, FileWriteError
 from minimize_surprise.text import plural
 
 if TYPE_CHECKING:
     from master_service.experiments.simulation_setup import SimulatedRun
+    from master_service.replay import ReplaySource
 
 __all__ = ["main"]
 
 _log = logging.getLogger("master_service.cli")
 
-#: The signals that stop a run cleanly (it can be resumed).
-_STOP_SIGNALS: Final = (signal.SIGINT, signal.SIGTERM)
 #: Reasons a file cannot be written that space, or a writable directory, puts right.
 _NO_SPACE: Final = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG})
 _NOT_WRITABLE: Final = frozenset({errno.EACCES, errno.EPERM, errno.EROFS})
@@ -143,6 +148,29 @@ def _parser() -> argparse.ArgumentParser:
         "--realtime", action="store_true", help="pace the world in real time (--engine agents)"
     )
     sim.set_defaults(handler=_sim)
+
+    replay = sub.add_parser(
+        "replay", help="drive a stored genome (no evolution) and compare with its source run"
+    )
+    replay.add_argument(
+        "source", type=Path, metavar="SOURCE", help="a run directory, or a best_genome.json"
+    )
+    replay.add_argument("--steps", type=int, help="steps to run (default: the experiment's)")
+    replay.add_argument("--out", type=Path, help="its directory (default: runs/<time>-replay-...)")
+    replay.add_argument(
+        "--config",
+        type=Path,
+        help="a master configuration: replay on its robots (real ones, or Aseba Playground's); "
+        "without it, on simulated robots in the source run's arena",
+    )
+    replay.add_argument(
+        "--experiment", type=Path, help="the experiment, for a genome file on simulated robots"
+    )
+    replay.add_argument(
+        "--engine", choices=("fast", "agents"), default="fast", help="simulated robots' engine"
+    )
+    _pause_option(replay)
+    replay.set_defaults(handler=_replay)
 
     baseline = sub.add_parser("baseline", help="evaluate random network pairs in an arena")
     _experiment_options(baseline)
@@ -316,22 +344,13 @@ def _next_step(exc: FileWriteError, run_dir: Path, simulated: bool) -> str:
 
 
 async def _serve_async(master: Master) -> int:
-    loop = asyncio.get_running_loop()
     task = asyncio.current_task()
     assert task is not None
     received: list[int] = []
-
-    def stop(signum: int) -> None:
-        # The first signal stops the run cleanly (Bye to the robots, files closed); the
-        # checkpoint is always current, so nothing is lost.
-        if not received:
-            received.append(signum)
-            task.cancel()
-
-    for signum in _STOP_SIGNALS:
-        loop.add_signal_handler(signum, stop, signum)
     summary = None
-    try:
+    # The first signal stops the run cleanly (Bye to the robots, files closed); the checkpoint
+    # is always current, so nothing is lost.
+    with cancelled_by_signal(task, received):
         async with master:
             try:
                 summary = await master.run()
@@ -345,9 +364,6 @@ async def _serve_async(master: Master) -> int:
                     signal.Signals(received[0]).name,
                     master.run_dir.path,
                 )
-    finally:
-        for signum in _STOP_SIGNALS:
-            loop.remove_signal_handler(signum)
     if summary is None:
         return 128 + received[0]
     best = "-" if summary.best_fitness is None else f"{summary.best_fitness:.4f}"
@@ -398,10 +414,12 @@ def _simulate(
     verbose: bool,
     *,
     resume: bool,
+    replay: ReplaySource | None = None,
 ) -> int:
     """Run (or resume) a simulated experiment with its progress display; on SIGINT or SIGTERM
     stop at the next commit and say in one line where the run stands and how to go on."""
     from master_service.experiments.simulate import summary_text
+    from master_service.reporting.reality_gap import gap_lines
 
     display = ProgressDisplay(level=logging.DEBUG if verbose else logging.INFO)
     if display.live and not verbose:
@@ -411,7 +429,7 @@ def _simulate(
     received: list[int] = []
     try:
         result, started = _run_simulation(
-            experiment, out, engine, realtime, display, received, resume=resume
+            experiment, out, engine, realtime, display, received, resume=resume, replay=replay
         )
     except FileWriteError as exc:
         return _write_failed(exc, out, simulated=True)
@@ -419,6 +437,8 @@ def _simulate(
         print(_stopped_text(out, experiment, received[0]), file=sys.stderr)
         return 128 + received[0]
     print(summary_text(result.metrics, out, time.perf_counter() - started, resumed=resume))
+    for line in gap_lines(result.metrics.get("reality_gap")):
+        print(line)
     return 0
 
 
@@ -431,6 +451,7 @@ def _run_simulation(
     received: list[int],
     *,
     resume: bool,
+    replay: ReplaySource | None = None,
 ) -> tuple[SimulatedRun | None, float]:
     """The simulated run behind :func:`_simulate` with its display; the run (None when stopped
     by a signal, which ``received`` names) and when it started (``time.perf_counter``)."""
@@ -438,8 +459,9 @@ def _run_simulation(
 
     mode = "real time" if realtime else "lockstep"
     with display, quiet_agents():
+        what = f"replaying {replay.path} for" if replay is not None else "simulating"
         print(
-            f"{'resuming' if resume else 'simulating'} {experiment.scenario} "
+            f"{'resuming' if resume else what} {experiment.scenario} "
             f"({experiment.setting} setting, {engine} engine): {experiment.robots} robots, "
             f"{plural(experiment.evolution.evaluations, 'evaluation')} of "
             f"{experiment.evaluation_steps} steps of {experiment.step_period:g} s, seed "
@@ -449,53 +471,15 @@ def _run_simulation(
         if engine == "fast":
             from master_service.experiments.engine_run import FastRun
 
-            with _stop_flag(received):
+            with stop_flag(received):
                 result = FastRun(experiment, on_progress=display.update).run(
-                    out, resume=resume, should_stop=lambda: bool(received)
+                    out, resume=resume, should_stop=lambda: bool(received), replay=replay
                 )
         else:
             swarm = SimulatedSwarm(experiment, realtime=realtime, on_progress=display.update)
-            result = asyncio.run(_until_signal(swarm.run(out, resume=resume), received))
+            work = swarm.run(out, resume=resume, replay=replay)
+            result = asyncio.run(until_signal(work, received))
     return result, started
-
-
-@contextlib.contextmanager
-def _stop_flag(received: list[int]) -> Iterator[None]:
-    """While inside, SIGINT and SIGTERM are noted in ``received`` (the run asks between
-    evaluations) instead of raising KeyboardInterrupt in the middle of a write."""
-
-    def note(signum: int, frame: object) -> None:
-        received.append(signum)
-
-    previous = {signum: signal.signal(signum, note) for signum in _STOP_SIGNALS}
-    try:
-        yield
-    finally:
-        for signum, handler in previous.items():
-            signal.signal(signum, handler)
-
-
-async def _until_signal(work: Awaitable[T], received: list[int]) -> T | None:
-    """Await ``work``; on SIGINT or SIGTERM cancel it (its own clean-up runs) and return None."""
-    loop = asyncio.get_running_loop()
-    task = asyncio.ensure_future(work)
-
-    def stop(signum: int) -> None:
-        if not received:
-            received.append(signum)
-            task.cancel()
-
-    for signum in _STOP_SIGNALS:
-        loop.add_signal_handler(signum, stop, signum)
-    try:
-        return await task
-    except asyncio.CancelledError:
-        if not received:
-            raise
-        return None
-    finally:
-        for signum in _STOP_SIGNALS:
-            loop.remove_signal_handler(signum)
 
 
 def _stopped_text(out: Path, experiment: ExperimentConfig, signum: int) -> str:
@@ -509,6 +493,35 @@ def _stopped_text(out: Path, experiment: ExperimentConfig, signum: int) -> str:
         else f"stopped by {signal.Signals(signum).name} in the post-evaluation"
     )
     return f"{where}; continue with `surprise-master resume {out}`"
+
+
+def _replay(args: argparse.Namespace) -> int:
+    from master_service.replay import load_replay_source, replay_experiment
+
+    if args.steps is not None and args.steps < 1:
+        raise ConfigError(f"expected a positive number, got {args.steps}", key="--steps")
+    source = load_replay_source(args.source)
+    if args.config is not None:
+        config = load_master_config(args.config)
+        experiment = replay_experiment(source, config.experiment, args.steps)
+        out = args.out or _default_out("replay", experiment.scenario)
+        RunDir(out).check_new()
+        config = msgspec.structs.replace(config, experiment=experiment)
+        master = Master(config, out, secret=required_secret(config, args.config), replay=source)
+        code = _serve(master, args)
+        if code == 0:
+            # The gap is what a replay is for: reported at once, as a simulated one is.
+            from master_service.reporting.reality_gap import gap_lines
+            from master_service.reporting.report import write_report
+
+            for line in gap_lines(write_report(out).get("reality_gap")):
+                print(line)
+        return code
+    chosen = load_experiment(args.experiment) if args.experiment is not None else None
+    experiment = replay_experiment(source, chosen, args.steps)
+    out = args.out or _default_out("replay", experiment.scenario)
+    RunDir(out).check_new()
+    return _simulate(experiment, out, args.engine, False, args.verbose, resume=False, replay=source)
 
 
 def _baseline(args: argparse.Namespace) -> int:

@@ -25,6 +25,7 @@ __all__ = [
 
 def report_command(args: argparse.Namespace) -> int:
     """``surprise-master report``."""
+    from master_service.reporting.reality_gap import gap_lines
     from master_service.reporting.report import (
         baseline_text,
         behaviour_line,
@@ -56,6 +57,8 @@ def report_command(args: argparse.Namespace) -> int:
     for line in safety_lines(metrics):
         print(line)
     for line in robot_lines(metrics.get("robot_stats")):
+        print(line)
+    for line in gap_lines(metrics.get("reality_gap")):
         print(line)
     comparison = metrics.get("baseline")
     if comparison:

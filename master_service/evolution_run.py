@@ -31,6 +31,7 @@ import numpy as np
 from master_service.config import MasterConfig
 from master_service.evaluation import Evaluation, Evaluator, Progress, RunSummary, format_duration
 from master_service.pause import Pause, PauseGate, low_batteries
+from master_service.replay import ReplaySource, check_spec
 from master_service.rundir import (
     FILE_ONLY,
     POST_EVALUATION,
@@ -114,11 +115,18 @@ class EvolutionRun:
 
     # -- opening -----------------------------------------------------------------------------
 
-    def load(self, *, resume: bool, roster: list[str] | None = None) -> RunState:
+    def load(
+        self,
+        *,
+        resume: bool,
+        roster: list[str] | None = None,
+        replay: ReplaySource | None = None,
+    ) -> RunState:
         """The run's state, read from the checkpoint (``resume``) or new, writing nothing yet.
 
         A new run needs its directory absent or empty. ``roster`` fixes a new run's swarm at
-        once (a simulated swarm knows its robots).
+        once (a simulated swarm knows its robots). ``replay`` makes a new run a replay: no
+        evolution, its genome post-evaluated (:mod:`master_service.replay`).
         """
         state = None
         if resume:
@@ -135,6 +143,12 @@ class EvolutionRun:
             experiment = self.experiment
             optimizer = OnePlusOne(experiment.evolution, self.genome_size, experiment.seed)
             state = RunState(run_id=self.run_id, optimizer=optimizer, roster=roster)
+            if replay is not None:
+                check_spec(replay, self.experiment)
+                optimizer.best = replay.genome.copy()
+                optimizer.best_fitness = replay.fitness
+                optimizer.best_evaluation = 0  # found by no evaluation of this run
+                state.phase = "post-evaluation"
             if resume and self.ids_leave_process:
                 # A run stopped before its first commit may have sent id 0.
                 state.next_evaluation_id = 1

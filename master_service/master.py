@@ -46,6 +46,7 @@ import numpy as np
 from master_service.config import MasterConfig, build_ssl_context
 from master_service.evaluation import Evaluation, Progress, RunSummary
 from master_service.evolution_run import EvolutionRun
+from master_service.replay import ReplaySource, write_replay_file
 from master_service.rounds import RoundRunner
 from master_service.rundir import FILE_ONLY, RunDir, RunState
 from master_service.server import RobotServer, Session
@@ -81,7 +82,8 @@ class Master:
     ``on_progress`` (also :meth:`add_progress_listener`) is called with a :class:`Progress` on
     every change. ``before_post_evaluation`` is awaited before each attempt of the
     post-evaluation, while every robot is idle; ``snapshot`` (a simulator's) returns its state at
-    every commit, kept in the checkpoint. Construction validates and touches no file;
+    every commit, kept in the checkpoint. ``replay`` post-evaluates that genome instead of
+    evolving one (:mod:`master_service.replay`). Construction validates and touches no file;
     :meth:`start` (or ``async with``) binds the port and creates or opens the run directory;
     :meth:`run` evolves and post-evaluates; :meth:`close` says Bye to the robots and closes
     everything.
@@ -100,6 +102,7 @@ class Master:
         on_progress: Callable[[Progress], None] | None = None,
         before_post_evaluation: Callable[[], Awaitable[None]] | None = None,
         snapshot: Callable[[], dict[str, Any]] | None = None,
+        replay: ReplaySource | None = None,
     ) -> None:
         if config.experiment is None:
             raise ConfigError(
@@ -130,6 +133,7 @@ class Master:
         self.run_dir = RunDir(run_dir)
         self.run_id = self.run_dir.path.resolve().name
         self.resume = resume
+        self.replay = replay
         self._before_post_evaluation = before_post_evaluation
         self._snapshot = snapshot
         self._ssl = build_ssl_context(config.tls) if config.tls is not None else None
@@ -190,10 +194,12 @@ class Master:
         if self._started:
             raise RuntimeError("the master was started already")
         self._started = True
-        self.evolution.load(resume=self.resume)
+        self.evolution.load(resume=self.resume, replay=self.replay)
         await self.server.bind()
         try:
             self.evolution.open(resume=self.resume)
+            if self.replay is not None and not self.resume:
+                write_replay_file(self.run_dir, self.replay)
         except BaseException:
             await self.server.close()
             raise

@@ -107,6 +107,9 @@ class RobotHealth:
                 self._back.set()
                 continue
             delay = self._backoff.next_delay()
+            # Evaluations refused meanwhile say why the robot is still out of reach (a bus that
+            # is not there, medulla not running), not only how it was lost.
+            self._reason = str(error) or type(error).__name__
             # The first failure says why; later ones only in the debug log (every 10 s forever).
             level = logging.INFO if self._backoff.attempts == 1 else logging.DEBUG
             self.log.log(level, "robot still unreachable (%s); next try in %.1f s", error, delay)

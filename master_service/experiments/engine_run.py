@@ -35,6 +35,7 @@ from master_service.experiments.simulation_setup import (
     write_box_track,
     write_simulation_file,
 )
+from master_service.replay import ReplaySource, write_replay_file
 from master_service.rundir import RunDir, RunState
 from minimize_surprise.config import ExperimentConfig
 from minimize_surprise.network import spec_from_config
@@ -81,6 +82,7 @@ class FastRun:
         plots: bool = True,
         resume: bool = False,
         should_stop: Callable[[], bool] | None = None,
+        replay: ReplaySource | None = None,
     ) -> SimulatedRun | None:
         """Evolve, post-evaluate and report into ``run_dir``; the run and its metrics.
 
@@ -88,7 +90,8 @@ class FastRun:
         its checkpoint (the simulated swarm as it was at that commit), to the result it would
         have reached without the stop. ``should_stop`` is asked between evaluations: once it
         answers true the run commits and returns None (resume it later). Without ``plots`` the
-        report writes its metrics but draws nothing.
+        report writes its metrics but draws nothing. ``replay`` (a new run only) post-evaluates
+        that genome instead of evolving one (:mod:`master_service.replay`).
         """
         from master_service.reporting.report import write_report  # matplotlib: only when reporting
 
@@ -105,8 +108,10 @@ class FastRun:
         )
         if self.on_progress is not None:
             evolution.add_progress_listener(self.on_progress)
-        state = evolution.load(resume=resume, roster=self.ids)
+        state = evolution.load(resume=resume, roster=self.ids, replay=replay)
         evolution.open(resume=resume)
+        if replay is not None and not resume:
+            write_replay_file(directory, replay)
         try:
             if not resume:
                 self._write_simulation_file(directory.path)

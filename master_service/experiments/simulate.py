@@ -36,6 +36,7 @@ from master_service.experiments.simulation_setup import (
     write_simulation_file,
 )
 from master_service.master import Master
+from master_service.replay import ReplaySource
 from master_service.rundir import SIMULATION_FILE, RunDir
 from minimize_surprise.backoff import BackoffConfig
 from minimize_surprise.config import ExperimentConfig
@@ -140,13 +141,16 @@ class SimulatedSwarm:
         for agent, state in zip(self._agents, snapshot["safety"], strict=True):
             agent.runner.safety_state = SafetyState.from_array(np.array(state, dtype=np.int64))
 
-    async def run(self, run_dir: str | Path, *, resume: bool = False) -> SimulatedRun:
+    async def run(
+        self, run_dir: str | Path, *, resume: bool = False, replay: ReplaySource | None = None
+    ) -> SimulatedRun:
         """Run the experiment into ``run_dir`` and report; the run and its metrics.
 
         A new run needs ``run_dir`` new or empty. With ``resume`` it continues the run there
         from its checkpoint, the world and the robots' safety layers as they were at that
         commit, to the result it would have reached without the stop. Cancelled (Ctrl-C), the
-        run stops with its checkpoint current and the robots' motors stopped.
+        run stops with its checkpoint current and the robots' motors stopped. ``replay`` (a new
+        run only) post-evaluates that genome instead of evolving one.
         """
         from master_service.reporting.report import write_report  # matplotlib: only when reporting
 
@@ -164,6 +168,7 @@ class SimulatedSwarm:
             on_progress=self.on_progress,
             before_post_evaluation=self._reset_arena,
             snapshot=self._snapshot,
+            replay=replay,
         )
         master.evolution.pause_before_post = self.pause_before_post
         self._agents = []

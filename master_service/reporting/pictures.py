@@ -30,9 +30,11 @@ __all__ = [
     "Arena",
     "animate_post_evaluation",
     "baseline_picture",
+    "figure",
     "fitness_picture",
     "predictions_picture",
     "robot_fitness_picture",
+    "save",
     "trajectories_picture",
 ]
 
@@ -65,7 +67,8 @@ class Arena:
     box_every: int = 1
 
 
-def _figure(width: float, height: float, *, constrained: bool = True) -> Any:
+def figure(width: float, height: float, *, constrained: bool = True) -> Any:
+    """A matplotlib figure of ``width`` x ``height`` inches on the Agg canvas (no display)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -75,7 +78,8 @@ def _figure(width: float, height: float, *, constrained: bool = True) -> Any:
     return fig
 
 
-def _save(fig: Any, directory: Path, name: str) -> list[Path]:
+def save(fig: Any, directory: Path, name: str) -> list[Path]:
+    """Write ``fig`` as ``directory/name`` in every format of the run's plots."""
     # The figure's size as laid out (constrained layout, or axes placed by hand): no cropping.
     # A file that cannot be written is a FileWriteError naming it.
     return save_figure(fig, directory / name, formats=FORMATS, tight=False, write=write_atomic)
@@ -96,7 +100,7 @@ def fitness_picture(
     fitness beside the best at the end, and below it the share of steps the safety layer drove."""
     shares = [r.get("safety_share") for r in rows]
     has_share = any(s is not None for s in shares)
-    fig = _figure(9, 6.5 if has_share else 4.8)
+    fig = figure(9, 6.5 if has_share else 4.8)
     if has_share:
         top, bottom = fig.subplots(2, 1, sharex=True, gridspec_kw={"height_ratios": [3, 1]})
     else:
@@ -166,7 +170,7 @@ def fitness_picture(
         bottom.set_xlabel("evaluation")
     else:
         top.set_xlabel("evaluation")
-    return _save(fig, directory, "fitness")
+    return save(fig, directory, "fitness")
 
 
 def robot_fitness_picture(
@@ -181,7 +185,7 @@ def robot_fitness_picture(
     if len(robots) <= _MAX_PANELS:
         cols = min(5, len(robots))
         rows_n = math.ceil(len(robots) / cols)
-        fig = _figure(2.4 * cols + 0.8, 2.0 * rows_n + 1.0)
+        fig = figure(2.4 * cols + 0.8, 2.0 * rows_n + 1.0)
         axes = np.atleast_1d(fig.subplots(rows_n, cols, sharex=True, sharey=True, squeeze=False))
         for k, ax in enumerate(axes.flat):
             if k >= len(robots):
@@ -198,7 +202,7 @@ def robot_fitness_picture(
         axes.flat[0].legend(fontsize="x-small", loc="lower right")
         fig.suptitle(f"{title}\neach robot's fitness, against the swarm's (grey)")
     else:
-        fig = _figure(9, 4.8)
+        fig = figure(9, 4.8)
         ax = fig.subplots()
         low, q1, median, q3, high = np.percentile(each, [0, 25, 50, 75, 100], axis=1)
         ax.fill_between(x, low, high, color="C0", alpha=0.2, lw=0, label="all robots (min-max)")
@@ -209,7 +213,7 @@ def robot_fitness_picture(
         ax.set_title(f"{title}\nthe {len(robots)} robots' fitness")
         ax.grid(alpha=0.3)
         ax.legend(loc="lower right", fontsize="small")
-    return _save(fig, directory, "robot_fitness")
+    return save(fig, directory, "robot_fitness")
 
 
 def predictions_picture(
@@ -219,7 +223,7 @@ def predictions_picture(
     post-evaluation (a good predictor's bars match)."""
     names = list(sensors)
     idx = np.arange(len(names))
-    fig = _figure(max(6.0, len(names) * 0.75), 4.8)
+    fig = figure(max(6.0, len(names) * 0.75), 4.8)
     ax = fig.subplots()
     ax.bar(idx - 0.2, [sensors[n]["mean_predicted"] for n in names], 0.4, label="predicted")
     ax.bar(idx + 0.2, [sensors[n]["mean_real"] for n in names], 0.4, label="sensed")
@@ -229,14 +233,14 @@ def predictions_picture(
     ax.set_title(f"{title}\npost-evaluation: mean prediction and mean reading per sensor")
     ax.grid(alpha=0.3, axis="y")
     ax.legend()
-    return _save(fig, directory, "predictions")
+    return save(fig, directory, "predictions")
 
 
 def baseline_picture(directory: Path, comparison: dict[str, Any], title: str) -> list[Path]:
     """``evolved_vs_random``: every random pair's fitness, and the evolved run's best and
     post-evaluation fitness beside the best random pair."""
     random = np.asarray(comparison["random_fitness"], dtype=float)
-    fig = _figure(6.5, 4.8)
+    fig = figure(6.5, 4.8)
     ax = fig.subplots()
     jitter = np.random.default_rng(0).uniform(-0.15, 0.15, len(random))  # only for the eye
     ax.scatter(jitter, random, s=14, color="C7", alpha=0.7, label=f"{len(random)} random pairs")
@@ -262,7 +266,7 @@ def baseline_picture(directory: Path, comparison: dict[str, Any], title: str) ->
     ax.set_title(f"{title}\nevolved against random network pairs")
     ax.grid(alpha=0.3, axis="y")
     ax.legend(fontsize="small", loc="best")
-    return _save(fig, directory, "evolved_vs_random")
+    return save(fig, directory, "evolved_vs_random")
 
 
 # -- the arena ------------------------------------------------------------------------------------
@@ -363,7 +367,7 @@ def trajectories_picture(
         return _bare_trajectories(directory, poses, title)
     robots = list(poses)
     colours = robot_colours(len(robots))
-    fig = _figure(9.5, 7.2, constrained=False)
+    fig = figure(9.5, 7.2, constrained=False)
     ax = fig.add_axes((0.08, 0.08, 0.62, 0.8))
     image = draw_arena(ax, arena.config)
     if arena.config.light:
@@ -383,7 +387,7 @@ def trajectories_picture(
         draw_robot(ax, arena.config, path[-1], colours[k], label=str(k), zorder=7)
     _styled_legend(fig, ax, _legend_handles(arena, colours, robots))
     ax.set_title(title)
-    return _save(fig, directory, "trajectories")
+    return save(fig, directory, "trajectories")
 
 
 def _bare_trajectories(directory: Path, poses: dict[str, np.ndarray], title: str) -> list[Path]:
@@ -391,7 +395,7 @@ def _bare_trajectories(directory: Path, poses: dict[str, np.ndarray], title: str
 
     robots = list(poses)
     colours = robot_colours(len(robots))
-    fig = _figure(8, 6.5)
+    fig = figure(8, 6.5)
     ax = fig.subplots()
     for k, robot in enumerate(robots):
         path = _thin(poses[robot])
@@ -406,7 +410,7 @@ def _bare_trajectories(directory: Path, poses: dict[str, np.ndarray], title: str
     ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize="small")
     ax.set(xlabel="x (m)", ylabel="y (m)", aspect="equal", title=title)
     ax.grid(alpha=0.3)
-    return _save(fig, directory, "trajectories")
+    return save(fig, directory, "trajectories")
 
 
 def animate_post_evaluation(
@@ -428,7 +432,7 @@ def animate_post_evaluation(
     speed = stride * _ANIMATION_FPS * dt  # simulated seconds per second of animation
     trail = max(1, round(_TRAIL_SECONDS / dt))
     colours = robot_colours(len(robots))
-    fig = _figure(7.6, 6.4, constrained=False)
+    fig = figure(7.6, 6.4, constrained=False)
     ax = fig.add_axes((0.09, 0.08, 0.62, 0.8))
     image = draw_arena(ax, arena.config)
     if arena.config.light:

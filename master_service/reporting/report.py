@@ -24,7 +24,8 @@ from typing import Any, Final
 import msgspec
 import numpy as np
 
-from master_service.reporting import pictures, tracker
+from master_service.replay import REPLAY_FILE
+from master_service.reporting import pictures, reality_gap, tracker
 from master_service.reporting.robot_stats import parse_robot_stats, robot_stats
 from master_service.rundir import (
     BOX_TRACK,
@@ -302,6 +303,12 @@ def _metrics(data: _Run) -> dict[str, Any]:
     )
     if data.tracked is not None and metrics["post_evaluation"] is not None:
         metrics["post_evaluation"]["positions"] = data.tracked
+    replay = run.read_json(REPLAY_FILE)
+    if isinstance(replay, dict) and replay.get("source_run"):
+        source = Path(replay["source_run"])
+        # The source's metrics as its own report computes them (its metrics.json may be stale).
+        source_metrics = compute_metrics(source) if source.is_dir() else {}
+        metrics["reality_gap"] = reality_gap.compare(source_metrics, metrics, str(source))
     return metrics
 
 
@@ -476,6 +483,8 @@ def _draw(data: _Run, metrics: dict[str, Any], *, plots: bool, animate: bool) ->
         comparison = metrics.get("baseline")
         if comparison:
             drawn += pictures.baseline_picture(directory, comparison, title)
+        if metrics.get("reality_gap"):
+            drawn += reality_gap.gap_picture(directory, metrics["reality_gap"], title)
         if poses:
             seconds = min(len(p) for p in poses.values()) * data.experiment.step_period
             drawn += pictures.trajectories_picture(

@@ -123,3 +123,24 @@ async def test_losing_twice_is_reported_once_until_recovered():
     health.lost("first reason")
     health.lost("second reason")
     assert health.losses == 1 and "first reason" in health.failure()
+
+
+async def test_while_recovery_fails_evaluations_say_why_the_robot_is_still_unreachable():
+    # A wrong bus, medulla not running: the master's log must show the cause, not only that the
+    # robot was lost once.
+    clock = FakeClock()
+    body = LosingBody(lose_at=0, clock=clock)
+    runner, health = runner_for(body, clock)
+    task = asyncio.create_task(health.run())
+    try:
+        first = await runner.run(evaluate(1))
+        assert isinstance(first, Failed) and "has ended" in first.reason
+        while body.recover_calls < 2:
+            await asyncio.sleep(0.005)
+        later = await runner.run(evaluate(2))
+        assert isinstance(later, Failed) and later.reason.startswith(FAILED_UNREACHABLE)
+        assert later.reason.endswith(": no node yet")
+    finally:
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task

@@ -142,10 +142,13 @@ async def test_missing_medulla_is_a_clear_error(thymio_config: ConfigFactory):
         await thymio.open()
 
 
-async def test_unreachable_bus_is_a_hardware_error(tmp_path):
+async def test_a_bus_that_is_not_there_is_one_error_naming_the_key(tmp_path):
     thymio = ThymioBase(ThymioConfig(bus=f"unix:path={tmp_path}/none"))
-    with pytest.raises(HardwareError, match="connect to the D-Bus"):
+    with pytest.raises(HardwareError) as info:
         await thymio.open()
+    text = str(info.value)
+    assert f"no D-Bus to reach at unix:path={tmp_path}/none (No such file or directory)" in text
+    assert "check body.thymio.bus" in text
 
 
 async def test_dbus_error_becomes_hardware_error(

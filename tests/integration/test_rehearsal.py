@@ -120,6 +120,21 @@ def test_a_lab_day_rehearsed_with_playground_robots(procs: Processes, tmp_path: 
     assert procs.wait("master", RUN_TIMEOUT) == 0, procs.report()
     rows = read_rows(run)
     assert [int(r["evaluation"]) for r in rows] == list(range(1, EVALUATIONS + 1)), procs.report()
+    # What the robots reported: no battery from Playground (unknown, left empty), no failed read.
+    assert {r["battery_v_sim-0"] for r in rows} == {""}
+    assert {r["read_failures_sim-1"] for r in rows} == {"0"}
+
+    # The best genome replayed on the same robots: the gap beside the run's own post-evaluation.
+    replay = tmp_path / "replay"
+    procs.start("replay", "master_service", "replay", str(run), "--config", str(master_config),
+                "--out", str(replay))  # fmt: skip
+    assert procs.wait("replay", RUN_TIMEOUT) == 0, procs.report()
+    gap = json.loads((replay / "metrics.json").read_text())["reality_gap"]
+    assert gap["source_run"] == str(run.resolve()) and gap["steps"]["replay"] == STEPS
+    assert [(r["source_robot"], r["replay_robot"]) for r in gap["robots"]] == [
+        ("sim-0", "sim-0"), ("sim-1", "sim-1")
+    ]  # fmt: skip
+    assert all(0.0 < r["replay_fitness"] <= 1.0 for r in gap["robots"])
 
     for index in range(ROBOTS):
         procs.kill(f"agent-{index}", signal.SIGTERM)

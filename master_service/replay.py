@@ -1,0 +1,118 @@
+"""A stored genome driven again, without evolution: ``surprise-master replay`` (docs/runs.md).
+
+A replay is a run that starts at its post-evaluation: its checkpoint holds the genome as the best
+one and the phase ``post-evaluation``, so the one evolution loop runs it as it runs any
+post-evaluation (traces, ``post_evaluation.json``, resume after a stop), on whatever evaluates
+it: simulated robots, Aseba Playground's or real ones. ``replay.json`` names where the genome came
+from, so that ``report`` puts the replay beside that run's own post-evaluation: the reality gap
+(:mod:`master_service.reporting.reality_gap`).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Final
+
+import msgspec
+import numpy as np
+
+from master_service.rundir import BEST_GENOME, CONFIG_SNAPSHOT, RunDir, RunDirError, write_atomic
+from minimize_surprise.config import ExperimentConfig
+from minimize_surprise.network import GenomeLayout, NetworkSpec, spec_from_config
+
+__all__ = [
+    "REPLAY_FILE",
+    "ReplaySource",
+    "check_spec",
+    "load_replay_source",
+    "replay_experiment",
+    "write_replay_file",
+]
+
+#: In a replay's directory: where its genome came from.
+REPLAY_FILE: Final = "replay.json"
+
+
+@dataclass(frozen=True)
+class ReplaySource:
+    """The genome to replay, its network shape, and what is known of where it came from:
+    ``run_dir`` (None for a bare genome file) and that run's ``experiment``."""
+
+    genome: np.ndarray
+    spec: NetworkSpec
+    path: Path
+    fitness: float | None
+    run_dir: Path | None = None
+    experiment: ExperimentConfig | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        """The plain data of ``replay.json``."""
+        return {
+            "source": str(self.path.resolve()),
+            "source_run": None if self.run_dir is None else str(self.run_dir.resolve()),
+            "genome_fitness": self.fitness,
+        }
+
+
+def load_replay_source(path: str | Path) -> ReplaySource:
+    """The genome of a run directory (its ``best_genome.json``) or of a genome file in that
+    format; :class:`RunDirError` naming the file when it holds none."""
+    path = Path(path)
+    run_dir = path if path.is_dir() else None
+    genome_file = path / BEST_GENOME if run_dir is not None else path
+    try:
+        data = json.loads(genome_file.read_text(encoding="utf-8"))
+        spec = msgspec.convert(data["spec"], NetworkSpec)
+        genome = np.array(data["genome"], dtype=np.float64)
+        fitness = data.get("fitness")
+    except FileNotFoundError:
+        raise RunDirError(f"{genome_file} does not exist: no genome to replay") from None
+    except (ValueError, KeyError, TypeError, msgspec.ValidationError) as exc:
+        raise RunDirError(f"{genome_file} holds no genome to replay: {exc}") from None
+    if genome.shape != (GenomeLayout(spec).size,):
+        raise RunDirError(
+            f"{genome_file}: {genome.size} genome values for a network of {GenomeLayout(spec).size}"
+        )
+    experiment = None
+    if run_dir is not None and (run_dir / CONFIG_SNAPSHOT).exists():
+        experiment = RunDir(run_dir).load_config().experiment
+    return ReplaySource(genome, spec, path, fitness, run_dir, experiment)
+
+
+def write_replay_file(run_dir: RunDir, source: ReplaySource) -> None:
+    """Write ``replay.json`` into a new replay's directory."""
+    write_atomic(run_dir.file(REPLAY_FILE), json.dumps(source.to_json(), indent=2).encode())
+
+
+def check_spec(source: ReplaySource, experiment: ExperimentConfig) -> None:
+    """Refuse a replay whose genome does not fit the experiment's networks (other sensors, other
+    hidden layers): :class:`RunDirError` naming what differs."""
+    spec = spec_from_config(experiment)
+    if spec != source.spec:
+        mine, theirs = msgspec.structs.asdict(source.spec), msgspec.structs.asdict(spec)
+        differ = ", ".join(
+            f"{key} {mine[key]!r} (genome) against {theirs[key]!r} (experiment)"
+            for key in mine
+            if mine[key] != theirs[key]
+        )
+        raise RunDirError(
+            f"the genome of {source.path} does not fit the experiment's networks: {differ}"
+        )
+
+
+def replay_experiment(
+    source: ReplaySource, experiment: ExperimentConfig | None, steps: int | None
+) -> ExperimentConfig:
+    """The experiment a replay runs: ``experiment`` (a lab's file) or the source run's, with
+    ``steps`` post-evaluation steps (default: the experiment's own)."""
+    chosen = experiment if experiment is not None else source.experiment
+    if chosen is None:
+        raise RunDirError(
+            f"{source.path} is a genome without an experiment: name one (--config or --experiment)"
+        )
+    if steps is not None:
+        chosen = msgspec.structs.replace(chosen, post_evaluation_steps=steps)
+    check_spec(source, chosen)
+    return chosen
