@@ -281,6 +281,7 @@ def _resume(args: argparse.Namespace) -> int:
         print(f"run {args.dir} is complete; nothing to resume")
         return 0
     simulation = read_simulation_file(args.dir)
+    replay = _replay_of(run)
     if simulation is not None:
         # A simulated run restarts its own simulated robots: no secret, no lab.
         assert config.experiment is not None
@@ -291,9 +292,23 @@ def _resume(args: argparse.Namespace) -> int:
             bool(simulation.get("realtime", False)),
             args.verbose,
             resume=True,
+            replay=replay,
         )
     secret = required_secret(config, run.file("config.yaml"))
     return _serve(Master(config, args.dir, secret=secret, resume=True), args)
+
+
+def _replay_of(run: RunDir) -> ReplaySource | None:
+    """The source of a replay being resumed (its simulated robots start where the source's
+    did), None for an evolution or a source that is gone."""
+    from master_service.replay import REPLAY_FILE, load_replay_source
+
+    info = run.read_json(REPLAY_FILE)
+    if not isinstance(info, dict) or not info.get("source"):
+        return None
+    with contextlib.suppress(RunDirError):
+        return load_replay_source(info["source"])
+    return None
 
 
 def _serve(master: Master, args: argparse.Namespace) -> int:

@@ -18,7 +18,14 @@ from typing import Any, Final
 import msgspec
 import numpy as np
 
-from master_service.rundir import BEST_GENOME, CONFIG_SNAPSHOT, RunDir, RunDirError, write_atomic
+from master_service.rundir import (
+    BEST_GENOME,
+    CONFIG_SNAPSHOT,
+    SIMULATION_FILE,
+    RunDir,
+    RunDirError,
+    write_atomic,
+)
 from minimize_surprise.config import ExperimentConfig
 from minimize_surprise.network import GenomeLayout, NetworkSpec, spec_from_config
 
@@ -46,6 +53,16 @@ class ReplaySource:
     fitness: float | None
     run_dir: Path | None = None
     experiment: ExperimentConfig | None = None
+    #: a simulated source's safety states when its post-evaluation began, robot by robot
+    safety_before: list[list[int]] | None = None
+
+    def safety_for(self, robots: int) -> list[list[int]] | None:
+        """The source's safety states for a simulated replay of ``robots`` robots, so that the
+        escape profile's random turns go on as in the source's post-evaluation; None when the
+        source has none or another number of robots."""
+        if self.safety_before is None or len(self.safety_before) != robots:
+            return None
+        return self.safety_before
 
     def to_json(self) -> dict[str, Any]:
         """The plain data of ``replay.json``."""
@@ -76,9 +93,13 @@ def load_replay_source(path: str | Path) -> ReplaySource:
             f"{genome_file}: {genome.size} genome values for a network of {GenomeLayout(spec).size}"
         )
     experiment = None
+    safety = None
     if run_dir is not None and (run_dir / CONFIG_SNAPSHOT).exists():
         experiment = RunDir(run_dir).load_config().experiment
-    return ReplaySource(genome, spec, path, fitness, run_dir, experiment)
+        simulation = RunDir(run_dir).read_json(SIMULATION_FILE)
+        if isinstance(simulation, dict):
+            safety = simulation.get("post_evaluation_safety")
+    return ReplaySource(genome, spec, path, fitness, run_dir, experiment, safety)
 
 
 def write_replay_file(run_dir: RunDir, source: ReplaySource) -> None:

@@ -112,6 +112,8 @@ class FastRun:
         evolution.open(resume=resume)
         if replay is not None and not resume:
             write_replay_file(directory, replay)
+        if replay is not None:
+            self.evaluator.replay_safety = replay.safety_for(len(self.ids))
         try:
             if not resume:
                 self._write_simulation_file(directory.path)
@@ -136,6 +138,7 @@ class FastRun:
             self.swarm.world,
             engine="fast",
             boxes_before=self.evaluator.boxes_before,
+            safety_before=self.evaluator.safety_before,
         )
 
 
@@ -152,6 +155,10 @@ class EngineEvaluator:
         self.ids = list(swarm.ids)
         #: the boxes where the post-evaluation's arena put them (None before it)
         self.boxes_before: list[list[float]] | None = None
+        #: every robot's safety state when the post-evaluation began (None before it)
+        self.safety_before: list[list[int]] | None = None
+        #: a replay's: the safety states its source's post-evaluation began with
+        self.replay_safety: list[list[int]] | None = None
         self._recorded: EvaluationRecord | None = None
 
     @property
@@ -209,6 +216,9 @@ class EngineEvaluator:
         world = self.engine.world
         world.reset(seed=self.experiment.seed + 1)
         self.boxes_before = world.box_positions.tolist()
+        if self.replay_safety is not None:
+            self.engine.safety[:] = np.array(self.replay_safety, dtype=np.int64)
+        self.safety_before = self.engine.safety.tolist()
 
     async def after_post_evaluation(self, run_dir: RunDir) -> None:
         """The boxes' track beside the traces (the report's animation)."""

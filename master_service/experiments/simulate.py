@@ -97,6 +97,8 @@ class SimulatedSwarm:
         # Nobody outside this process talks to this master: a fresh random secret per run.
         self._secret = secrets.token_bytes(32)
         self._boxes_before: list[list[float]] | None = None
+        self._safety_before: list[list[int]] | None = None
+        self._replay_safety: list[list[int]] | None = None
         self._agents: list[Agent] = []
 
     def master_config(self) -> MasterConfig:
@@ -126,6 +128,10 @@ class SimulatedSwarm:
         # Every robot is idle between two rounds, so nobody is inside a step of the world.
         self.world.reset(seed=self.experiment.seed + 1)
         self._boxes_before = self.world.box_positions.tolist()
+        if self._replay_safety is not None:
+            for agent, state in zip(self._agents, self._replay_safety, strict=True):
+                agent.runner.safety_state = SafetyState.from_array(np.array(state, np.int64))
+        self._safety_before = [a.runner.safety_state.to_array().tolist() for a in self._agents]
         self.world.start_recording()  # the boxes' track, for the report's animation
 
     def _snapshot(self) -> dict[str, Any]:
@@ -172,6 +178,7 @@ class SimulatedSwarm:
         )
         master.evolution.pause_before_post = self.pause_before_post
         self._agents = []
+        self._replay_safety = None if replay is None else replay.safety_for(len(self.ids))
         failure: Exception | None = None
         async with contextlib.AsyncExitStack() as stack:
             await stack.enter_async_context(master)
@@ -226,6 +233,7 @@ class SimulatedSwarm:
             engine="agents",
             realtime=self.realtime,
             boxes_before=self._boxes_before,
+            safety_before=self._safety_before,
         )
 
 

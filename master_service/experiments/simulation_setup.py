@@ -158,9 +158,12 @@ def write_simulation_file(
     engine: str,
     realtime: bool = False,
     boxes_before: list[list[float]] | None = None,
+    safety_before: list[list[int]] | None = None,
 ) -> None:
     """Write ``simulation.json``: the run is simulated, on which engine, in which world; with
-    ``boxes_before`` (the boxes when the post-evaluation began) also where the boxes went.
+    ``boxes_before`` (the boxes when the post-evaluation began) also where the boxes went, and
+    with ``safety_before`` every robot's safety state then (a replay starts from it: the escape
+    profile's turns are random draws that go on from the evolution's).
 
     Written when the run starts, so that ``surprise-master resume`` knows to restart the
     simulated robots, and again at its end, for the report's box displacement.
@@ -181,6 +184,8 @@ def write_simulation_file(
             "start": boxes_before,
             "end": world.box_positions.tolist(),
         }
+    if safety_before is not None:
+        data["post_evaluation_safety"] = safety_before
     write_atomic(Path(run_dir) / SIMULATION_FILE, json.dumps(data).encode("utf-8"))
 
 
