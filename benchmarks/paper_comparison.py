@@ -25,6 +25,7 @@ from pathlib import Path
 from master_service.experiments.baseline import run_baseline
 from master_service.experiments.engine_run import FastRun
 from master_service.experiments.simulation_setup import simulation_experiment
+from sim_stub import metrics as sim_metrics
 
 
 def compare(
@@ -38,9 +39,8 @@ def compare(
         result = FastRun(experiment).run(out / f"{scenario}-run-{seed}")
         best.append(result.summary.best_fitness)
         b = result.metrics["post_evaluation"]["behaviour"]
-        kind = f"{b['motion']}/{b['grouping']}"
+        kind = sim_metrics.behaviour_label(b, "/")
         if b.get("pushing") is not None:
-            kind += "/pushing" if b["pushing"] else "/not-pushing"
             pushing.append(b["box_displacement"])
         classes[kind] += 1
         print(

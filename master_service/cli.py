@@ -283,6 +283,11 @@ def _resume(args: argparse.Namespace) -> int:
     simulation = read_simulation_file(args.dir)
     replay = _replay_of(run)
     if simulation is not None:
+        if args.pause_before_post:
+            raise ConfigError(
+                "a simulated run places its robots itself; the pause is for a lab's robots",
+                key="--pause-before-post",
+            )
         # A simulated run restarts its own simulated robots: no secret, no lab.
         assert config.experiment is not None
         return _simulate(
@@ -532,6 +537,12 @@ def _replay(args: argparse.Namespace) -> int:
             for line in gap_lines(write_report(out).get("reality_gap")):
                 print(line)
         return code
+    if args.pause_before_post:
+        raise ConfigError(
+            "a simulated replay places its robots itself; the pause is for a lab's robots "
+            "(with --config)",
+            key="--pause-before-post",
+        )
     chosen = load_experiment(args.experiment) if args.experiment is not None else None
     experiment = replay_experiment(source, chosen, args.steps)
     out = args.out or _default_out("replay", experiment.scenario)

@@ -10,7 +10,7 @@ import json
 from pathlib import Path
 
 from master_service.config import load_master_config, required_secret
-from master_service.rundir import RunDir
+from master_service.rundir import RunDir, RunDirError
 from minimize_surprise.text import plural
 
 __all__ = [
@@ -88,8 +88,16 @@ def check_command(args: argparse.Namespace) -> int:
 def continue_command(args: argparse.Namespace) -> int:
     """``surprise-master continue``."""
     from master_service.pause import request_continue
+    from master_service.reporting.status import running_master
 
-    pause = request_continue(RunDir(args.dir))
+    run = RunDir(args.dir)
+    if running_master(run) is None:
+        # Nothing waits: removing the file would only hide why the run stopped where it did.
+        raise RunDirError(
+            f"no master is running {args.dir}: continue it with `surprise-master resume "
+            f"{args.dir}` (a pause ends with the master that waited in it)"
+        )
+    pause = request_continue(run)
     print(f"continuing {args.dir} (it was paused: {pause.get('reason', 'no reason given')})")
     return 0
 

@@ -21,6 +21,7 @@ import json
 import logging
 import os
 import sys
+import termios
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -163,12 +164,22 @@ class PauseGate:
         return waited
 
     def _console_usable(self) -> bool:
-        return self.console and sys.stdin is not None and sys.stdin.isatty()
+        if not (self.console and sys.stdin is not None and sys.stdin.isatty()):
+            return False
+        try:
+            # Only in the foreground: reading the terminal from the background (`&`) would
+            # stop the whole master (SIGTTIN).
+            return os.tcgetpgrp(sys.stdin.fileno()) == os.getpgrp()
+        except OSError:
+            return False
 
     def _watch_console(self, entered: asyncio.Event) -> int | None:
         if not self._console_usable():
             return None
         fd = sys.stdin.fileno()
+        # A line typed before the pause began must not end it: only an Enter pressed now does.
+        with contextlib.suppress(OSError, termios.error):
+            termios.tcflush(fd, termios.TCIFLUSH)
 
         def on_input() -> None:
             with contextlib.suppress(OSError):

@@ -293,7 +293,7 @@ def _judge(row: RobotCheck, report: CheckReport, midpoint: float, config: Master
             "enable NTP on the Pi)"
         )
     if report.busy:
-        row.problems.append("busy with an evaluation: is another master running this robot?")
+        row.problems.append("busy: still finishing an evaluation or a check; check again")
         return
     row.ground_rule = report.ground_rule
     for part in report.parts:

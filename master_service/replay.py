@@ -27,6 +27,7 @@ from master_service.rundir import (
     write_atomic,
 )
 from minimize_surprise.config import ExperimentConfig
+from minimize_surprise.errors import ConfigError
 from minimize_surprise.network import GenomeLayout, NetworkSpec, spec_from_config
 
 __all__ = [
@@ -134,6 +135,11 @@ def replay_experiment(
             f"{source.path} is a genome without an experiment: name one (--config or --experiment)"
         )
     if steps is not None:
-        chosen = msgspec.structs.replace(chosen, post_evaluation_steps=steps)
+        data = msgspec.to_builtins(chosen) | {"post_evaluation_steps": steps}
+        try:
+            # Decoded again, so the experiment's own bounds hold for the new length too.
+            chosen = msgspec.convert(data, ExperimentConfig)
+        except msgspec.ValidationError as exc:
+            raise ConfigError(f"{steps} steps cannot be replayed: {exc}", key="--steps") from None
     check_spec(source, chosen)
     return chosen

@@ -29,6 +29,7 @@ incompatible changes bump :data:`PROTOCOL_VERSION`, which the master checks in H
 
 from __future__ import annotations
 
+import math
 import re
 import struct
 from typing import Annotated, Final
@@ -488,6 +489,15 @@ class CheckReport(_Message, tag="check-report", frozen=True):
     forward_safety: _Name | None = None
     ground_rule: Annotated[str, msgspec.Meta(max_length=MAX_NAME_LENGTH)] = ""
     busy: bool = False
+
+    def __post_init__(self) -> None:
+        # A clock or a reading that is not a number is a broken robot's message: refused where
+        # it enters, as any malformed one (a part out of [0, 1] is a finding, not an error).
+        if not math.isfinite(self.time):
+            raise ProtocolError(f"a check report's time must be finite, not {self.time}")
+        for part in self.parts:
+            if not all(math.isfinite(v) for v in part.values):
+                raise ProtocolError(f"check report: {part.part} holds a value that is not finite")
 
 
 class Ping(_Message, tag="ping", frozen=True):

@@ -13,8 +13,15 @@
   positions) to another member share a cluster (single linkage); the mean cluster size of one
   instant is N / (number of clusters), and the metric is its mean over the instants of the window.
 
+* backward share: of the robots' steps that moved them (more than :data:`MOVING_ABOVE`), the share
+  that moved them backwards (against their heading), over the whole recording.
+
 Classification (paper Sec. V-B, V-C): stopped if c_o < 5, circling if c_o > 55, else diverse;
-grouped if the mean cluster size exceeds 1.43, else dispersed; pushing if d_B > 0.1 m. The
+grouped if the mean cluster size exceeds 1.43, else dispersed; pushing if d_B > 0.1 m. With boxes
+(object manipulation, Sec. V-C) each run also gets one of the paper's three classes
+(:func:`classify_manipulation`): pushing when d_B > 0.1 m, else reverse driving when most of the
+moving steps went backwards, else circling (the paper's majority class, which takes every other
+run). The
 thresholds were chosen for windows of 50 s (5000 Webots steps of 10 ms); our 10 Hz window of the
 same length is 500 steps, the default below when the recording is long enough (else its second
 half).
@@ -39,6 +46,13 @@ PUSHING_ABOVE = 0.1
 WINDOW_SECONDS = 50.0
 #: That window in steps at the real robots' 10 Hz.
 DEFAULT_WINDOW = 500
+#: A step that moved a robot less than this (metres) did not move it: turning on the spot, or held
+#: by the safety layer. A robot at 1 cm/s moves 0.1 mm in a 10 ms step, ten times this.
+MOVING_ABOVE = 1e-5
+#: Reverse driving when more than this share of the moving steps went backwards.
+REVERSE_ABOVE = 0.5
+#: The object-manipulation classes of the paper (Sec. V-C), one per run.
+Manipulation = Literal["pushing", "reverse driving", "circling"]
 
 
 class BehaviourMetrics(msgspec.Struct, frozen=True, kw_only=True):
@@ -52,6 +66,10 @@ class BehaviourMetrics(msgspec.Struct, frozen=True, kw_only=True):
     grouping: Literal["grouped", "dispersed"]
     pushing: bool | None
     window: int
+    #: share of the moving steps that went backwards (see the module docstring)
+    backward_share: float | None = None
+    #: with boxes, the paper's object-manipulation class of the run; None without boxes
+    manipulation: Manipulation | None = None
 
 
 def _check(poses: np.ndarray) -> np.ndarray:
@@ -157,6 +175,7 @@ def behaviour_metrics(
     c_o = rotation(poses, window)
     size = mean_cluster_size(poses, window, cluster_distance)
     d_b = None if box_start is None or box_end is None else box_displacement(box_start, box_end)
+    backward = backward_share(poses)
     return BehaviourMetrics(
         distance_covered=distance_covered(poses),
         rotation=c_o,
@@ -166,7 +185,44 @@ def behaviour_metrics(
         grouping=classify_grouping(size),
         pushing=None if d_b is None else d_b > PUSHING_ABOVE,
         window=window,
+        backward_share=backward,
+        manipulation=None if d_b is None else classify_manipulation(d_b, backward),
     )
+
+
+def backward_share(poses: np.ndarray) -> float:
+    """Of the robot-steps that moved a robot, the share that moved it backwards: the step's
+    displacement against the heading it had at the step's start. 0 when nothing moved."""
+    poses = _check(poses)
+    step = np.diff(poses[:, :, :2], axis=0)
+    heading = poses[:-1, :, 2]
+    forward = step[..., 0] * np.cos(heading) + step[..., 1] * np.sin(heading)
+    moving = np.abs(forward) > MOVING_ABOVE
+    count = int(moving.sum())
+    return float((forward[moving] < 0).sum() / count) if count else 0.0
+
+
+def classify_manipulation(d_b: float, backward: float) -> Manipulation:
+    """The paper's object-manipulation class (Sec. V-C): pushing when the boxes moved more than
+    0.1 m on average, else reverse driving when most moving steps went backwards, else
+    circling."""
+    if d_b > PUSHING_ABOVE:
+        return "pushing"
+    if backward > REVERSE_ABOVE:
+        return "reverse driving"
+    return "circling"
+
+
+def behaviour_label(behaviour: dict[str, object] | BehaviourMetrics, sep: str = ", ") -> str:
+    """A run's behaviour in words: the object-manipulation class with boxes (the motion and
+    grouping in brackets), else ``motion, grouping``."""
+    b = msgspec.to_builtins(behaviour) if isinstance(behaviour, BehaviourMetrics) else behaviour
+    kind = f"{b['motion']}{sep}{b['grouping']}"
+    manipulation = b.get("manipulation")
+    if manipulation is None and b.get("box_displacement") is not None:
+        # A run's metrics written before the classes existed: pushing or not.
+        return kind + (f"{sep}pushing" if b.get("pushing") else f"{sep}not pushing")
+    return kind if manipulation is None else f"{manipulation} ({kind})"
 
 
 def classify_motion(c_o: float) -> Literal["stopped", "diverse", "circling"]:

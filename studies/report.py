@@ -80,7 +80,7 @@ def load_runs(out: str | Path):
         if behaviour:
             for key in (
                 "rotation", "mean_cluster_size", "distance_covered", "box_displacement",
-                "motion", "grouping", "pushing",
+                "motion", "grouping", "pushing", "backward_share", "manipulation",
             ):  # fmt: skip
                 row[key] = behaviour.get(key)
             row["behaviour"] = tables.behaviour_class(behaviour)

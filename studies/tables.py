@@ -41,12 +41,15 @@ PAIRWISE_VALUES = 6
 
 
 def behaviour_class(behaviour: dict[str, Any] | None) -> str | None:
-    """A run's behaviour metrics as one label: ``motion/grouping`` and, with boxes,
-    ``/pushing`` or ``/not-pushing``; None without behaviour."""
+    """A run's behaviour class: with boxes the paper's object-manipulation class (``pushing``,
+    ``reverse driving`` or ``circling``, sim_stub.metrics.classify_manipulation), else
+    ``motion/grouping``; None without behaviour."""
     if not behaviour:
         return None
+    if behaviour.get("manipulation"):
+        return str(behaviour["manipulation"])
     kind = f"{behaviour['motion']}/{behaviour['grouping']}"
-    if behaviour.get("pushing") is not None:
+    if behaviour.get("pushing") is not None:  # metrics written before the classes existed
         kind += "/pushing" if behaviour["pushing"] else "/not-pushing"
     return kind
 

@@ -103,7 +103,8 @@ def run_baseline(experiment: ExperimentConfig, pairs: int, out: str | Path) -> d
         # How many pairs showed each behaviour class (docs/method.md), per kind of class.
         "behaviour_counts": {
             key: dict(collections.Counter(e["behaviour"][key] for e in entries).most_common())
-            for key in ("motion", "grouping")
+            for key in ("motion", "grouping", "manipulation")
+            if any(e["behaviour"].get(key) is not None for e in entries)
         },
         "pairs": entries,
     }

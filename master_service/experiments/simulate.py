@@ -44,6 +44,7 @@ from minimize_surprise.safety import SafetyState
 from robot_agent.agent import Agent
 from robot_agent.config import AgentConfig, LoopConfig
 from robot_agent.config import MasterConfig as AgentMasterConfig
+from sim_stub import metrics as sim_metrics
 from sim_stub.battery import SimBattery
 from sim_stub.body import SimSwarm
 from sim_stub.scenarios import SCENARIOS
@@ -268,15 +269,15 @@ def summary_text(
         )
     b = post.get("behaviour")
     if b:
-        kind = f"{b['motion']}, {b['grouping']}"
         figures = (
             f"rotation c_o {b['rotation']:.1f} rad, mean cluster size "
             f"{b['mean_cluster_size']:.2f}, distance d_R {b['distance_covered']:.2f} m"
         )
         if b.get("box_displacement") is not None:
-            kind += ", pushing" if b["pushing"] else ", not pushing"
             figures += f", box displacement d_B {b['box_displacement']:.3f} m"
-        lines.append(f"behaviour: {kind} ({figures})")
+            if b.get("backward_share") is not None:
+                figures += f", {100 * b['backward_share']:.0f} % of moves backwards"
+        lines.append(f"behaviour: {sim_metrics.behaviour_label(b)} ({figures})")
     lines += safety_lines(metrics)
     lines.append(f"plots: {out / 'plots'}")
     return "\n".join(lines)

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from master_service.reporting import pictures
+from sim_stub.metrics import behaviour_label
 
 __all__ = ["compare", "gap_lines", "gap_picture"]
 
@@ -63,12 +64,7 @@ def _robot_fitness(post: dict[str, Any]) -> list[tuple[str, float]]:
 
 def _behaviour(post: dict[str, Any]) -> str:
     b = post.get("behaviour")
-    if not b:
-        return "none (no positions)"
-    kind = f"{b['motion']}, {b['grouping']}"
-    if b.get("box_displacement") is not None:
-        kind += ", pushing" if b["pushing"] else ", not pushing"
-    return kind
+    return behaviour_label(b) if b else "none (no positions)"
 
 
 def gap_lines(gap: dict[str, Any] | None) -> list[str]:

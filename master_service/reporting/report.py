@@ -334,7 +334,8 @@ def _baseline_metrics(metrics: dict[str, Any], baseline: dict[str, Any]) -> dict
         ),
         "random_behaviour_counts": {
             key: dict(collections.Counter(pair["behaviour"][key] for pair in pairs).most_common())
-            for key in ("motion", "grouping")
+            for key in ("motion", "grouping", "manipulation")
+            if any(pair["behaviour"].get(key) is not None for pair in pairs)
         },
     }
 
@@ -388,9 +389,7 @@ def behaviour_line(metrics: dict[str, Any]) -> str | None:
     b = post.get("behaviour")
     if not b:
         return f"behaviour: none: {post.get('behaviour_missing', NO_POSITIONS)}"
-    kind = f"{b['motion']}, {b['grouping']}"
-    if b.get("box_displacement") is not None:
-        kind += ", pushing" if b["pushing"] else ", not pushing"
+    kind = sim_metrics.behaviour_label(b)
     if post.get("positions"):
         kind += f" (positions from {post['positions']['file']})"
     return f"behaviour: {kind}"

@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 import time
 from pathlib import Path
-from typing import Final
+from typing import Any, Final
 
 from master_service.evaluation import format_duration
 from master_service.master import LIVE_INTERVAL
@@ -13,7 +13,7 @@ from master_service.pause import read_pause
 from master_service.rundir import LIVE, POST_EVALUATION, RunDir
 from minimize_surprise.text import plural
 
-__all__ = ["status_text"]
+__all__ = ["running_master", "status_text"]
 
 #: A live.json older than this many refresh periods means the master is gone.
 _STALE_PERIODS: Final = 5
@@ -27,6 +27,19 @@ def _alive(pid: int) -> bool:
     except PermissionError:
         return True
     return True
+
+
+def running_master(run: RunDir) -> dict[str, Any] | None:
+    """``live.json`` of the master serving ``run`` now, None when none does (never started,
+    stopped, or silent for too long)."""
+    live = run.read_json(LIVE)
+    fresh = (
+        isinstance(live, dict)
+        and live.get("running")
+        and time.time() - float(live.get("updated_at", 0)) < _STALE_PERIODS * LIVE_INTERVAL
+        and _alive(int(live.get("pid", -1)))
+    )
+    return live if fresh and isinstance(live, dict) else None
 
 
 def status_text(path: str | Path) -> str:
@@ -56,15 +69,8 @@ def status_text(path: str | Path) -> str:
                 f"{float(last['fitness']):.4f}, accepted {last['accepted']}"
             )
         lines.append(f"served for {format_duration(float(checkpoint.get('elapsed_s', 0.0)))}")
-    live = run.read_json(LIVE)
-    fresh = (
-        isinstance(live, dict)
-        and live.get("running")
-        and time.time() - float(live.get("updated_at", 0)) < _STALE_PERIODS * LIVE_INTERVAL
-        and _alive(int(live.get("pid", -1)))
-    )
-    if fresh:
-        assert isinstance(live, dict)
+    live = running_master(run)
+    if live is not None:
         robots = live.get("robots", [])
         lines.append(
             f"master: running (pid {live['pid']}, {live['host']}:{live['port']}), "

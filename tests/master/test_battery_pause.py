@@ -108,11 +108,16 @@ async def test_a_low_battery_pauses_the_run_which_goes_on_to_the_same_result(tmp
         assert a == b, name
 
 
-def test_continue_on_a_run_that_is_not_paused_says_so(tmp_path, capsys):
+def test_continue_without_a_master_waiting_says_to_resume_and_keeps_the_pause(tmp_path, capsys):
     run = tmp_path / "run"
     run.mkdir()
-    assert main(["continue", str(run)]) != 0
-    assert "is not paused" in capsys.readouterr().err
+    (run / PAUSE).write_text('{"kind": "battery", "reason": "swap r1", "robots": ["r1"]}')
+    (run / "live.json").write_text('{"running": false, "pid": 1, "updated_at": 0}')
+    assert main(["continue", str(run)]) == 2
+    assert f"no master is running {run}: continue it with `surprise-master resume" in (
+        capsys.readouterr().err
+    )
+    assert (run / PAUSE).exists()
 
 
 async def test_pause_before_post_waits_with_the_evolution_on_disk(tmp_path, capsys):
