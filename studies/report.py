@@ -9,6 +9,9 @@ per-evaluation files, and writes into ``DIR/report/``:
   run's group, seed and sweep values, for pandas users;
 * ``summary.csv``: one row per group and sweep value: ``group``, ``kind``, the sweep values,
   ``runs``, ``median_fitness``, ``q1_fitness``, ``q3_fitness``, failures and behaviour counts;
+* ``paper.csv`` and ``paper.md``: where the study file says what the paper reports for a group
+  (its ``paper`` section), each condition's median best fitness and behaviour classes beside the
+  paper's bound and classes;
 * ``statistics.csv``: the paper's tests (docs/studies.md): Mann-Whitney U between evolved and
   random runs per condition (same scenario, setting and sweep values), Kruskal-Wallis across the
   conditions of one kind, Fisher's exact test on the behaviour counts of evolved against random
@@ -28,11 +31,14 @@ import json
 from pathlib import Path
 from typing import Any
 
+import msgspec
+
 from minimize_surprise.errors import ConfigError
 from minimize_surprise.figures import save_figure
 from sim_stub import metrics as sim_metrics
 from studies import tables
-from studies.runner import TASKS_FILE
+from studies.runner import STUDY_FILE, TASKS_FILE
+from studies.spec import load_study
 from studies.tasks import FAILED, SUMMARY, run_dir
 
 __all__ = ["REPORT_DIR", "load_runs", "write_study_report"]
@@ -132,6 +138,11 @@ def write_study_report(out: str | Path) -> dict[str, Any]:
     done.attrs = frame.attrs
     summary = tables.summary_table(done) if len(done) else pd.DataFrame()
     summary.to_csv(target / "summary.csv", index=False)
+    papers = _paper_sections(out)
+    if papers and len(summary):
+        beside = tables.paper_table(summary, papers)
+        beside.to_csv(target / "paper.csv", index=False)
+        (target / "paper.md").write_text(_markdown(beside), encoding="utf-8")
     tests = pd.DataFrame(tables.statistics(done)) if len(done) else pd.DataFrame()
     tests.to_csv(target / "statistics.csv", index=False)
     evaluations = _evaluations_table(out, done) if len(done) else None
@@ -147,6 +158,25 @@ def write_study_report(out: str | Path) -> dict[str, Any]:
         "figures": figures,
         "report": str(target),
     }
+
+
+def _paper_sections(out: Path) -> dict[str, dict[str, Any]]:
+    """Each group's ``paper`` section of the study file the study was run with."""
+    path = out / STUDY_FILE
+    if not path.is_file():
+        return {}
+    study = load_study(path)
+    return {g.name: msgspec.to_builtins(g.paper) for g in study.groups if g.paper is not None}
+
+
+def _markdown(table: Any) -> str:
+    """A table as Markdown, for docs/ (pandas' own needs the tabulate package)."""
+    header = list(table.columns)
+    lines = ["| " + " | ".join(header) + " |", "|" + " --- |" * len(header)]
+    for _, row in table.iterrows():
+        cells = ["" if v is None or v != v else str(v) for v in row.tolist()]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
 
 
 # --------------------------------------------------------------------------- figures

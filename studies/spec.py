@@ -45,6 +45,7 @@ from studies.slurm import SlurmOptions
 __all__ = [
     "THYMIO_KINDS",
     "Group",
+    "PaperResult",
     "SeedRange",
     "Study",
     "expand",
@@ -73,6 +74,20 @@ class SeedRange(Strict, frozen=True):
             raise ValueError("`to`: must be at least `from`")
 
 
+class PaperResult(Strict, frozen=True):
+    """What a paper reports for a group, so that the report puts the group's runs beside it
+    (``report/paper.csv`` and ``paper.md``)."""
+
+    #: the paper's lower bound on the median best fitness of every condition of the group
+    median_fitness_at_least: Annotated[float, msgspec.Meta(ge=0.0, le=1.0)] | None = None
+    #: the paper's upper bound on the median best fitness of every condition of the group
+    median_fitness_at_most: Annotated[float, msgspec.Meta(ge=0.0, le=1.0)] | None = None
+    #: the behaviour classes the paper found, in its words
+    classes: str = ""
+    #: where the paper says so (section, figure)
+    source: str = ""
+
+
 class Group(Strict, frozen=True):
     """One group of runs: a kind, its parameters, its seeds, and an optional sweep."""
 
@@ -90,6 +105,8 @@ class Group(Strict, frozen=True):
     sweep: dict[str, list[Any]] = msgspec.field(default_factory=dict)
     #: groups whose runs this group's runs use: it starts once every run of them has ended
     after: list[str] = msgspec.field(default_factory=list)
+    #: what the paper reports for this group (optional): the report puts the runs beside it
+    paper: PaperResult | None = None
 
     def __post_init__(self) -> None:
         for key, values in self.sweep.items():

@@ -95,6 +95,47 @@ def summary_table(done: Any) -> Any:
     return table
 
 
+def paper_table(summary: Any, papers: dict[str, dict[str, Any]]) -> Any:
+    """The rows of ``summary`` (:func:`summary_table`) whose group the study file says the paper
+    reported on (``papers``: group name to its ``paper`` section), each beside the paper: its
+    bound on the median best fitness, whether ours holds it, our behaviour classes with their
+    counts, and the paper's classes in its words."""
+    import pandas as pd
+
+    rows = []
+    counts = [c for c in summary.columns if c.startswith("n_")]
+    sweep = [c for c in summary.columns if c not in {"group", "kind", "runs"}
+             and not c.endswith("_fitness") and not c.startswith("n_")]  # fmt: skip
+    for _, row in summary.iterrows():
+        paper = papers.get(row["group"])
+        if paper is None:
+            continue
+        median = float(row["median_fitness"])
+        low, high = paper.get("median_fitness_at_least"), paper.get("median_fitness_at_most")
+        bound = " and ".join(
+            text for text in (
+                None if low is None else f">= {low:g}", None if high is None else f"<= {high:g}"
+            ) if text
+        )  # fmt: skip
+        holds = (low is None or median >= low) and (high is None or median <= high)
+        classes = sorted(((int(row[c]), c[2:]) for c in counts if row[c]), reverse=True)
+        rows.append(
+            {
+                "group": row["group"],
+                # Other groups' sweep keys are empty (NaN) in this group's rows.
+                "condition": ", ".join(f"{k}={row[k]}" for k in sweep if row[k] == row[k]),
+                "runs": int(row["runs"]),
+                "median_fitness": round(median, 4),
+                "paper_median_fitness": bound,
+                "holds": bool(holds) if bound else None,
+                "classes": ", ".join(f"{name} {n}" for n, name in classes),
+                "paper_classes": paper.get("classes", ""),
+                "source": paper.get("source", ""),
+            }
+        )
+    return pd.DataFrame(rows)
+
+
 # --------------------------------------------------------------------------- the tests
 
 
