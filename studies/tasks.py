@@ -70,6 +70,8 @@ __all__ = [
     "stored_summary",
 ]
 
+log = logging.getLogger(__name__)
+
 #: The summary a finished run leaves in its directory.
 SUMMARY = "summary.json"
 #: What a failed run leaves in its directory: the traceback, and its summary (it is run again
@@ -183,6 +185,34 @@ def lock_path(directory: Path) -> Path:
     return directory.with_name(f".{directory.name}.lock")
 
 
+#: What ``flock`` raises on a file system that does not offer it (Lustre mounted without
+#: ``flock``, NFS without its lock daemon): the run goes on unlocked rather than failing.
+_NO_LOCKS: Final = frozenset({errno.ENOLCK, errno.ENOSYS, errno.EOPNOTSUPP, errno.EINVAL})
+_warned_no_locks = False
+
+
+def _flock(fd: int, operation: int) -> bool:
+    """``flock``; False (and a warning, once per process) where the file system has none."""
+    global _warned_no_locks
+    try:
+        fcntl.flock(fd, operation)
+    except BlockingIOError:
+        raise
+    except OSError as exc:
+        if exc.errno not in _NO_LOCKS:
+            raise
+        if not _warned_no_locks:
+            _warned_no_locks = True
+            log.warning(
+                "the study's file system offers no locks (%s): runs go on unlocked, so a run "
+                "asked for twice at once (the study started twice, a lost Dask result) may "
+                "run twice; its result is the same either way",
+                exc.strerror or exc,
+            )
+        return False
+    return True
+
+
 @contextlib.contextmanager
 def run_lock(directory: Path, *, wait: bool = True) -> Iterator[bool]:
     """Hold the run lock of ``directory`` for the block; yields whether it is held.
@@ -198,7 +228,7 @@ def run_lock(directory: Path, *, wait: bool = True) -> Iterator[bool]:
     fd = os.open(path, os.O_RDONLY | os.O_CREAT | os.O_CLOEXEC, 0o666)
     try:
         try:
-            fcntl.flock(fd, fcntl.LOCK_EX if wait else fcntl.LOCK_EX | fcntl.LOCK_NB)
+            _flock(fd, fcntl.LOCK_EX if wait else fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             yield False
             return
@@ -214,7 +244,7 @@ def run_busy(directory: Path) -> bool:
     except FileNotFoundError:
         return False  # never started
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        _flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
         return True
     finally:

@@ -36,3 +36,23 @@ def test_running_a_task_of_an_unknown_kind_fails_the_run_naming_it(tmp_path):
     directory = run_dir(tmp_path, FLYING)
     assert (directory / FAILED).is_file() and not (directory / SUMMARY).exists()
     assert json.loads((directory / FAILED).read_text())["error"] == summary["error"]
+
+
+def test_a_file_system_without_locks_runs_the_run_unlocked(tmp_path, monkeypatch, caplog):
+    # Lustre without its flock mount option, NFS without lockd: flock fails with ENOLCK there.
+    import errno
+    import fcntl
+
+    from studies import tasks
+
+    def no_locks(fd, operation):
+        raise OSError(errno.ENOLCK, "No locks available")
+
+    monkeypatch.setattr(fcntl, "flock", no_locks)
+    monkeypatch.setattr(tasks, "_warned_no_locks", False)
+    with tasks.run_lock(tmp_path / "run") as held:
+        assert held
+    assert not tasks.run_busy(tmp_path / "run")
+    with tasks.run_lock(tmp_path / "run", wait=False) as held:
+        assert held
+    assert caplog.text.count("offers no locks (No locks available)") == 1
