@@ -20,8 +20,8 @@ Classification (paper Sec. V-B, V-C): stopped if c_o < 5, circling if c_o > 55, 
 grouped if the mean cluster size exceeds 1.43, else dispersed; pushing if d_B > 0.1 m. With boxes
 (object manipulation, Sec. V-C) each run also gets one of the paper's three classes
 (:func:`classify_manipulation`): pushing when d_B > 0.1 m, else reverse driving when most of the
-moving steps went backwards, else circling (the paper's majority class, which takes every other
-run). The
+moving steps went backwards and the swarm is not circling, else circling (the paper's majority
+class, which takes every other run, robots circling backwards included). The
 thresholds were chosen for windows of 50 s (5000 Webots steps of 10 ms); our 10 Hz window of the
 same length is 500 steps, the default below when the recording is long enough (else its second
 half).
@@ -176,17 +176,18 @@ def behaviour_metrics(
     size = mean_cluster_size(poses, window, cluster_distance)
     d_b = None if box_start is None or box_end is None else box_displacement(box_start, box_end)
     backward = backward_share(poses)
+    motion = classify_motion(c_o)
     return BehaviourMetrics(
         distance_covered=distance_covered(poses),
         rotation=c_o,
         mean_cluster_size=size,
         box_displacement=d_b,
-        motion=classify_motion(c_o),
+        motion=motion,
         grouping=classify_grouping(size),
         pushing=None if d_b is None else d_b > PUSHING_ABOVE,
         window=window,
         backward_share=backward,
-        manipulation=None if d_b is None else classify_manipulation(d_b, backward),
+        manipulation=None if d_b is None else classify_manipulation(d_b, backward, motion),
     )
 
 
@@ -202,13 +203,15 @@ def backward_share(poses: np.ndarray) -> float:
     return float((forward[moving] < 0).sum() / count) if count else 0.0
 
 
-def classify_manipulation(d_b: float, backward: float) -> Manipulation:
+def classify_manipulation(d_b: float, backward: float, motion: str) -> Manipulation:
     """The paper's object-manipulation class (Sec. V-C): pushing when the boxes moved more than
-    0.1 m on average, else reverse driving when most moving steps went backwards, else
-    circling."""
+    0.1 m on average; else reverse driving when most moving steps went backwards and the swarm
+    does not circle (the paper's reverse drivers "drive backwards until they are stopped by
+    hardware protection"; robots going round small circles backwards are circling, as the
+    paper classed what it saw); else circling."""
     if d_b > PUSHING_ABOVE:
         return "pushing"
-    if backward > REVERSE_ABOVE:
+    if backward > REVERSE_ABOVE and motion != "circling":
         return "reverse driving"
     return "circling"
 

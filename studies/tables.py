@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from sim_stub.metrics import classify_manipulation
 from studies.stats import bonferroni, fisher, kruskal_wallis, mann_whitney
 
 __all__ = [
@@ -46,8 +47,10 @@ def behaviour_class(behaviour: dict[str, Any] | None) -> str | None:
     ``motion/grouping``; None without behaviour."""
     if not behaviour:
         return None
-    if behaviour.get("manipulation"):
-        return str(behaviour["manipulation"])
+    backward, d_b = behaviour.get("backward_share"), behaviour.get("box_displacement")
+    if backward is not None and d_b is not None:
+        # From the metrics, by the current rule, whatever rule the run was classed by.
+        return classify_manipulation(d_b, backward, behaviour["motion"])
     kind = f"{behaviour['motion']}/{behaviour['grouping']}"
     if behaviour.get("pushing") is not None:  # metrics written before the classes existed
         kind += "/pushing" if behaviour["pushing"] else "/not-pushing"

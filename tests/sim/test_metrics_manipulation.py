@@ -34,16 +34,18 @@ def test_backward_share_counts_the_moves_against_the_heading():
 
 
 @pytest.mark.parametrize(
-    ("d_b", "backward", "expected"),
+    ("d_b", "backward", "motion", "expected"),
     [
-        (0.2, 0.9, "pushing"),  # the boxes moved: pushing, whatever else the robots did
-        (0.05, 0.8, "reverse driving"),
-        (0.05, 0.2, "circling"),
-        (0.1, 0.5, "circling"),  # both thresholds are strict, as the paper's d_B > 0.1
+        (0.2, 0.9, "stopped", "pushing"),  # the boxes moved: pushing, whatever else
+        (0.05, 0.8, "stopped", "reverse driving"),  # backwards until the layer stopped them
+        (0.05, 0.8, "diverse", "reverse driving"),
+        (0.05, 0.99, "circling", "circling"),  # small circles, driven backwards
+        (0.05, 0.2, "stopped", "circling"),
+        (0.1, 0.5, "stopped", "circling"),  # both thresholds are strict, as the paper's d_B
     ],
 )
-def test_one_class_per_run(d_b, backward, expected):
-    assert classify_manipulation(d_b, backward) == expected
+def test_one_class_per_run(d_b, backward, motion, expected):
+    assert classify_manipulation(d_b, backward, motion) == expected
 
 
 def test_a_run_with_boxes_gets_its_class_and_a_run_without_none():
