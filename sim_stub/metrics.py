@@ -35,6 +35,9 @@ from typing import Literal
 import msgspec
 import numpy as np
 
+from minimize_surprise.jit import kernel
+from sim_stub.physics.grid import build, gather, grid_side, new_cells
+
 #: Robots closer than this (metres, between positions) are in one cluster (paper: 15.75 cm).
 CLUSTER_DISTANCE = 0.1575
 #: Classification thresholds of the paper.
@@ -134,18 +137,60 @@ def rotation(poses: np.ndarray, window: int | None = None, *, each_step: bool = 
 
 
 def cluster_counts(positions: np.ndarray, distance: float = CLUSTER_DISTANCE) -> np.ndarray:
-    """Number of clusters at each instant of ``positions`` (T, N, 2) (or one instant (N, 2))."""
+    """Number of clusters at each instant of ``positions`` (T, N, 2) (or one instant (N, 2)).
+
+    Robots are linked when their positions are at most ``distance`` apart and clusters are the
+    linked groups (single linkage, found by union-find). Only robots in neighbouring cells of a
+    grid at least ``distance`` wide are compared (.physics.grid), so a thousand robots cost a
+    thousand times what one costs, not a million; a robot at NaN is a cluster of its own.
+    """
     pos = np.asarray(positions, dtype=float)
     if pos.ndim == 2:
         pos = pos[None]
-    n = pos.shape[1]
-    d2 = ((pos[:, :, None, :] - pos[:, None, :, :]) ** 2).sum(axis=3)
-    reach = (d2 <= distance * distance).astype(np.int64)  # includes each robot itself
-    # Transitive closure by repeated squaring of the adjacency: log2(N) products.
-    for _ in range(max(1, math.ceil(math.log2(max(n, 2))))):
-        reach = np.minimum(reach @ reach, 1)
-    # Each robot contributes 1 / (size of its cluster): the sum counts the clusters.
-    return np.rint((1.0 / reach.sum(axis=2)).sum(axis=1)).astype(np.int64)
+    finite = np.abs(pos[np.isfinite(pos)])
+    # The grid covers every position, with room to spare so that none is at its edge.
+    half = (float(finite.max()) if finite.size else 0.0) + distance
+    return _count_clusters(np.ascontiguousarray(pos[:, :, :2]), float(distance), half)
+
+
+@kernel
+def _count_clusters(pos: np.ndarray, distance: float, half: float) -> np.ndarray:
+    steps, n = pos.shape[0], pos.shape[1]
+    side = grid_side(half, distance, n)
+    cells = new_cells(n, side)
+    cell, start, order = cells.cell, cells.start, cells.order
+    near = np.empty(n, dtype=np.int64)
+    parent = np.empty(n, dtype=np.int64)
+    reach2 = distance * distance
+    counts = np.empty(steps, dtype=np.int64)
+    for t in range(steps):
+        build(pos[t, :, 0], pos[t, :, 1], half, side, cell, start, order)
+        for i in range(n):
+            parent[i] = i
+        clusters = n
+        for i in range(n):
+            for q in range(gather(i, side, cell, start, order, near, False)):
+                j = near[q]
+                if j <= i:
+                    continue
+                dx = pos[t, i, 0] - pos[t, j, 0]
+                dy = pos[t, i, 1] - pos[t, j, 1]
+                if dx * dx + dy * dy <= reach2:
+                    a, b = _root(parent, i), _root(parent, j)
+                    if a != b:
+                        parent[max(a, b)] = min(a, b)
+                        clusters -= 1
+        counts[t] = clusters
+    return counts
+
+
+@kernel
+def _root(parent: np.ndarray, i: int) -> int:
+    # The root of i's tree, halving the path on the way (every other node to its grandparent).
+    while parent[i] != i:
+        parent[i] = parent[parent[i]]
+        i = parent[i]
+    return i
 
 
 def mean_cluster_size(

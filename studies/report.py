@@ -114,9 +114,11 @@ def _evaluations_table(out: Path, done):
             continue
         # The run's own "kind" column (initial, offspring, reevaluation) is the candidate's.
         table = pd.read_csv(path).rename(columns={"kind": "candidate"})
-        for key in ("group", "kind", "seed", "run", *sweep):
-            table.insert(0, key, row[key])
-        frames.append(table)
+        # The run's identity first (one concat: a swarm of a thousand has thousands of columns,
+        # which inserting one by one would copy each time).
+        keys = list(reversed(("group", "kind", "seed", "run", *sweep)))
+        ids = pd.DataFrame({key: [row[key]] * len(table) for key in keys}, index=table.index)
+        frames.append(pd.concat([ids, table], axis=1))
     if not frames:
         return None
     return pd.concat(frames, ignore_index=True)

@@ -43,6 +43,7 @@ Modules: :mod:`.model` (the constants, sensor geometry, noise), :mod:`.motion` (
 
 from __future__ import annotations
 
+from sim_stub.physics.grid import GRID_ROBOTS
 from sim_stub.physics.ir import IR_CONE, IR_RAY
 from sim_stub.physics.model import (
     GROUND_POSITIONS,
@@ -56,6 +57,7 @@ from sim_stub.physics.motion import clamp_commands, step_world
 from sim_stub.physics.sensing import sense
 
 __all__ = [
+    "GRID_ROBOTS",
     "GROUND_POSITIONS",
     "IR_CONE",
     "IR_HEADINGS",

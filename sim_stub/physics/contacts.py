@@ -11,6 +11,7 @@ import math
 import numpy as np
 
 from minimize_surprise.jit import kernel
+from sim_stub.physics.grid import Cells, build, gather, grid_side, new_cells
 from sim_stub.physics.model import Geometry
 
 # Overlaps shallower than this (metres) are left alone: resolving them exactly would take many
@@ -55,9 +56,34 @@ def _keep_inside_walls(g: Geometry, pose: np.ndarray) -> None:
 
 
 @kernel
+def contact_reach(g: Geometry) -> float:
+    """The farthest apart two body centres can be and still touch: the bodies' diameter, or a
+    blade's reach (its far end from the body's centre, then the other body's radius and half
+    the blade's thickness)."""
+    reach = 2 * g.robot_radius
+    if g.blade:
+        reach = max(reach, math.hypot(g.blade_x - g.body_offset, g.hw) + g.robot_radius + g.tb)
+    return reach
+
+
+@kernel
 def _separate_robots(g: Geometry, pose: np.ndarray) -> bool:
-    # Whether any robot moved. Each pass computes every push from the same positions, then
-    # applies them all, as a simultaneous relaxation.
+    # Whether any robot moved. From g.grid_robots robots on, a robot looks for the robots it
+    # touches among its neighbours in a grid (.grid), below among every other robot.
+    n = pose.shape[0]
+    if n >= g.grid_robots:
+        side = grid_side(g.wall_half, contact_reach(g), n)
+        if side > 1:
+            return _separate(g, pose, new_cells(n, side))
+    return _separate(g, pose, None)
+
+
+@kernel
+def _separate(g: Geometry, pose: np.ndarray, cells: Cells | None) -> bool:
+    # Each pass computes every push from the same positions, then applies them all, as a
+    # simultaneous relaxation. A robot's pushes are added in increasing index of the other
+    # robot: every other robot, or (``cells`` given) its neighbours in the grid, the same pushes
+    # in the same order. Numba compiles one of each, the choices on ``cells is None`` away.
     n = pose.shape[0]
     moved = False
     c = np.empty(n)
@@ -71,14 +97,25 @@ def _separate_robots(g: Geometry, pose: np.ndarray) -> bool:
     cx = np.empty(n)
     cy = np.empty(n)
     reach = g.robot_radius + g.tb
+    # The grid's arrays, read once (numba counts a reference at every read from a tuple).
+    if cells is None:
+        side, cell, start, order = 0, None, None, None
+        near = np.empty(0, dtype=np.int64)  # unused: every robot is a candidate
+    else:
+        side, cell, start, order = cells
+        near = np.empty(n, dtype=np.int64)  # a robot's candidates
     for _ in range(_ROBOT_PASSES):
         shift_x[:] = 0.0
         shift_y[:] = 0.0
         for i in range(n):
             cx[i] = pose[i, 0] + g.body_offset * c[i]
             cy[i] = pose[i, 1] + g.body_offset * s[i]
+        if cells is not None:
+            build(cx, cy, g.wall_half, side, cell, start, order)
         for i in range(n):
-            for j in range(n):
+            m = n if cells is None else gather(i, side, cell, start, order, near, True)
+            for q in range(m):
+                j = q if cells is None else near[q]
                 if i == j:
                     continue
                 dx = cx[i] - cx[j]
@@ -99,7 +136,9 @@ def _separate_robots(g: Geometry, pose: np.ndarray) -> bool:
                 ay = pose[i, 1] + g.blade_x * s[i] + g.hw * c[i]
                 ux = 2 * g.hw * s[i]
                 uy = -2 * g.hw * c[i]
-                for j in range(n):
+                m = n if cells is None else gather(i, side, cell, start, order, near, True)
+                for q in range(m):
+                    j = q if cells is None else near[q]
                     if i == j:
                         continue
                     wx = cx[j] - ax

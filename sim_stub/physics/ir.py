@@ -39,18 +39,19 @@ def _lookup(d: float, table_d: np.ndarray, table_v: np.ndarray) -> float:
 
 @kernel
 def _ir_value(
-    sn: Sensing, bodies: np.ndarray, me: int, sx: float, sy: float, cp: float, sp: float,
-    step: int, channel: int,
+    sn: Sensing, bodies: np.ndarray, n: int, skip: int, me: int, sx: float, sy: float,
+    cp: float, sp: float, step: int, channel: int,
 ) -> float:  # fmt: skip
-    # ``bodies`` (N, 2): the centre of every robot's body circle.
-    n = bodies.shape[0]
+    # Robot ``me``'s sensor at (sx, sy) facing (cp, sp). ``bodies[:n]`` (N, 2): the centres of
+    # the other robots' body circles, and at row ``skip`` robot ``me``'s own (-1: not there):
+    # every robot's, or those of its neighbours (.grid; the nearest is the same in any order).
     r = sn.robot_radius
     best = np.inf
     if sn.ir_model == IR_CONE:
         ca, sa = sn.ir_ca, sn.ir_sa
         reach2 = (sn.ir_range + r) ** 2
         for j in range(n):
-            if j == me:
+            if j == skip:
                 continue
             wx = bodies[j, 0] - sx
             wy = bodies[j, 1] - sy
@@ -98,7 +99,7 @@ def _ir_value(
     # The ray model: the first body or visible wall on the axis.
     reach2 = (sn.ir_range + r) ** 2
     for j in range(n):
-        if j == me:
+        if j == skip:
             continue
         wx = bodies[j, 0] - sx
         wy = bodies[j, 1] - sy

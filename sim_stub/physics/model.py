@@ -12,6 +12,7 @@ import numpy as np
 
 from minimize_surprise.jit import kernel
 from minimize_surprise.rng import mix32
+from sim_stub.physics.grid import GRID_ROBOTS
 
 __all__ = ["GROUND_POSITIONS", "IR_HEADINGS", "IR_POSITIONS", "Geometry", "Sensing", "gaussian"]
 
@@ -57,6 +58,8 @@ class Geometry(NamedTuple):
     box_iterations: int
     box_reach2: float  # boxes farther than this (squared) from a wheel axis cannot touch it
     force_per_box: float
+    #: from this many robots on, contacts find neighbours in a cell grid (.grid)
+    grid_robots: int = GRID_ROBOTS
 
 
 class Sensing(NamedTuple):
@@ -94,6 +97,8 @@ class Sensing(NamedTuple):
     noise: float
     columns: np.ndarray
     seed: int
+    #: from this many robots on, the IR finds the robots it may see in a cell grid (.grid)
+    grid_robots: int = GRID_ROBOTS
 
 
 # --------------------------------------------------------------------------- random numbers

@@ -12,6 +12,7 @@ import math
 import numpy as np
 
 from minimize_surprise.jit import kernel
+from sim_stub.physics.grid import Cells, build, gather_points, grid_side, new_cells
 from sim_stub.physics.ir import _ir_value
 from sim_stub.physics.model import GROUND_POSITIONS, IR_HEADINGS, IR_POSITIONS, Sensing, gaussian
 
@@ -25,21 +26,64 @@ _IR0, _GROUND0, _FORCE, _LIGHT0 = 0, 7, 9, 10
 
 
 @kernel
+def ir_reach(sn: Sensing) -> float:
+    """The farthest apart two body centres can be for one robot's IR to see the other: the
+    IR's reach from a sensor (its range beyond the other body's radius) plus the farthest
+    sensor from the body's centre."""
+    far = 0.0
+    for k in range(IR_POSITIONS.shape[0]):
+        far = max(far, math.hypot(IR_POSITIONS[k, 0] - sn.body_offset, IR_POSITIONS[k, 1]))
+    return sn.ir_range + sn.robot_radius + far
+
+
+@kernel
 def sense(
     sn: Sensing, pose: np.ndarray, force: np.ndarray, step: int, out: np.ndarray,
     full: np.ndarray,
 ) -> None:  # fmt: skip
     """Every robot's sensor values for the arena as it is at ``step`` into ``out`` (N, R), in
-    the order of ``sn.columns``; ``full`` (N, 12) is scratch space."""
+    the order of ``sn.columns``; ``full`` (N, 12) is scratch space. From ``sn.grid_robots``
+    robots on, a robot's IR looks only at the robots in the cells of a grid around its own
+    (.grid)."""
+    n = pose.shape[0]
+    if sn.need_ir and n >= sn.grid_robots:
+        side = grid_side(sn.wall_half, ir_reach(sn), n)
+        if side > 1:
+            _sense(sn, pose, force, step, out, full, new_cells(n, side))
+            return
+    _sense(sn, pose, force, step, out, full, None)
+
+
+@kernel
+def _sense(
+    sn: Sensing, pose: np.ndarray, force: np.ndarray, step: int, out: np.ndarray,
+    full: np.ndarray, cells: Cells | None,
+) -> None:  # fmt: skip
+    # ``sense`` with every robot's IR looking at every other robot (``cells`` None) or at its
+    # neighbours in the grid; numba compiles one of each, the choices on ``cells is None`` away.
     n = pose.shape[0]
     bodies = np.empty((n, 2))
     for i in range(n):
         bodies[i, 0] = pose[i, 0] + sn.body_offset * math.cos(pose[i, 2])
         bodies[i, 1] = pose[i, 1] + sn.body_offset * math.sin(pose[i, 2])
+    # With cells: the grid's arrays, read once (numba counts a reference at every read from a
+    # tuple), and the body centres of a robot's neighbours in a row.
+    if cells is None:
+        side, cell, start, order = 0, None, None, None
+        near = np.empty((0, 2))  # unused: every robot's body is looked at
+    else:
+        side, cell, start, order = cells
+        near = np.empty((n, 2))
+        build(bodies[:, 0], bodies[:, 1], sn.wall_half, side, cell, start, order)
     for i in range(n):
         x, y, th = pose[i, 0], pose[i, 1], pose[i, 2]
         c, s = math.cos(th), math.sin(th)
         if sn.need_ir:
+            if cells is None:
+                others, m, skip = bodies, n, i
+            else:
+                m = gather_points(i, side, cell, start, order, bodies, near)
+                others, skip = near, -1
             for k in range(7):
                 px, py = IR_POSITIONS[k, 0], IR_POSITIONS[k, 1]
                 sx = x + c * px - s * py
@@ -47,7 +91,7 @@ def sense(
                 # cos and sin of th + heading, from those of th and of the heading
                 cp = c * _IR_COS[k] - s * _IR_SIN[k]
                 sp = s * _IR_COS[k] + c * _IR_SIN[k]
-                full[i, _IR0 + k] = _ir_value(sn, bodies, i, sx, sy, cp, sp, step, k)
+                full[i, _IR0 + k] = _ir_value(sn, others, m, skip, i, sx, sy, cp, sp, step, k)
         if sn.need_ground:
             half = sn.arena_half
             for k in range(2):

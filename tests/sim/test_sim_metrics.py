@@ -153,3 +153,25 @@ def test_the_default_window_is_50_s_or_the_second_half():
 def test_poses_must_have_the_right_shape():
     with pytest.raises(ValueError, match="shape"):
         rotation(np.zeros((10, 3)))
+
+
+@pytest.mark.parametrize("robots", [3, 40, 1000])
+def test_clusters_of_a_large_swarm_are_those_of_its_whole_linkage_graph(robots):
+    # Every pair compared, the graph's connected components counted by scipy: what the grid
+    # (which compares only neighbouring cells) must find, here at about the basic density and
+    # twice it, robots exactly 15.75 cm apart linked, a NaN robot alone.
+    from scipy.sparse.csgraph import connected_components
+
+    rng = np.random.default_rng(robots)
+    side = math.sqrt(robots / 10)
+    positions = rng.uniform(-side / 2, side / 2, size=(6, robots, 2))
+    positions[3:] *= 0.7
+    positions[5, 1] = positions[5, 0] + [metrics.CLUSTER_DISTANCE, 0.0]
+    positions[4, 0] = np.nan
+    expected = []
+    for instant in positions:
+        d2 = ((instant[:, None] - instant[None]) ** 2).sum(axis=2)
+        linked = d2 <= metrics.CLUSTER_DISTANCE**2
+        expected.append(connected_components(linked, directed=False)[0])
+    assert cluster_counts(positions).tolist() == expected
+    assert min(expected) < robots  # some robots were linked

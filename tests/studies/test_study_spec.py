@@ -89,3 +89,9 @@ def test_the_shipped_paper_studies_load_and_expand():
     assert all(t["params"]["setting"] == "paper" for t in full)
     reduced = expand(load_study(find_study("paper-sec5-reduced")))
     assert len(reduced) == 5 + 10 + 5 + 10
+    # The scale study keeps the basic arena's density (10 robots per square metre of carpet).
+    scale = expand(load_study(find_study("scale")))
+    assert len(scale) == 2 * (5 + 5 + 3)
+    sizes = {(t["params"]["robots"], t["params"]["simulation"]["arena_side"]) for t in scale}
+    assert {n for n, _ in sizes} == {10, 100, 1000}
+    assert all(n / side**2 == pytest.approx(10, rel=1e-4) for n, side in sizes)

@@ -1,0 +1,150 @@
+"""Neighbour lookup for large swarms: a uniform grid of cells (a cell list) over the arena.
+
+Robot-robot contacts (:mod:`.contacts`) and the IR sensing of other robots (:mod:`.sensing`)
+only concern robots closer than a range: the bodies' diameter (the blade's reach with a blade)
+and the IR's range beyond a sensor. From :data:`GRID_ROBOTS` robots on (``Geometry.grid_robots``,
+``Sensing.grid_robots``) the kernels put every robot's body centre into square cells at least as
+wide as that range, rebuilt wherever positions change, and look for a robot's neighbours only
+in the 3 x 3 cells around its own: a step costs O(N) instead of O(N^2). Below, every pair is
+looked at (one cell holds every robot).
+
+Both give the same results bit for bit: a robot's candidates are visited in increasing index,
+as the all-pairs loops visit them (``gather(..., ordered=True)`` sorts them), so every push is
+added in the same order; the IR takes the minimum of its distances, which no order changes.
+Robots a rounding error beyond the walls count in the outermost cells, which keeps every pair
+within range in neighbouring cells.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+from minimize_surprise.jit import kernel
+
+__all__ = ["GRID_ROBOTS", "Cells", "build", "gather", "gather_points", "grid_side", "new_cells"]
+
+#: From this many robots on, contacts and sensing find neighbours in the grid. Measured at the
+#: basic scenario's density (``benchmarks/scale.py``, docs/simulation.md): below about 25 robots
+#: looking at every pair is as fast as or faster than building and visiting cells; from 32 on the
+#: grid wins, by 1.3x at 50 robots and 2x at 100. The paper's swarms (4 and 10 robots) keep the
+#: all-pairs loops.
+GRID_ROBOTS = 40
+
+# Cells are this much (metres) wider than the range they serve, so that rounding in the cell
+# index never puts two robots within range two cells apart.
+_MARGIN = 1e-6
+
+
+@kernel
+def grid_side(wall_half: float, reach: float, n: int) -> int:
+    """Cells per side of a grid for ``n`` robots between walls ``wall_half`` from the centre,
+    for pairs closer than ``reach``: as many as fit at least ``reach`` wide, at most about
+    2 sqrt(n) (few robots in a large arena need no more cells than robots)."""
+    k = int(2.0 * wall_half / (reach + _MARGIN))
+    return max(1, min(k, 2 * int(math.sqrt(n)) + 1))
+
+
+class Cells(NamedTuple):
+    """A grid of ``side`` x ``side`` cells over N points: ``cell`` (N) each point's cell; the
+    points of cell c are ``order[start[c]:start[c + 1]]``, in increasing index (:func:`build`).
+    """
+
+    side: int
+    cell: np.ndarray
+    start: np.ndarray
+    order: np.ndarray
+
+
+@kernel
+def new_cells(n: int, side: int) -> Cells:
+    """An empty grid of ``side`` x ``side`` cells for ``n`` points."""
+    return Cells(
+        side,
+        np.empty(n, dtype=np.int64),
+        np.empty(side * side + 1, dtype=np.int64),
+        np.empty(n, dtype=np.int64),
+    )
+
+
+@kernel
+def build(
+    xs: np.ndarray, ys: np.ndarray, half: float, side: int, cell: np.ndarray,
+    start: np.ndarray, order: np.ndarray,
+) -> None:  # fmt: skip
+    """Sort the points (``xs``, ``ys``) into ``side`` x ``side`` cells covering [-half, half]^2
+    (the arrays of :class:`Cells`); a point beyond (or NaN) counts in the outermost cell."""
+    n = xs.shape[0]
+    size = 2.0 * half / side
+    start[:] = 0
+    for i in range(n):
+        fx = (xs[i] + half) / size
+        fy = (ys[i] + half) / size
+        gx = 0 if not fx >= 0.0 else (side - 1 if fx >= side else int(fx))
+        gy = 0 if not fy >= 0.0 else (side - 1 if fy >= side else int(fy))
+        c = gy * side + gx
+        cell[i] = c
+        start[c + 1] += 1
+    for c in range(side * side):
+        start[c + 1] += start[c]
+    for i in range(n):
+        c = cell[i]
+        # start[c] counts up while the cell fills, then is put back below.
+        order[start[c]] = i
+        start[c] += 1
+    for c in range(side * side - 1, 0, -1):
+        start[c] = start[c - 1]
+    start[0] = 0
+
+
+@kernel
+def gather(
+    i: int, side: int, cell: np.ndarray, start: np.ndarray, order: np.ndarray, out: np.ndarray,
+    ordered: bool,
+) -> int:  # fmt: skip
+    """Point ``i``'s candidate neighbours (itself included) into ``out``: every point in the
+    3 x 3 cells around its own; returns their number. With ``ordered``, in increasing
+    index."""
+    c = cell[i]
+    cx, cy = c % side, c // side
+    m = 0
+    for gy in range(max(cy - 1, 0), min(cy + 2, side)):
+        for gx in range(max(cx - 1, 0), min(cx + 2, side)):
+            d = gy * side + gx
+            for p in range(start[d], start[d + 1]):
+                out[m] = order[p]
+                m += 1
+    if ordered:
+        # Insertion sort: a handful of candidates, in up to nine increasing runs.
+        for a in range(1, m):
+            v = out[a]
+            b = a - 1
+            while b >= 0 and out[b] > v:
+                out[b + 1] = out[b]
+                b -= 1
+            out[b + 1] = v
+    return m
+
+
+@kernel
+def gather_points(
+    i: int, side: int, cell: np.ndarray, start: np.ndarray, order: np.ndarray,
+    xy: np.ndarray, out: np.ndarray,
+) -> int:  # fmt: skip
+    """The rows of ``xy`` (N, 2) of point ``i``'s candidate neighbours (not itself) into the
+    first rows of ``out``, in no particular order; returns their number."""
+    c = cell[i]
+    cx, cy = c % side, c // side
+    m = 0
+    for gy in range(max(cy - 1, 0), min(cy + 2, side)):
+        for gx in range(max(cx - 1, 0), min(cx + 2, side)):
+            d = gy * side + gx
+            for p in range(start[d], start[d + 1]):
+                j = order[p]
+                if j != i:
+                    out[m, 0] = xy[j, 0]
+                    out[m, 1] = xy[j, 1]
+                    m += 1
+    return m
