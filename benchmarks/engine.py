@@ -8,10 +8,15 @@ no files written. Many runs: ``--runs`` independent swarms (seeds 1..runs) in on
 evaluation round evaluating every run's candidate. Enki: its bare world (no networks, no evolution)
 stepping 10 Thymio II in the same arena at the same 10 ms step, measured by ``benchmarks/sim.py``'s
 Enki probe in the system python. CPU time of this process pinned to one core. Prints ``name: value
-unit`` lines. Run: ``python benchmarks/engine.py [--evaluations 50] [--runs 4] [--repeats 3]``
+unit`` lines. Run: ``python benchmarks/engine.py [--evaluations 50] [--runs 4] [--repeats 3]
+[--quick-start]``
 
-Target (issue 11): a whole paper-setting run at least as fast per robot-step as Enki's bare world,
-i.e. the paper's 10-million-robot-step experiment in about a minute on one core.
+``--quick-start`` also times the README's quick start end to end, ``surprise-master sim`` in a
+child process on the same core (start-up, 1000 evaluations, the 10,000-step post-evaluation, the
+run directory and report written): its robot-steps per CPU second of the child.
+
+Targets: issue 11, a whole paper-setting run at least as fast per robot-step as Enki's bare
+world; issue 25, the quick start at least 4 times Enki's bare world.
 """
 
 from __future__ import annotations
@@ -22,8 +27,12 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import argparse  # noqa: E402
+import resource  # noqa: E402
+import shutil  # noqa: E402
 import statistics  # noqa: E402
+import subprocess  # noqa: E402
 import sys  # noqa: E402
+import tempfile  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -61,6 +70,26 @@ def run_many(runs: int, evaluations: int) -> float:
     return time.process_time() - cpu
 
 
+#: Robot-steps of the quick start: 1000 evaluations of 1000 steps and the final stop, then the
+#: 10,000-step post-evaluation and its stop, 10 robots.
+QUICK_START_ROBOT_STEPS = 10 * (1000 * 1001 + 10_001)
+
+
+def time_quick_start() -> float:
+    """CPU seconds of ``surprise-master sim`` (the README's quick start) in a child process,
+    compiled kernels cached by a first run that is not timed."""
+    command = shutil.which("surprise-master") or "surprise-master"
+    with tempfile.TemporaryDirectory() as tmp:
+        subprocess.run(  # compiles what is not in the cache yet
+            [command, "sim", "--evaluations", "2", "--out", f"{tmp}/warm"],
+            check=True, capture_output=True,
+        )  # fmt: skip
+        before = resource.getrusage(resource.RUSAGE_CHILDREN)
+        subprocess.run([command, "sim", "--out", f"{tmp}/run"], check=True, capture_output=True)
+        after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+
+
 def main() -> None:
     """Measure and print the figures."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -68,6 +97,7 @@ def main() -> None:
     parser.add_argument("--runs", type=int, default=4)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--enki-python", default="/usr/bin/python3")
+    parser.add_argument("--quick-start", action="store_true", help="time the quick start too")
     args = parser.parse_args()
     pin_to_one_core()
     per_step = 10 * 1000  # robot-steps per evaluation: 10 robots, 1000 steps
@@ -90,6 +120,12 @@ def main() -> None:
     enki_rate = enki["robots"] / enki["cpu_per_step"]
     print(f"enki_bare_world_robot_steps_per_s: {enki_rate:.0f} robot-steps/s")
     print(f"engine_run_vs_enki_bare_world: {one_rate / enki_rate:.2f} x")
+    if args.quick_start:
+        quick = time_quick_start()
+        quick_rate = QUICK_START_ROBOT_STEPS / quick
+        print(f"quick_start_cpu: {quick:.1f} s")
+        print(f"quick_start_robot_steps_per_s: {quick_rate:.0f} robot-steps/s")
+        print(f"quick_start_vs_enki_bare_world: {quick_rate / enki_rate:.2f} x")
 
 
 if __name__ == "__main__":

@@ -185,6 +185,87 @@ def network_step(
 
 
 @kernel
+def network_step_lanes(
+    a_in: np.ndarray,
+    a_out: np.ndarray,
+    p_in: np.ndarray,
+    p_self: np.ndarray,
+    p_out: np.ndarray,
+    free: np.ndarray,
+    fixed: np.ndarray,
+    work: np.ndarray,
+    previous: np.ndarray,
+    hidden: np.ndarray,
+    z: np.ndarray,
+    action: np.ndarray,
+    prediction: np.ndarray,
+) -> None:
+    """:func:`network_step` for N robots sharing one genome, each robot a lane of every array:
+    the same arithmetic in the same order for each robot, so the same results to the last bit,
+    but with the robots innermost, where a robot's sums wait on one another in
+    :func:`network_step`, the robots' sums here are independent and the compiler runs several
+    at once (vector instructions).
+
+    ``work`` (R + 3 + H_a, N): rows 0..R-1 hold the robots' readings s(t) on entry, the rest is
+    scratch; ``previous`` (2, N) a(t-1), becoming a(t); ``hidden`` (H_p, N) h(t-1), becoming
+    h(t); ``z`` (N) scratch; ``action`` (2, N) a(t); ``prediction`` (R, N) p(t+1).
+    """
+    r = prediction.shape[0]
+    n = z.shape[0]
+    inputs = r + 3
+    ha = a_in.shape[0]
+    for i in range(n):
+        work[r, i] = previous[0, i]
+        work[r + 1, i] = previous[1, i]
+        work[r + 2, i] = 1.0
+    for j in range(ha):
+        z[:] = 0.0
+        _add_dot_lanes(a_in[j], work, z)
+        for i in range(n):
+            work[inputs + j, i] = np.tanh(z[i])
+    for m in range(2):
+        z[:] = a_out[m, ha]
+        for j in range(ha):
+            w = a_out[m, j]
+            for i in range(n):
+                z[i] += w * work[inputs + j, i]
+        for i in range(n):
+            action[m, i] = np.tanh(z[i])
+            previous[m, i] = action[m, i]
+    for k in range(r):
+        prediction[k, :] = fixed[k]
+    hp = p_in.shape[0]
+    if hp == 0:
+        return
+    for i in range(n):
+        work[r, i] = action[0, i]
+        work[r + 1, i] = action[1, i]
+    for j in range(hp):
+        for i in range(n):
+            z[i] = p_self[j] * hidden[j, i]
+        _add_dot_lanes(p_in[j], work, z)
+        for i in range(n):
+            hidden[j, i] = 0.5 * (np.tanh(0.5 * z[i]) + 1.0)
+    for o in range(free.shape[0]):
+        z[:] = p_out[o, hp]
+        for j in range(hp):
+            w = p_out[o, j]
+            for i in range(n):
+                z[i] += w * hidden[j, i]
+        for i in range(n):
+            prediction[free[o], i] = 0.5 * (np.tanh(0.5 * z[i]) + 1.0)
+
+
+@kernel
+def _add_dot_lanes(weights: np.ndarray, work: np.ndarray, z: np.ndarray) -> None:
+    # z[i] += weights[k] * work[k, i] for k ascending, in every lane i.
+    for k in range(weights.shape[0]):
+        w = weights[k]
+        for i in range(z.shape[0]):
+            z[i] += w * work[k, i]
+
+
+@kernel
 def network_step_batch(
     a_in: np.ndarray,
     a_out: np.ndarray,

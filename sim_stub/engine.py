@@ -32,7 +32,7 @@ from minimize_surprise.network import (
     GenomeLayout,
     NetworkSpec,
     Weights,
-    network_step,
+    network_step_lanes,
     network_weights,
 )
 from minimize_surprise.safety import (
@@ -163,19 +163,21 @@ def evaluate(
     r = columns.shape[0]
     values = np.empty((n, sn.columns.shape[0]))
     full = np.zeros((n, _FULL_WIDTH))
-    s = np.empty(r)
-    previous = np.full((n, 2), initial_action)
-    hidden = np.empty((n, p_init.shape[0]))
+    # The networks' arrays hold a robot in each column (network_step_lanes): readings s(t) in
+    # the first R rows of ``work``, a(t-1), h(t-1), p(t+1) as the robots' columns.
+    work = np.empty((r + 3 + a_in.shape[0], n))
+    z = np.empty(n)
+    previous = np.full((2, n), initial_action)
+    hidden = np.empty((p_init.shape[0], n))
+    action = np.empty((2, n))
+    predictions = np.empty((r, n))
     for i in range(n):
-        hidden[i, :] = p_init
+        hidden[:, i] = p_init
         # A new genome: no manoeuvre carries over; the generator of escape turns does.
         state[i, 0] = 0
         state[i, 1] = 0
         state[i, 2] = 0
         state[i, 3] = 0
-    work = np.empty(r + 3 + a_in.shape[0])
-    action = np.empty(2)
-    predictions = np.empty((n, r))
     total = np.zeros(n)
     interventions[:, :] = 0
     for t in range(steps):
@@ -184,25 +186,26 @@ def evaluate(
         physics.sense(sn, pose, force, world_step, values, full)
         for i in range(n):
             for k in range(r):
-                s[k] = values[i, columns[k]]
+                work[k, i] = values[i, columns[k]]
             if t > 0:
-                total[i] += step_score(predictions[i], s)
-            network_step(
-                a_in, a_out, p_in, p_self, p_out, free, fixed, s, previous[i], hidden[i], work,
-                action, predictions[i],
-            )  # fmt: skip
+                total[i] += step_score(predictions[:, i], work[:r, i])
+        network_step_lanes(
+            a_in, a_out, p_in, p_self, p_out, free, fixed, work, previous, hidden, z, action,
+            predictions,
+        )  # fmt: skip
+        for i in range(n):
             left, right, code = safety_step(
-                sp, front, rear, ground, force_idx, values[i], action[0], action[1], True, 0.0,
-                state[i],
+                sp, front, rear, ground, force_idx, values[i], action[0, i], action[1, i], True,
+                0.0, state[i],
             )  # fmt: skip
             interventions[i, code] += 1
             cmd[i, 0] = left
             cmd[i, 1] = right
             if record:
-                rec_sensors[t, i, :] = s
-                rec_predictions[t, i, :] = predictions[i]
-                rec_actions[t, i, 0] = action[0]
-                rec_actions[t, i, 1] = action[1]
+                rec_sensors[t, i, :] = work[:r, i]
+                rec_predictions[t, i, :] = predictions[:, i]
+                rec_actions[t, i, 0] = action[0, i]
+                rec_actions[t, i, 1] = action[1, i]
                 rec_commands[t, i, 0] = left
                 rec_commands[t, i, 1] = right
                 rec_reasons[t, i] = code

@@ -13,13 +13,16 @@ import math
 import numpy as np
 
 from minimize_surprise.jit import kernel
-from sim_stub.physics.model import Sensing, gaussian
+from sim_stub.physics.model import IR_HEADINGS, IR_POSITIONS, Sensing, gaussian
 
-__all__ = ["IR_CONE", "IR_RAY"]
+__all__ = ["IR_CONE", "IR_RAY", "ir_readings"]
 
 #: ``Sensing.ir_model`` values.
 IR_CONE = 0
 IR_RAY = 1
+
+_IR_COS = np.cos(IR_HEADINGS)
+_IR_SIN = np.sin(IR_HEADINGS)
 
 
 @kernel
@@ -38,69 +41,102 @@ def _lookup(d: float, table_d: np.ndarray, table_v: np.ndarray) -> float:
 
 
 @kernel
-def _ir_value(
-    sn: Sensing, bodies: np.ndarray, n: int, skip: int, me: int, sx: float, sy: float,
-    cp: float, sp: float, step: int, channel: int,
-) -> float:  # fmt: skip
-    # Robot ``me``'s sensor at (sx, sy) facing (cp, sp). ``bodies[:n]`` (N, 2): the centres of
-    # the other robots' body circles, and at row ``skip`` robot ``me``'s own (-1: not there):
-    # every robot's, or those of its neighbours (.grid; the nearest is the same in any order).
-    r = sn.robot_radius
-    best = np.inf
-    if sn.ir_model == IR_CONE:
-        ca, sa = sn.ir_ca, sn.ir_sa
-        reach2 = (sn.ir_range + r) ** 2
-        for j in range(n):
-            if j == skip:
-                continue
-            wx = bodies[j, 0] - sx
-            wy = bodies[j, 1] - sy
-            if wx * wx + wy * wy >= reach2:
-                continue  # out of range whatever the direction
-            dot = wx * cp + wy * sp
-            cross = abs(wx * sp - wy * cp)
-            # The ray of the cone nearest the other body's centre: the axis if the centre is
-            # inside the cone, else the cone's edge.
-            perp = cross * ca - dot * sa
-            centre = math.sqrt(wx * wx + wy * wy)
-            if perp <= 0.0:
-                along = centre
-                perp = 0.0
-            else:
-                along = dot * ca + cross * sa
-            chord2 = r * r - perp * perp
-            if centre < r:
-                d = 0.0
-            elif chord2 > 0.0 and along > 0.0:
-                d = along - math.sqrt(chord2)
-            else:
-                continue
-            if d < best:
-                best = d
-        if sn.walls_visible:
-            wall = sn.wall_half
-            for k in range(4):
-                if k == 0:
-                    cosn, sinn, gap = cp, abs(sp), wall - sx
-                elif k == 1:
-                    cosn, sinn, gap = -cp, abs(sp), wall + sx
-                elif k == 2:
-                    cosn, sinn, gap = sp, abs(cp), wall - sy
-                else:
-                    cosn, sinn, gap = -sp, abs(cp), wall + sy
-                eff = 1.0 if cosn >= ca else cosn * ca + sinn * sa
-                if eff > 1e-9:
-                    d = max(gap, 0.0) / eff
-                    if d < best:
-                        best = d
-        if best >= sn.ir_range:
-            return 0.0
-        return sn.ir_c / (best * best + sn.ir_c)
-    # The ray model: the first body or visible wall on the axis.
-    reach2 = (sn.ir_range + r) ** 2
-    for j in range(n):
-        if j == skip:
+def ir_readings(
+    sn: Sensing, bodies: np.ndarray, n: int, me: int, x: float, y: float, c: float, s: float,
+    step: int, out: np.ndarray,
+) -> None:  # fmt: skip
+    """Robot ``me``'s seven horizontal IR values into ``out[:7]``, the robot at (x, y) with
+    heading cosine and sine (c, s). ``bodies[:n]`` (N, 2): the centres of the other robots'
+    body circles it may see (its neighbours; the nearest is the same in any order)."""
+    # The model's numbers into locals once: the sensors below then call helpers of plain
+    # numbers, a call with the whole Sensing costing more than a sensor's arithmetic (measured).
+    r, ir_range, walls, wall = sn.robot_radius, sn.ir_range, sn.walls_visible, sn.wall_half
+    reach2 = (ir_range + r) ** 2
+    for k in range(7):
+        px, py = IR_POSITIONS[k, 0], IR_POSITIONS[k, 1]
+        sx = x + c * px - s * py
+        sy = y + s * px + c * py
+        # cos and sin of the heading plus the sensor's, from those of each
+        cp = c * _IR_COS[k] - s * _IR_SIN[k]
+        sp = s * _IR_COS[k] + c * _IR_SIN[k]
+        if sn.ir_model == IR_CONE:
+            ca, sa = sn.ir_ca, sn.ir_sa
+            best = _cone_nearest(bodies, n, sx, sy, cp, sp, r, reach2, ca, sa, walls, wall)
+            out[k] = 0.0 if best >= ir_range else sn.ir_c / (best * best + sn.ir_c)
             continue
+        best = _ray_nearest(
+            bodies, n, sx, sy, cp, sp, r, reach2, sn.ir_robot_reflectance, walls, wall,
+            sn.ir_wall_reflectance,
+        )  # fmt: skip
+        if best >= ir_range:
+            out[k] = 0.0
+            continue
+        value = _lookup(best, sn.ir_table_d, sn.ir_table_v)
+        if value > 0.0 and sn.ir_noise > 0.0:
+            value += sn.ir_noise * value * gaussian(sn.seed, step, me, 32 + k)
+        out[k] = value
+
+
+@kernel
+def _cone_nearest(
+    bodies: np.ndarray, n: int, sx: float, sy: float, cp: float, sp: float, r: float,
+    reach2: float, ca: float, sa: float, walls: bool, wall: float,
+) -> float:  # fmt: skip
+    # The nearest body or visible wall within the cone of the sensor at (sx, sy) facing
+    # (cp, sp), half angle with cosine and sine (ca, sa); inf if none.
+    best = np.inf
+    for j in range(n):
+        wx = bodies[j, 0] - sx
+        wy = bodies[j, 1] - sy
+        if wx * wx + wy * wy >= reach2:
+            continue  # out of range whatever the direction
+        dot = wx * cp + wy * sp
+        cross = abs(wx * sp - wy * cp)
+        # The ray of the cone nearest the other body's centre: the axis if the centre is
+        # inside the cone, else the cone's edge.
+        perp = cross * ca - dot * sa
+        centre = math.sqrt(wx * wx + wy * wy)
+        if perp <= 0.0:
+            along = centre
+            perp = 0.0
+        else:
+            along = dot * ca + cross * sa
+        chord2 = r * r - perp * perp
+        if centre < r:
+            d = 0.0
+        elif chord2 > 0.0 and along > 0.0:
+            d = along - math.sqrt(chord2)
+        else:
+            continue
+        if d < best:
+            best = d
+    if walls:
+        for k in range(4):
+            if k == 0:
+                cosn, sinn, gap = cp, abs(sp), wall - sx
+            elif k == 1:
+                cosn, sinn, gap = -cp, abs(sp), wall + sx
+            elif k == 2:
+                cosn, sinn, gap = sp, abs(cp), wall - sy
+            else:
+                cosn, sinn, gap = -sp, abs(cp), wall + sy
+            eff = 1.0 if cosn >= ca else cosn * ca + sinn * sa
+            if eff > 1e-9:
+                d = max(gap, 0.0) / eff
+                if d < best:
+                    best = d
+    return best
+
+
+@kernel
+def _ray_nearest(
+    bodies: np.ndarray, n: int, sx: float, sy: float, cp: float, sp: float, r: float,
+    reach2: float, robot_reflectance: float, walls: bool, wall: float, wall_reflectance: float,
+) -> float:  # fmt: skip
+    # The first body or visible wall on the axis of the sensor at (sx, sy) facing (cp, sp), at
+    # its distance divided by its reflectance; inf if none.
+    best = np.inf
+    for j in range(n):
         wx = bodies[j, 0] - sx
         wy = bodies[j, 1] - sy
         if wx * wx + wy * wy >= reach2:
@@ -113,11 +149,10 @@ def _ir_value(
             d = along - math.sqrt(r * r - perp2)
         else:
             continue
-        d /= sn.ir_robot_reflectance
+        d /= robot_reflectance
         if d < best:
             best = d
-    if sn.walls_visible:
-        wall = sn.wall_half
+    if walls:
         d = np.inf
         if cp > 1e-12:
             d = min(d, max(wall - sx, 0.0) / cp)
@@ -127,12 +162,7 @@ def _ir_value(
             d = min(d, max(wall - sy, 0.0) / sp)
         elif sp < -1e-12:
             d = min(d, max(wall + sy, 0.0) / -sp)
-        d /= sn.ir_wall_reflectance
+        d /= wall_reflectance
         if d < best:
             best = d
-    if best >= sn.ir_range:
-        return 0.0
-    value = _lookup(best, sn.ir_table_d, sn.ir_table_v)
-    if value > 0.0 and sn.ir_noise > 0.0:
-        value += sn.ir_noise * value * gaussian(sn.seed, step, me, 32 + channel)
-    return value
+    return best

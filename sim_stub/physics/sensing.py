@@ -13,16 +13,17 @@ import numpy as np
 
 from minimize_surprise.jit import kernel
 from sim_stub.physics.grid import Cells, build, gather_points, grid_side, new_cells
-from sim_stub.physics.ir import _ir_value
-from sim_stub.physics.model import GROUND_POSITIONS, IR_HEADINGS, IR_POSITIONS, Sensing, gaussian
+from sim_stub.physics.ir import ir_readings
+from sim_stub.physics.model import GROUND_POSITIONS, IR_POSITIONS, Sensing, gaussian
 
 __all__ = ["sense"]
 
-_IR_COS = np.cos(IR_HEADINGS)
-_IR_SIN = np.sin(IR_HEADINGS)
 
 # Indices of the sensors in the full frame (minimize_surprise.sensors.ALL_SENSORS).
 _IR0, _GROUND0, _FORCE, _LIGHT0 = 0, 7, 9, 10
+# Metres added to the IR's reach when picking the bodies a robot may see: rounding in the
+# distances never drops one the sensors would see.
+_REACH_SLACK = 1e-6
 
 
 @kernel
@@ -34,6 +35,27 @@ def ir_reach(sn: Sensing) -> float:
     for k in range(IR_POSITIONS.shape[0]):
         far = max(far, math.hypot(IR_POSITIONS[k, 0] - sn.body_offset, IR_POSITIONS[k, 1]))
     return sn.ir_range + sn.robot_radius + far
+
+
+@kernel
+def _within(
+    bodies: np.ndarray, i: int, xy: np.ndarray, m: int, skip: int, reach: float, out: np.ndarray
+) -> int:
+    # The rows of ``xy[:m]`` but row ``skip`` (-1: none) closer than ``reach`` to robot i's
+    # body centre into the first rows of ``out`` (which may be ``xy``), in order; their number.
+    # A robot's seven IR sensors then look at these few instead of at every robot, and find
+    # the same nearest body.
+    bx, by = bodies[i, 0], bodies[i, 1]
+    reach2 = reach * reach
+    kept = 0
+    for q in range(m):
+        dx = xy[q, 0] - bx
+        dy = xy[q, 1] - by
+        if q != skip and dx * dx + dy * dy < reach2:
+            out[kept, 0] = xy[q, 0]
+            out[kept, 1] = xy[q, 1]
+            kept += 1
+    return kept
 
 
 @kernel
@@ -67,31 +89,24 @@ def _sense(
         bodies[i, 0] = pose[i, 0] + sn.body_offset * math.cos(pose[i, 2])
         bodies[i, 1] = pose[i, 1] + sn.body_offset * math.sin(pose[i, 2])
     # With cells: the grid's arrays, read once (numba counts a reference at every read from a
-    # tuple), and the body centres of a robot's neighbours in a row.
+    # tuple). ``near``: the body centres a robot's IR may see, in a row.
+    near = np.empty((n, 2))
+    reach = ir_reach(sn) + _REACH_SLACK
     if cells is None:
         side, cell, start, order = 0, None, None, None
-        near = np.empty((0, 2))  # unused: every robot's body is looked at
     else:
         side, cell, start, order = cells
-        near = np.empty((n, 2))
         build(bodies[:, 0], bodies[:, 1], sn.wall_half, side, cell, start, order)
     for i in range(n):
         x, y, th = pose[i, 0], pose[i, 1], pose[i, 2]
         c, s = math.cos(th), math.sin(th)
         if sn.need_ir:
             if cells is None:
-                others, m, skip = bodies, n, i
+                m = _within(bodies, i, bodies, n, i, reach, near)
             else:
                 m = gather_points(i, side, cell, start, order, bodies, near)
-                others, skip = near, -1
-            for k in range(7):
-                px, py = IR_POSITIONS[k, 0], IR_POSITIONS[k, 1]
-                sx = x + c * px - s * py
-                sy = y + s * px + c * py
-                # cos and sin of th + heading, from those of th and of the heading
-                cp = c * _IR_COS[k] - s * _IR_SIN[k]
-                sp = s * _IR_COS[k] + c * _IR_SIN[k]
-                full[i, _IR0 + k] = _ir_value(sn, others, m, skip, i, sx, sy, cp, sp, step, k)
+                m = _within(bodies, i, near, m, -1, reach, near)
+            ir_readings(sn, near, m, i, x, y, c, s, step, full[i, _IR0 : _IR0 + 7])
         if sn.need_ground:
             half = sn.arena_half
             for k in range(2):
