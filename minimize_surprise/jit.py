@@ -8,14 +8,24 @@ numba), and the simulator's engine, which calls it from its own compiled loops f
 every run; the two cannot drift apart. ``SURPRISE_NO_JIT=1`` in the environment switches
 compilation off (for debugging; everything still works, slowly).
 
-Compiled code is cached next to the sources (numba's ``cache=True``), so only the first use on a
-machine pays the compilation, a few seconds per kernel.
+Compiled code is cached on disk (numba's ``cache=True``), so only the first use on a machine
+pays the compilation, a few seconds per kernel. numba tells a stale cache entry by its own
+source file only: a kernel whose file did not change keeps the compiled code of the kernels it
+calls as they were, and after an update that changed a callee's arguments the process dies in
+LLVM ("Symbol not found"). So the cache lives in a directory named by a fingerprint of every
+module that defines kernels (:func:`kernel_fingerprint`), under ``~/.cache/minimize-surprise/numba``
+(``$XDG_CACHE_HOME`` is honoured; a ``NUMBA_CACHE_DIR`` of the user's own is left as it is): an
+update compiles afresh, once.
 """
 
 from __future__ import annotations
 
+import hashlib
 import os
+import shutil
+import time
 from collections.abc import Callable
+from pathlib import Path
 from types import ModuleType
 from typing import Any, Literal, TypeVar
 
@@ -33,6 +43,50 @@ except ImportError:  # pragma: no cover - depends on the installation
 
 #: Whether kernels are compiled.
 JIT: bool = _numba is not None
+
+#: The packages whose modules may define kernels (those importing this module).
+_PACKAGES = ("minimize_surprise", "sim_stub", "gridworld", "robot_agent", "master_service")
+#: A module defines or calls kernels when it holds this.
+_MARK = b"from minimize_surprise.jit import"
+#: Cache directories of other fingerprints untouched this long are removed (seconds).
+_STALE_AFTER = 7 * 24 * 3600.0
+
+
+def kernel_fingerprint(root: Path, packages: tuple[str, ...] = _PACKAGES) -> str:
+    """A digest of the path and content of every module under ``root``'s ``packages`` that
+    uses kernels (and of this one): it changes when any kernel's source does."""
+    digest = hashlib.blake2b(digest_size=8)
+    files = sorted(f for package in packages for f in (root / package).rglob("*.py"))
+    for path in files:
+        content = path.read_bytes()
+        if _MARK in content or path.name == "jit.py":
+            digest.update(str(path.relative_to(root)).encode() + b"\0" + content + b"\0")
+    return digest.hexdigest()
+
+
+def _cache_root() -> Path:
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "minimize-surprise" / "numba"
+
+
+def _use_fingerprinted_cache(numba: ModuleType) -> None:
+    # Point numba's cache at this installation's fingerprint (module docstring), and forget the
+    # caches of old ones. Any failure leaves numba's own choice: a cache is an optimisation.
+    if os.environ.get("NUMBA_CACHE_DIR"):
+        return
+    try:
+        root = _cache_root()
+        here = root / kernel_fingerprint(Path(__file__).resolve().parent.parent)
+        numba.config.CACHE_DIR = str(here)
+        for other in root.iterdir() if root.is_dir() else ():
+            if other != here and time.time() - other.stat().st_mtime > _STALE_AFTER:
+                shutil.rmtree(other, ignore_errors=True)
+    except OSError:
+        pass
+
+
+if _numba is not None:
+    _use_fingerprinted_cache(_numba)
 
 
 def kernel(function: F | None = None, *, error_model: Literal["python", "numpy"] = "python") -> Any:
