@@ -306,16 +306,24 @@ def _run_afresh(task: dict[str, Any], directory: Path) -> dict[str, Any]:
 # --------------------------------------------------------------------------- the kinds
 
 
+#: An evolved run's options beside its experiment: ``plots`` (draw its pictures; default
+#: false) and ``traces`` (keep its post-evaluation traces; default true).
+_RUN_OPTIONS = ("plots", "traces")
+
+
 def _experiment(task: dict[str, Any]):
     from master_service.experiments.simulation_setup import simulation_experiment
 
     params = dict(task["params"])
-    params.pop("plots", None)
+    for key in _RUN_OPTIONS:  # the study's, not the experiment's
+        if not isinstance(params.pop(key, False), bool):
+            raise ConfigError("expected true or false", key=key)
     return simulation_experiment(data=params, seed=task["seed"])
 
 
 def _run_evolved(task: dict[str, Any], directory: Path) -> dict[str, Any]:
     from master_service.experiments.engine_run import FastRun
+    from master_service.rundir import TRACES
 
     experiment = _experiment(task)
     # No pictures per run unless asked: they cost a run about 4 s of its 20 to 30 (the study's
@@ -324,6 +332,11 @@ def _run_evolved(task: dict[str, Any], directory: Path) -> dict[str, Any]:
     result = FastRun(experiment).run(directory, plots=plots)
     if result is None:  # only when told to stop, and nothing here tells it to
         raise RuntimeError(f"the evolved run in {directory} stopped before its end")
+    if not task["params"].get("traces", True):
+        # The summary below keeps what the study's report needs; the traces (11 MB a run of 10
+        # robots, 1.1 GB of 1000) only serve `surprise-master report RUN` and replays of the
+        # post-evaluation's behaviour. A crash before the summary is written reruns the run.
+        shutil.rmtree(directory / TRACES, ignore_errors=True)
     metrics = result.metrics
     post = metrics.get("post_evaluation") or {}
     sensors = post.get("sensors") or {}

@@ -56,3 +56,31 @@ def test_a_file_system_without_locks_runs_the_run_unlocked(tmp_path, monkeypatch
     with tasks.run_lock(tmp_path / "run", wait=False) as held:
         assert held
     assert caplog.text.count("offers no locks (No locks available)") == 1
+
+
+def evolved(**options) -> dict:
+    params = {
+        "setting": "lab", "scenario": "basic", "robots": 2, "evaluation_steps": 8,
+        "post_evaluation_steps": 12, "evolution": {"evaluations": 3}, **options,
+    }  # fmt: skip
+    return {"group": "e", "kind": "evolved", "seed": 1, "sweep": {}, "run": "e/seed-1",
+            "params": params}  # fmt: skip
+
+
+def test_an_evolved_run_without_traces_keeps_its_summary_and_report_data(tmp_path):
+    # traces: false drops the post-evaluation's traces once the run's summary holds what the
+    # study's report needs: the same figures as a run that keeps them.
+    kept = run_task(evolved(), str(tmp_path / "kept"))
+    dropped = run_task(evolved(traces=False), str(tmp_path / "dropped"))
+    assert (run_dir(tmp_path / "kept", evolved()) / "traces").is_dir()
+    directory = run_dir(tmp_path / "dropped", evolved())
+    assert not (directory / "traces").exists() and (directory / SUMMARY).is_file()
+    for key in ("best_fitness", "post_fitness", "behaviour", "mean_sensors"):
+        assert dropped[key] == kept[key]
+
+
+@pytest.mark.parametrize("key", ["traces", "plots"])
+def test_a_run_option_that_is_not_true_or_false_is_refused_by_name(key):
+    with pytest.raises(ConfigError, match="expected true or false") as caught:
+        check_task(evolved(**{key: "no"}))
+    assert caught.value.key == key
