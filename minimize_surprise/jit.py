@@ -13,9 +13,13 @@ pays the compilation, a few seconds per kernel. numba tells a stale cache entry 
 source file only: a kernel whose file did not change keeps the compiled code of the kernels it
 calls as they were, and after an update that changed a callee's arguments the process dies in
 LLVM ("Symbol not found"). So the cache lives in a directory named by a fingerprint of every
-module that defines kernels (:func:`kernel_fingerprint`), under ``~/.cache/minimize-surprise/numba``
-(``$XDG_CACHE_HOME`` is honoured; a ``NUMBA_CACHE_DIR`` of the user's own is left as it is): an
-update compiles afresh, once.
+module that defines kernels (:func:`kernel_fingerprint`), under
+``~/.cache/minimize-surprise/numba`` (``$XDG_CACHE_HOME`` is honoured; without a writable home, a
+directory of the user's own in the temporary directory; with no writable place at all nothing is
+cached; a ``NUMBA_CACHE_DIR`` of the user's own is left as it is): an update compiles afresh,
+once. Where Intel's SVML library is installed numba may compute a loop's ``tanh`` with vector
+instructions whose last bit can differ from libm's; the engine's networks then may differ from
+an agent's in the last bit (``tests/core/test_network.py`` would tell).
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from __future__ import annotations
 import hashlib
 import os
 import shutil
+import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -64,29 +69,61 @@ def kernel_fingerprint(root: Path, packages: tuple[str, ...] = _PACKAGES) -> str
     return digest.hexdigest()
 
 
-def _cache_root() -> Path:
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "minimize-surprise" / "numba"
+def _cache_roots() -> list[Path]:
+    # Where fingerprinted caches may live, best first: the user's cache directory, then one of
+    # this user's own in the temporary directory (a container's user without a home).
+    bases = []
+    xdg = os.environ.get("XDG_CACHE_HOME", "")
+    if os.path.isabs(xdg):  # the XDG rule: a relative path is to be ignored
+        bases.append(Path(xdg) / "minimize-surprise")
+    home = os.path.expanduser("~")
+    if os.path.isabs(home) and home != "/":
+        bases.append(Path(home) / ".cache" / "minimize-surprise")
+    bases.append(Path(tempfile.gettempdir()) / f"minimize-surprise-{os.getuid()}")
+    return [base / "numba" for base in bases]
 
 
-def _use_fingerprinted_cache(numba: ModuleType) -> None:
-    # Point numba's cache at this installation's fingerprint (module docstring), and forget the
-    # caches of old ones. Any failure leaves numba's own choice: a cache is an optimisation.
-    if os.environ.get("NUMBA_CACHE_DIR"):
-        return
+def _writable(directory: Path) -> bool:
+    # Made if need be, owned by us and really writable (a probe file: permission bits do not
+    # tell for root without its capabilities, nor on a read-only mount).
     try:
-        root = _cache_root()
-        here = root / kernel_fingerprint(Path(__file__).resolve().parent.parent)
-        numba.config.CACHE_DIR = str(here)
-        for other in root.iterdir() if root.is_dir() else ():
-            if other != here and time.time() - other.stat().st_mtime > _STALE_AFTER:
-                shutil.rmtree(other, ignore_errors=True)
+        directory.mkdir(parents=True, exist_ok=True)
+        if directory.stat().st_uid != os.getuid():
+            return False
+        fd, probe = tempfile.mkstemp(dir=directory)
+        os.close(fd)
+        os.unlink(probe)
+        return True
     except OSError:
-        pass
+        return False
 
 
-if _numba is not None:
-    _use_fingerprinted_cache(_numba)
+def _use_fingerprinted_cache(numba: ModuleType) -> bool:
+    # Point numba's cache at this installation's fingerprint (module docstring) in the first
+    # writable place, mark it used, and forget other fingerprints unused for a week. False when
+    # no place is writable: numba would then fall back to caches next to the sources, where a
+    # stale callee survives, so kernels are not cached at all.
+    if os.environ.get("NUMBA_CACHE_DIR"):
+        return True
+    fingerprint = kernel_fingerprint(Path(__file__).resolve().parent.parent)
+    for root in _cache_roots():
+        here = root / fingerprint
+        if not _writable(here):
+            continue
+        numba.config.CACHE_DIR = str(here)
+        try:
+            os.utime(here)  # in use: not stale for another installation's clean-up
+            for other in root.iterdir():
+                if other != here and time.time() - other.stat().st_mtime > _STALE_AFTER:
+                    shutil.rmtree(other, ignore_errors=True)
+        except OSError:
+            pass
+        return True
+    return False
+
+
+#: Whether compiled kernels are cached on disk (see the module docstring).
+_CACHE: bool = _numba is not None and _use_fingerprinted_cache(_numba)
 
 
 def kernel(function: F | None = None, *, error_model: Literal["python", "numpy"] = "python") -> Any:
@@ -102,4 +139,4 @@ def kernel(function: F | None = None, *, error_model: Literal["python", "numpy"]
     if _numba is None:
         function.py_func = function  # type: ignore[attr-defined]
         return function
-    return _numba.njit(cache=True, nogil=True, error_model=error_model)(function)
+    return _numba.njit(cache=_CACHE, nogil=True, error_model=error_model)(function)

@@ -117,7 +117,7 @@ def _evaluations_table(out: Path, done):
         # The run's identity first (one concat: a swarm of a thousand has thousands of columns,
         # which inserting one by one would copy each time).
         keys = list(reversed(("group", "kind", "seed", "run", *sweep)))
-        ids = pd.DataFrame({key: [row[key]] * len(table) for key in keys}, index=table.index)
+        ids = pd.DataFrame({key: row[key] for key in keys}, index=table.index)
         frames.append(pd.concat([ids, table], axis=1))
     if not frames:
         return None

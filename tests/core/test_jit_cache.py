@@ -12,8 +12,13 @@ import os
 import subprocess
 import sys
 import textwrap
+import time
 from pathlib import Path
+from types import SimpleNamespace
 
+import pytest
+
+from minimize_surprise import jit
 from minimize_surprise.jit import kernel_fingerprint
 
 MODULE = "from minimize_surprise.jit import kernel\n\n\n@kernel\ndef f(x):\n    return x + {}\n"
@@ -39,10 +44,21 @@ def test_the_fingerprint_changes_with_a_kernel_module_and_only_then(tmp_path):
     assert kernel_fingerprint(root) not in (first, changed)
 
 
-def test_a_process_caches_kernels_under_its_fingerprint_in_the_user_cache(tmp_path):
-    # A fresh interpreter with its own cache home: numba's cache directory is ours, named by
-    # the installation's fingerprint, and a compiled kernel leaves its files there.
-    env = {**os.environ, "XDG_CACHE_HOME": str(tmp_path)}
+@pytest.mark.parametrize("home", ["usable", "unusable"])
+def test_a_process_caches_kernels_under_its_fingerprint(tmp_path, home):
+    # A fresh interpreter: numba's cache directory is ours, named by the installation's
+    # fingerprint, in the user's cache, or (no usable cache home: a container's user whose home
+    # is /) in a directory of the user's own in the temporary directory; a compiled kernel
+    # leaves its files there, not next to the sources.
+    env = {**os.environ, "XDG_CACHE_HOME": str(tmp_path / "cache")}
+    expected = tmp_path / "cache" / "minimize-surprise" / "numba"
+    if home == "unusable":
+        (tmp_path / "not-a-dir").write_text("")
+        (tmp_path / "tmp").mkdir()
+        env.update(
+            XDG_CACHE_HOME=str(tmp_path / "not-a-dir"), HOME="/", TMPDIR=str(tmp_path / "tmp")
+        )
+        expected = tmp_path / "tmp" / f"minimize-surprise-{os.getuid()}" / "numba"
     env.pop("NUMBA_CACHE_DIR", None)
     env.pop("SURPRISE_NO_JIT", None)
     script = textwrap.dedent(
@@ -62,5 +78,36 @@ def test_a_process_caches_kernels_under_its_fingerprint_in_the_user_cache(tmp_pa
         [sys.executable, "-c", script], env=env, capture_output=True, text=True, check=True
     )
     cache_dir, fingerprint = done.stdout.split()
-    assert Path(cache_dir) == tmp_path / "minimize-surprise" / "numba" / fingerprint
+    assert Path(cache_dir) == expected / fingerprint
     assert any(Path(cache_dir).rglob("*.nbi"))
+
+
+def fake_numba() -> SimpleNamespace:
+    return SimpleNamespace(config=SimpleNamespace(CACHE_DIR=""))
+
+
+def test_the_cache_in_use_is_kept_and_other_fingerprints_unused_for_a_week_go(
+    tmp_path, monkeypatch
+):
+    root = tmp_path / "numba"
+    monkeypatch.setattr(jit, "_cache_roots", lambda: [root])
+    here = root / kernel_fingerprint(Path(jit.__file__).resolve().parent.parent)
+    week = 8 * 24 * 3600
+    for name, age in ((here.name, week), ("old", week), ("recent", 3600)):
+        (root / name / "sub").mkdir(parents=True)
+        os.utime(root / name, (time.time() - age,) * 2)
+    numba = fake_numba()
+    assert jit._use_fingerprinted_cache(numba)
+    assert str(here) == numba.config.CACHE_DIR
+    assert sorted(p.name for p in root.iterdir()) == sorted([here.name, "recent"])
+    assert time.time() - here.stat().st_mtime < 60  # marked in use
+
+
+def test_with_no_writable_place_kernels_are_not_cached(tmp_path, monkeypatch):
+    # numba would fall back to caches next to the sources, where a stale callee survives.
+    (tmp_path / "file").write_text("")
+    monkeypatch.setattr(jit, "_cache_roots", lambda: [tmp_path / "file" / "numba"])
+    monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
+    numba = fake_numba()
+    assert not jit._use_fingerprinted_cache(numba)
+    assert numba.config.CACHE_DIR == ""
