@@ -22,7 +22,7 @@ Subcommands::
     surprise-master report DIR --baseline BASE      ... and evolved against random
     surprise-master watch --broker URL [--prefix P] [--once]
                                                     live view of a run's MQTT telemetry
-    surprise-master dashboard DIR [--host H] [--port P] [--open]
+    surprise-master dashboard DIR [--host H] [--port P] [--open] [--broker URL [--prefix P]]
                                                     live web page of a run (only reads DIR)
 
 Exit status: 0 done; 1 the run stopped on an error (a busy port, a full disk: one line naming the
@@ -201,6 +201,12 @@ def _parser() -> argparse.ArgumentParser:
         "--port", type=int, default=5006, help="port to serve on (default: 5006; 0: any free one)"
     )
     dashboard.add_argument("--open", action="store_true", help="open the page in a browser")
+    dashboard.add_argument(
+        "--broker",
+        metavar="URL",
+        help="also follow the swarm's MQTT telemetry (mqtt://host[:port])",
+    )
+    dashboard.add_argument("--prefix", help="the telemetry's topic prefix (default: surprise)")
     dashboard.set_defaults(handler=cli_lab.dashboard_command)
     return parser
 

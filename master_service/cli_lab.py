@@ -121,4 +121,7 @@ def dashboard_command(args: argparse.Namespace) -> int:
     """``surprise-master dashboard``."""
     from master_service.reporting.dashboard import run_dashboard  # bokeh only for this command
 
-    return run_dashboard(args.dir, args.host, args.port, open_browser=args.open)
+    return run_dashboard(
+        args.dir, args.host, args.port, open_browser=args.open, broker=args.broker,
+        prefix=args.prefix,
+    )  # fmt: skip

@@ -3,6 +3,7 @@
 ::
 
     surprise-master dashboard RUN_DIR [--host 127.0.0.1] [--port 5006] [--open]
+                                      [--broker mqtt://HOST[:PORT] [--prefix P]]
 
 The page (docs/dashboard.md) shows where the run stands (phase, evaluations done of the planned,
 time left, a pause and its reason), the best and each evaluation's fitness over the evaluations,
@@ -12,6 +13,10 @@ per-robot columns the run has) and, once the post-evaluation is written, the rob
 It is a separate process that only reads the run directory (:mod:`.dashboard_data`), once every
 :data:`POLL_INTERVAL` for all open pages together, so it serves a running, paused or finished run
 of ``run``, ``resume`` or ``sim`` alike, and nothing it does, or fails to do, reaches the run.
+With ``--broker`` it also follows the swarm's MQTT telemetry (docs/telemetry.md, as ``watch``
+does): each robot's own view, online or not by its last will, its battery after its last
+evaluation and how long ago it last spoke, which the robots publish whether or not the master
+can reach them.
 Every value the page shows stands in an element with a ``data-key`` (and, in the robots' table, its
 row's ``data-robot``) whose ``data-value`` holds the text read from the file, for a test or a
 script to read back.
@@ -24,6 +29,7 @@ robot's Pi) does without it. The HTML of the status and the table is built by pl
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import html
 import logging
 import signal
@@ -45,6 +51,8 @@ from master_service.rundir import RunDirError
 
 if TYPE_CHECKING:
     from bokeh.document import Document
+
+    from master_service.reporting.watch import SwarmState
 
 __all__ = [
     "DEFAULT_PORT",
@@ -127,8 +135,9 @@ def _item(label: str, key: str, text: str | None, shown: str | None = None) -> s
     return f'<span class="dash-label">{html.escape(label)}</span>' + _value(key, text, shown)
 
 
-def status_html(snapshot: Snapshot) -> str:
-    """Where the run stands: state, progress, fitness, time left, a pause and its reason."""
+def status_html(snapshot: Snapshot, telemetry: SwarmState | None = None) -> str:
+    """Where the run stands: state, progress, fitness, time left, a pause and its reason; with
+    ``telemetry``, the link to the broker and the messages read."""
     last = snapshot.last_row or {}
     planned = snapshot.planned
     done = f"{snapshot.evaluations} / {'?' if planned is None else planned}"
@@ -154,6 +163,9 @@ def status_html(snapshot: Snapshot) -> str:
         items.append(_item("master", "master", snapshot.master, snapshot.master))
     if snapshot.post_fitness is not None:
         items.append(_item("post-evaluation fitness", "post_fitness", repr(snapshot.post_fitness)))
+    if telemetry is not None:
+        link = f"{telemetry.broker}, {telemetry.messages} messages"
+        items.append(_item("telemetry", "telemetry", telemetry.broker, link))
     parts = [f'<div class="dash-grid">{"".join(items)}</div>']
     if planned:
         share = min(1.0, snapshot.evaluations / planned)
@@ -169,7 +181,9 @@ def status_html(snapshot: Snapshot) -> str:
     return "".join(parts)
 
 
-def _robot_cells(robot: RobotRow, keys: list[str], post: dict[str, Any] | None) -> str:
+def _robot_cells(
+    robot: RobotRow, keys: list[str], post: dict[str, Any] | None, extra: str = ""
+) -> str:
     connected = {None: ("", "–"), True: ("true", "yes"), False: ("false", "no")}[robot.connected]
     cells = [
         f'<td data-key="robot" data-value="{html.escape(robot.robot)}">'
@@ -187,21 +201,53 @@ def _robot_cells(robot: RobotRow, keys: list[str], post: dict[str, Any] | None) 
             f'<td data-key="{html.escape(key)}" data-value="{html.escape(text or "")}">'
             f"{html.escape(_shown(key, text))}</td>"
         )
-    return f'<tr data-robot="{html.escape(robot.robot)}">{"".join(cells)}</tr>'
+    return f'<tr data-robot="{html.escape(robot.robot)}">{"".join(cells)}{extra}</tr>'
 
 
-def robots_html(snapshot: Snapshot) -> str:
+def robots_html(
+    snapshot: Snapshot, telemetry: SwarmState | None = None, now: float | None = None
+) -> str:
     """The robots' table: connected, the last row's per-robot columns (fitness, battery, ...),
-    the newer ``robot_state`` of a running master, and the post-evaluation's fitness."""
-    if not snapshot.robots:
+    the newer ``robot_state`` of a running master, and the post-evaluation's fitness; with
+    ``telemetry``, each robot's MQTT view too (a robot only MQTT knows gets a row of its own)."""
+    robots = list(snapshot.robots)
+    if telemetry is not None:
+        known = {r.robot for r in robots}
+        robots += [RobotRow(name, None) for name in sorted(telemetry.robots) if name not in known]
+    if not robots:
         return '<p data-key="robots" data-value="0">no robots yet</p>'
     post = snapshot.post_robots or None
     titles = ["robot", "connected", *(_LABELS.get(k, k.replace("_", " ")) for k in snapshot.keys)]
     if post is not None:
         titles += ["post-eval. fitness", "post-eval. safety share"]
+    if telemetry is not None:
+        titles += ["online (MQTT)", "battery (MQTT, V)", "last message"]
     head = "".join(f"<th>{html.escape(t)}</th>" for t in titles)
-    body = "".join(_robot_cells(r, snapshot.keys, post) for r in snapshot.robots)
+    now = time.time() if now is None else now
+    body = "".join(
+        _robot_cells(r, snapshot.keys, post, _mqtt_cells(telemetry, r.robot, now)) for r in robots
+    )
     return f'<table class="dash-robots"><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>'
+
+
+def _mqtt_cells(telemetry: SwarmState | None, robot: str, now: float) -> str:
+    # A robot's own view over MQTT: online by its status (and last will), the battery it read
+    # after its last evaluation, seconds since its last message.
+    if telemetry is None:
+        return ""
+    view = telemetry.robots.get(robot)
+    online = None if view is None else view.online
+    state = {None: ("", "–"), True: ("true", "yes"), False: ("false", "no")}[online]
+    battery = None if view is None or view.evaluation is None else view.evaluation.battery_v
+    seen = None if view is None or view.last_seen is None else max(0.0, now - view.last_seen)
+    volts = ("", "–") if battery is None else (repr(battery), f"{battery:.2f}")
+    ago = ("", "–") if seen is None else (f"{seen:.1f}", f"{_duration(seen)} ago")
+    return "".join(
+        f'<td data-key="{key}" data-value="{value}">{shown}</td>'
+        for key, (value, shown) in (
+            ("mqtt_online", state), ("mqtt_battery_v", volts), ("mqtt_last_message", ago)
+        )
+    )  # fmt: skip
 
 
 def _header_html(run_dir: Path, snapshot: Snapshot | None, error: str | None) -> str:
@@ -244,13 +290,15 @@ class _Poller:
 class _Page:
     """The models of one open page and their refresh from the poller's snapshot."""
 
-    def __init__(self, doc: Document, poller: _Poller, run_dir: Path) -> None:
+    def __init__(
+        self, doc: Document, poller: _Poller, run_dir: Path, telemetry: SwarmState | None = None
+    ) -> None:
         from bokeh.layouts import column
         from bokeh.models import ColumnDataSource, HoverTool
         from bokeh.models.widgets.markups import Div
         from bokeh.plotting import figure
 
-        self.poller, self.run_dir = poller, run_dir
+        self.poller, self.run_dir, self.telemetry = poller, run_dir, telemetry
         css: list[Any] = [_CSS]  # a string is an inline style sheet for Bokeh
         self.header = Div(name="header", stylesheets=css)
         self.status = Div(name="status", stylesheets=css)
@@ -327,8 +375,8 @@ class _Page:
 
     def _show(self, snapshot: Snapshot) -> None:
         _set(self.header, _header_html(self.run_dir, snapshot, None))
-        _set(self.status, status_html(snapshot))
-        _set(self.robots, robots_html(snapshot))
+        _set(self.status, status_html(snapshot, self.telemetry))
+        _set(self.robots, robots_html(snapshot, self.telemetry))
         _set(self.note, _trajectories_note(snapshot.trajectories))
         curve = snapshot.curve
         sent = len(self.curve.data["evaluation"])
@@ -412,11 +460,18 @@ def _url(host: str, port: int) -> str:
 
 
 def run_dashboard(
-    run_dir: Path, host: str = "127.0.0.1", port: int = DEFAULT_PORT, open_browser: bool = False
+    run_dir: Path,
+    host: str = "127.0.0.1",
+    port: int = DEFAULT_PORT,
+    open_browser: bool = False,
+    broker: str | None = None,
+    prefix: str | None = None,
 ) -> int:
     """Serve the dashboard of ``run_dir`` on ``host:port`` (port 0: any free one) until SIGINT
-    or SIGTERM; prints ``dashboard: URL`` once it listens. Returns the exit status: 0, 1 when
-    the port cannot be bound, 2 without Bokeh.
+    or SIGTERM; prints ``dashboard: URL`` once it listens. With ``broker`` (``mqtt://host[:port]``)
+    it also follows the telemetry under ``prefix``. Returns the exit status: 0, 1 when the port
+    cannot be bound, 2 without Bokeh, with a bad broker URL or prefix, or with a broker but no
+    MQTT client installed.
 
     Raises :class:`~master_service.rundir.RunDirError` when ``run_dir`` is not a directory; a
     port that cannot be bound is one line on stderr and exit status 1.
@@ -431,10 +486,59 @@ def run_dashboard(
             file=sys.stderr,
         )
         return 2
-    return asyncio.run(_serve(run_dir, host, port, open_browser))
+    telemetry = None
+    if broker is not None:
+        telemetry = _telemetry(broker, prefix)
+        if telemetry is None:
+            return 2
+    return asyncio.run(_serve(run_dir, host, port, open_browser, telemetry))
 
 
-async def _serve(run_dir: Path, host: str, port: int, open_browser: bool) -> int:
+def _telemetry(broker: str, prefix: str | None) -> tuple[Any, SwarmState] | None:
+    # The broker's address and an empty swarm state, or None after one line on stderr.
+    from master_service.reporting.watch import SwarmState
+    from telemetry.config import DEFAULT_PREFIX, check_prefix, parse_broker_url
+
+    option = "--broker"
+    try:
+        address = parse_broker_url(broker)
+        option = "--prefix"
+        check_prefix(prefix or DEFAULT_PREFIX)
+        import aiomqtt  # noqa: F401  # the telemetry extra
+    except ValueError as exc:
+        print(f"surprise-master dashboard: {option}: {exc}", file=sys.stderr)
+        return None
+    except ImportError:
+        print(
+            "surprise-master dashboard: --broker needs the MQTT client: "
+            "pip install 'minimize-surprise[telemetry]'",
+            file=sys.stderr,
+        )
+        return None
+    return address, SwarmState(prefix=prefix or DEFAULT_PREFIX)
+
+
+async def _follow(address: Any, state: SwarmState) -> None:
+    # The telemetry, whatever happens to it, never takes the page down: an unexpected failure
+    # is logged and shown as the broker's state, and following starts again.
+    from master_service.reporting.watch import follow
+
+    while True:
+        try:
+            await follow(address, state)
+        except Exception as exc:  # follow handles the broker's own errors
+            _log.exception("dashboard: following the telemetry failed")
+            state.broker = f"telemetry failed ({exc}); trying again"
+            await asyncio.sleep(POLL_INTERVAL * 5)
+
+
+async def _serve(
+    run_dir: Path,
+    host: str,
+    port: int,
+    open_browser: bool,
+    telemetry: tuple[Any, SwarmState] | None = None,
+) -> int:
     from bokeh.application import Application
     from bokeh.application.handlers.function import FunctionHandler
     from bokeh.server.server import BaseServer
@@ -444,9 +548,10 @@ async def _serve(run_dir: Path, host: str, port: int, open_browser: bool) -> int
     from tornado.ioloop import IOLoop
 
     poller = _Poller(RunReader(run_dir))
+    state = None if telemetry is None else telemetry[1]
 
     def page(doc: Document) -> None:
-        _Page(doc, poller, run_dir)
+        _Page(doc, poller, run_dir, state)
 
     application = Application(FunctionHandler(page))
     # Bound before the application: with port 0 the allowed origins need the port chosen.
@@ -472,8 +577,15 @@ async def _serve(run_dir: Path, host: str, port: int, open_browser: bool) -> int
     loop = asyncio.get_running_loop()
     for signum in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(signum, stop.set)
+    following = None
+    if telemetry is not None:
+        following = asyncio.create_task(_follow(*telemetry), name="dashboard-telemetry")
     try:
         await stop.wait()
     finally:
+        if following is not None:
+            following.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await following
         server.stop()
     return 0

@@ -59,6 +59,7 @@ __all__ = [
     "RobotView",
     "SwarmState",
     "collect",
+    "follow",
     "render",
     "run_watch",
 ]
@@ -349,23 +350,30 @@ async def collect(
                         state.ignored += 1
 
 
-async def _live(address: BrokerAddress, state: SwarmState, console: Console) -> None:
+async def follow(address: BrokerAddress, state: SwarmState) -> None:
+    """Feed ``state`` from the broker until cancelled, reconnecting with capped backoff whenever
+    it cannot be reached or goes away (``state.broker`` says which)."""
     from aiomqtt import MqttError
-    from rich.live import Live
 
     backoff = Backoff(_RECONNECT)
+    while True:
+        try:
+            await collect(address, state, on_connect=backoff.reset)
+        except MqttError as exc:
+            delay = backoff.next_delay()
+            state.broker = f"{address.url} unreachable ({exc}); retrying in {delay:.1f} s"
+            await asyncio.sleep(delay)
+
+
+async def _live(address: BrokerAddress, state: SwarmState, console: Console) -> None:
+    from rich.live import Live
+
     with Live(
         get_renderable=lambda: render(state),
         console=console,
         refresh_per_second=REFRESH_PER_SECOND,
     ):
-        while True:
-            try:
-                await collect(address, state, on_connect=backoff.reset)
-            except MqttError as exc:
-                delay = backoff.next_delay()
-                state.broker = f"{address.url} unreachable ({exc}); retrying in {delay:.1f} s"
-                await asyncio.sleep(delay)
+        await follow(address, state)
 
 
 def run_watch(
