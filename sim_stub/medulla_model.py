@@ -31,8 +31,9 @@ from typing import Any
 import numpy as np
 
 from drivers.config import SPEED_SCALE
-from drivers.thymio import GROUND_MAX, IR_MAX, PROX_HORIZONTAL
+from drivers.thymio import GROUND_MAX, IR_MAX, PROX_HORIZONTAL, VBAT, VBAT_SCALE
 from minimize_surprise.sensors import GROUND_SENSORS, IR_SENSORS
+from sim_stub.battery import SimBattery
 from sim_stub.fake_medulla import GROUND_VARIABLES, FakeMedulla, serve_fake_medulla
 from sim_stub.scenarios import WorldConfig
 from sim_stub.world import World
@@ -94,7 +95,12 @@ class SimThymio:
     """
 
     def __init__(
-        self, world: SignallingWorld, index: int, *, speed_scale: float = SPEED_SCALE
+        self,
+        world: SignallingWorld,
+        index: int,
+        *,
+        speed_scale: float = SPEED_SCALE,
+        battery: SimBattery | None = None,
     ) -> None:
         if not 0 <= index < world.n_robots:
             raise IndexError(f"robot {index} is not in a world of {world.n_robots} robots")
@@ -107,6 +113,10 @@ class SimThymio:
         self.index = index
         self.speed_scale = float(speed_scale)
         self.variables: dict[str, list[int]] = {}
+        #: Its battery, read as a real Thymio's ``_vbat`` (two halves of volts x 397.8); it
+        #: drains while the motors are commanded (by nothing, with SimBattery's default).
+        self.battery = battery if battery is not None else SimBattery()
+        self._show_battery()
         #: The latest motor targets received, in motor units.
         self.targets: dict[str, int] = {"left": 0, "right": 0}
         self._ir = np.array([world.sensors.index(s) for s in IR_SENSORS], dtype=np.intp)
@@ -156,7 +166,14 @@ class SimThymio:
         self.world.remove_step_listener(self._on_step)
         self._on_step()
 
+    def _show_battery(self) -> None:
+        half = round(self.battery.volts * VBAT_SCALE / 2)
+        self.variables[VBAT] = [half, half]
+
     def _on_step(self) -> None:
+        if self.targets["left"] or self.targets["right"]:
+            self.battery.step()
+            self._show_battery()
         # A fresh event per step: the waiters of this step wake, later reads wait for the next.
         update, self._update = self._update, asyncio.Event()
         update.set()
@@ -173,6 +190,7 @@ class SimMedulla(FakeMedulla):
 
     def __init__(self, model: SimThymio, node: str = "thymio-II") -> None:
         super().__init__(model, node)
+        self.native.add(VBAT)  # a real Thymio's firmware declares it (Playground's does not)
         self.calls: Any = collections.deque(maxlen=CALL_LOG_SIZE)
         self._pending = 0
         self._no_pending = asyncio.Event()

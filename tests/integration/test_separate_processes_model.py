@@ -16,6 +16,7 @@ from drivers.config import SPEED_SCALE, ThymioConfig
 from drivers.thymio import ThymioBase
 from minimize_surprise.errors import HardwareError
 from sim_stub import serve
+from sim_stub.battery import SimBattery
 from sim_stub.body import SimSwarm
 from sim_stub.medulla_model import (
     STEP_WAIT_TIMEOUT,
@@ -93,6 +94,30 @@ async def test_each_read_waits_for_the_next_world_step(dbus_address: str):
         finally:
             await base.close()
         assert w.commands[0].tolist() == [0.0, 0.0]  # close() stopped the motors
+
+
+async def test_the_battery_reads_as_a_real_thymios_and_drains_while_driving(dbus_address: str):
+    # A served simulated Thymio declares _vbat as a real one does (the preflight and the run's
+    # battery columns then have a value, not "unknown"); it drains while the motors turn.
+    w = world()
+    model = SimThymio(w, 0, battery=SimBattery(drain_v_per_step=0.01))
+    async with (
+        serve_sim_thymio(dbus_address, model),
+        SimSwarm(w, realtime=True),
+    ):
+        base = ThymioBase(ThymioConfig(bus=dbus_address, timeout=DRIVER_TIMEOUT))
+        await base.open()
+        try:
+            assert await base.read_battery() == pytest.approx(4.2, abs=0.005)
+            await base.read()  # a step with the motors still: no drain
+            assert await base.read_battery() == pytest.approx(4.2, abs=0.005)
+            await base.set_speeds(0.3, 0.3)
+            for _ in range(5):
+                await base.read()
+            volts = await base.read_battery()
+            assert volts is not None and 3.0 < volts < 4.2 - 0.04
+        finally:
+            await base.close()
 
 
 async def test_a_read_is_answered_after_the_bound_when_the_world_stalls(dbus_address: str):
