@@ -36,10 +36,8 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import argparse  # noqa: E402
-import json  # noqa: E402
 import math  # noqa: E402
 import statistics  # noqa: E402
-import subprocess  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -60,7 +58,7 @@ from sim_stub.physics import Geometry, Sensing  # noqa: E402
 from sim_stub.world import World  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from sim import ENKI_BENCHMARK, enki_python, pin_to_one_core  # noqa: E402
+from sim import enki_python, enki_runs, pin_to_one_core  # noqa: E402
 
 #: The basic scenario's robots and carpet side (m): the density every size keeps.
 BASIC_ROBOTS = 10
@@ -128,22 +126,8 @@ def time_engine(robots: int, steps: int, seed: int = 1) -> float:
 def time_enki(python: str, robots: int, steps: int, repeats: int, seed: int = 1) -> list[float]:
     """CPU seconds per step of Enki's bare world with ``robots`` robots, one per repeat."""
     config = world_config(experiment_at(robots, seed))
-    args = {
-        "side": 2 * config.wall_half * 100,
-        "carpet": config.arena_side * 100,
-        "robots": robots,
-        "max_speed": config.max_speed * 100,
-        "dt": config.dt,
-        "steps": steps,
-        "seed": seed,
-        "repeats": repeats,
-    }
-    done = subprocess.run(
-        [python, "-I", "-c", ENKI_BENCHMARK, json.dumps(args)], capture_output=True, text=True
-    )
-    if done.returncode != 0:
-        raise SystemExit(f"the Enki benchmark failed:\n{done.stderr}")
-    return [run["cpu_per_step"] for run in json.loads(done.stdout)]
+    runs = enki_runs(python, config, steps, seed, repeats, config.dt)
+    return [run["cpu_per_step"] for run in runs]
 
 
 def ns(per_step: float, robots: int) -> float:

@@ -42,7 +42,7 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from sim_stub.scenarios import scenario_config  # noqa: E402
+from sim_stub.scenarios import WorldConfig, scenario_config  # noqa: E402
 from sim_stub.world import World  # noqa: E402
 
 
@@ -173,10 +173,12 @@ def enki_python(python: str) -> str | None:
     return python if found.returncode == 0 else None
 
 
-def measure_enki(python: str, steps: int, seed: int, repeats: int, dt: float) -> dict[str, float]:
-    """Enki stepping the basic arena's robots (see the module docstring) in ``python``: its
-    fastest run, with the median CPU time added."""
-    config = scenario_config("basic")
+def enki_runs(
+    python: str, config: WorldConfig, steps: int, seed: int, repeats: int, dt: float
+) -> list[dict[str, float]]:
+    """Enki stepping ``config``'s robots on its carpet between its walls at steps of ``dt``
+    in ``python`` (Enki's units are cm), ``repeats`` times: each run's CPU and wall seconds per
+    step."""
     args = {
         "side": 2 * config.wall_half * 100,
         "carpet": config.arena_side * 100,
@@ -192,7 +194,13 @@ def measure_enki(python: str, steps: int, seed: int, repeats: int, dt: float) ->
     )
     if done.returncode != 0:
         raise SystemExit(f"the Enki benchmark failed:\n{done.stderr}")
-    return summarise(json.loads(done.stdout))
+    return json.loads(done.stdout)
+
+
+def measure_enki(python: str, steps: int, seed: int, repeats: int, dt: float) -> dict[str, float]:
+    """Enki stepping the basic arena's robots (see the module docstring) in ``python``: its
+    fastest run, with the median CPU time added."""
+    return summarise(enki_runs(python, scenario_config("basic"), steps, seed, repeats, dt))
 
 
 def main() -> None:

@@ -78,6 +78,8 @@ _LABELS: Final = {
     "overruns": "overruns",
     "read_failures": "read failures",
 }
+#: A yes/no/unknown value's data-value and shown text.
+_YES_NO: Final = {None: ("", "–"), True: ("true", "yes"), False: ("false", "no")}
 #: Keys whose values are shares of steps, shown as percentages.
 _SHARES: Final = frozenset({"safety_share", "post_safety_share"})
 #: The loopback names a browser on this machine (or at the end of an ``ssh -L``) may use.
@@ -184,7 +186,7 @@ def status_html(snapshot: Snapshot, telemetry: SwarmState | None = None) -> str:
 def _robot_cells(
     robot: RobotRow, keys: list[str], post: dict[str, Any] | None, extra: str = ""
 ) -> str:
-    connected = {None: ("", "–"), True: ("true", "yes"), False: ("false", "no")}[robot.connected]
+    connected = _YES_NO[robot.connected]
     cells = [
         f'<td data-key="robot" data-value="{html.escape(robot.robot)}">'
         f"{html.escape(robot.robot)}</td>",
@@ -237,7 +239,7 @@ def _mqtt_cells(telemetry: SwarmState | None, robot: str, now: float) -> str:
         return ""
     view = telemetry.robots.get(robot)
     online = None if view is None else view.online
-    state = {None: ("", "–"), True: ("true", "yes"), False: ("false", "no")}[online]
+    state = _YES_NO[online]
     battery = None if view is None or view.evaluation is None else view.evaluation.battery_v
     seen = None if view is None or view.last_seen is None else max(0.0, now - view.last_seen)
     volts = ("", "–") if battery is None else (repr(battery), f"{battery:.2f}")

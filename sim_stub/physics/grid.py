@@ -24,7 +24,7 @@ import numpy as np
 
 from minimize_surprise.jit import kernel
 
-__all__ = ["GRID_ROBOTS", "Cells", "build", "gather", "gather_points", "grid_side", "new_cells"]
+__all__ = ["GRID_ROBOTS", "Cells", "build", "gather", "grid_side", "new_cells"]
 
 #: From this many robots on, contacts and sensing find neighbours in the grid. Measured at the
 #: basic scenario's density (``benchmarks/scale.py``, docs/simulation.md): below about 25 robots
@@ -125,26 +125,4 @@ def gather(
                 out[b + 1] = out[b]
                 b -= 1
             out[b + 1] = v
-    return m
-
-
-@kernel
-def gather_points(
-    i: int, side: int, cell: np.ndarray, start: np.ndarray, order: np.ndarray,
-    xy: np.ndarray, out: np.ndarray,
-) -> int:  # fmt: skip
-    """The rows of ``xy`` (N, 2) of point ``i``'s candidate neighbours (not itself) into the
-    first rows of ``out``, in no particular order; returns their number."""
-    c = cell[i]
-    cx, cy = c % side, c // side
-    m = 0
-    for gy in range(max(cy - 1, 0), min(cy + 2, side)):
-        for gx in range(max(cx - 1, 0), min(cx + 2, side)):
-            d = gy * side + gx
-            for p in range(start[d], start[d + 1]):
-                j = order[p]
-                if j != i:
-                    out[m, 0] = xy[j, 0]
-                    out[m, 1] = xy[j, 1]
-                    m += 1
     return m

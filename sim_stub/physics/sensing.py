@@ -12,7 +12,7 @@ import math
 import numpy as np
 
 from minimize_surprise.jit import kernel
-from sim_stub.physics.grid import Cells, build, gather_points, grid_side, new_cells
+from sim_stub.physics.grid import Cells, build, gather, grid_side, new_cells
 from sim_stub.physics.ir import ir_readings
 from sim_stub.physics.model import GROUND_POSITIONS, IR_POSITIONS, Sensing, gaussian
 
@@ -39,21 +39,21 @@ def ir_reach(sn: Sensing) -> float:
 
 @kernel
 def _within(
-    bodies: np.ndarray, i: int, xy: np.ndarray, m: int, skip: int, reach: float, out: np.ndarray
+    bodies: np.ndarray, i: int, candidates: np.ndarray, m: int, reach: float, out: np.ndarray
 ) -> int:
-    # The rows of ``xy[:m]`` but row ``skip`` (-1: none) closer than ``reach`` to robot i's
-    # body centre into the first rows of ``out`` (which may be ``xy``), in order; their number.
-    # A robot's seven IR sensors then look at these few instead of at every robot, and find
-    # the same nearest body.
+    # The body centres of robots ``candidates[:m]`` but robot i closer than ``reach`` to robot
+    # i's into the first rows of ``out``; their number. A robot's seven IR sensors then look at
+    # these few instead of at every robot, and find the same nearest body.
     bx, by = bodies[i, 0], bodies[i, 1]
     reach2 = reach * reach
     kept = 0
     for q in range(m):
-        dx = xy[q, 0] - bx
-        dy = xy[q, 1] - by
-        if q != skip and dx * dx + dy * dy < reach2:
-            out[kept, 0] = xy[q, 0]
-            out[kept, 1] = xy[q, 1]
+        j = candidates[q]
+        dx = bodies[j, 0] - bx
+        dy = bodies[j, 1] - by
+        if j != i and dx * dx + dy * dy < reach2:
+            out[kept, 0] = bodies[j, 0]
+            out[kept, 1] = bodies[j, 1]
             kept += 1
     return kept
 
@@ -89,7 +89,9 @@ def _sense(
         bodies[i, 0] = pose[i, 0] + sn.body_offset * math.cos(pose[i, 2])
         bodies[i, 1] = pose[i, 1] + sn.body_offset * math.sin(pose[i, 2])
     # With cells: the grid's arrays, read once (numba counts a reference at every read from a
-    # tuple). ``near``: the body centres a robot's IR may see, in a row.
+    # tuple). ``candidates``: the robots a robot's IR may see (every robot, or its neighbours in
+    # the grid); ``near``: the body centres of those within its reach, in a row.
+    candidates = np.arange(n)
     near = np.empty((n, 2))
     reach = ir_reach(sn) + _REACH_SLACK
     if cells is None:
@@ -101,11 +103,8 @@ def _sense(
         x, y, th = pose[i, 0], pose[i, 1], pose[i, 2]
         c, s = math.cos(th), math.sin(th)
         if sn.need_ir:
-            if cells is None:
-                m = _within(bodies, i, bodies, n, i, reach, near)
-            else:
-                m = gather_points(i, side, cell, start, order, bodies, near)
-                m = _within(bodies, i, near, m, -1, reach, near)
+            m = n if cells is None else gather(i, side, cell, start, order, candidates, False)
+            m = _within(bodies, i, candidates, m, reach, near)
             ir_readings(sn, near, m, i, x, y, c, s, step, full[i, _IR0 : _IR0 + 7])
         if sn.need_ground:
             half = sn.arena_half
