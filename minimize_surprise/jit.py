@@ -17,9 +17,7 @@ module that defines kernels (:func:`kernel_fingerprint`), under
 ``~/.cache/minimize-surprise/numba`` (``$XDG_CACHE_HOME`` is honoured; without a writable home, a
 directory of the user's own in the temporary directory; with no writable place at all nothing is
 cached; a ``NUMBA_CACHE_DIR`` of the user's own is left as it is): an update compiles afresh,
-once. Where Intel's SVML library is installed numba may compute a loop's ``tanh`` with vector
-instructions whose last bit can differ from libm's; the engine's networks then may differ from
-an agent's in the last bit (``tests/core/test_network.py`` would tell).
+once.
 """
 
 from __future__ import annotations
@@ -126,17 +124,27 @@ def _use_fingerprinted_cache(numba: ModuleType) -> bool:
 _CACHE: bool = _numba is not None and _use_fingerprinted_cache(_numba)
 
 
-def kernel(function: F | None = None, *, error_model: Literal["python", "numpy"] = "python") -> Any:
+def kernel(
+    function: F | None = None,
+    *,
+    error_model: Literal["python", "numpy"] = "python",
+    inline: bool = False,
+) -> Any:
     """Compile ``function`` with numba (no Python objects, cached on disk) if available.
 
     The original function stays reachable as ``.py_func`` either way, so tests can check that the
     interpreted and the compiled kernel agree. ``@kernel(error_model="numpy")`` compiles without
     Python's division-by-zero check (x / 0 gives inf or nan): the check is a branch that keeps
     loops from being vectorised, so an arithmetic kernel whose divisor is never 0 uses it.
+    ``@kernel(inline=True)`` compiles a small helper into each kernel that calls it: a call
+    that passes arrays costs a reference count taken and dropped per array (atomic operations,
+    each a few nanoseconds), more than a small helper's own work.
     """
     if function is None:
-        return lambda f: kernel(f, error_model=error_model)
+        return lambda f: kernel(f, error_model=error_model, inline=inline)
     if _numba is None:
         function.py_func = function  # type: ignore[attr-defined]
         return function
-    return _numba.njit(cache=_CACHE, nogil=True, error_model=error_model)(function)
+    return _numba.njit(
+        cache=_CACHE, nogil=True, error_model=error_model, inline="always" if inline else "never"
+    )(function)

@@ -303,7 +303,18 @@ class Decision(NamedTuple):
 # --------------------------------------------------------------------------- the kernel
 
 
-@kernel
+@kernel(inline=True)
+def _finite(values: np.ndarray, idx: np.ndarray) -> bool:
+    # Whether the sensors at ``idx`` all read a number (a tuple of the four groups to loop over
+    # would take and drop a reference to each array at every step). A loop: numba compiles no
+    # generator expressions.
+    for k in range(idx.shape[0]):  # noqa: SIM110
+        if not math.isfinite(values[idx[k]]):
+            return False
+    return True
+
+
+@kernel(inline=True)
 def _peak(values: np.ndarray, idx: np.ndarray) -> float:
     # A rule whose sensors are absent never fires: -inf is below every threshold.
     best = -math.inf
@@ -313,7 +324,7 @@ def _peak(values: np.ndarray, idx: np.ndarray) -> float:
     return best
 
 
-@kernel
+@kernel(inline=True)
 def _boundary(p: SafetyParams, values: np.ndarray, ground: np.ndarray) -> bool:
     for k in range(ground.shape[0]):
         g = values[ground[k]]
@@ -325,7 +336,7 @@ def _boundary(p: SafetyParams, values: np.ndarray, ground: np.ndarray) -> bool:
     return False
 
 
-@kernel
+@kernel(inline=True)
 def _draw_turn(p: SafetyParams, state: np.ndarray) -> None:
     # Direction first, then the length, from the generator in the state.
     rng = next_state(state[4])
@@ -338,7 +349,7 @@ def _draw_turn(p: SafetyParams, state: np.ndarray) -> None:
     state[4] = rng
 
 
-@kernel
+@kernel(inline=True)
 def _manoeuvre(p: SafetyParams, state: np.ndarray) -> tuple[float, float]:
     # One step of the running manoeuvre; the state moves on.
     direction = state[2]
@@ -357,14 +368,14 @@ def _manoeuvre(p: SafetyParams, state: np.ndarray) -> tuple[float, float]:
     return speed, -speed
 
 
-@kernel
+@kernel(inline=True)
 def _begin_turn(p: SafetyParams, state: np.ndarray) -> tuple[float, float]:
     # A new turn on the spot, and its first step.
     _draw_turn(p, state)
     return _manoeuvre(p, state)
 
 
-@kernel
+@kernel(inline=True)
 def _begin_drive(p: SafetyParams, state: np.ndarray, direction: int) -> tuple[float, float]:
     if p.escape_drive_steps == 0:
         return _begin_turn(p, state)
@@ -374,7 +385,7 @@ def _begin_drive(p: SafetyParams, state: np.ndarray, direction: int) -> tuple[fl
     return _manoeuvre(p, state)
 
 
-@kernel
+@kernel(inline=True)
 def safety_step(
     p: SafetyParams,
     front: np.ndarray,
@@ -399,10 +410,13 @@ def safety_step(
     # -inf: the age is unknown, only ``fresh`` counts; a NaN age is stale.
     if not fresh or (max_age >= 0.0 and age != -math.inf and not age <= max_age):
         return 0.0, 0.0, _STALE
-    for group in (front, rear, ground, force):
-        for k in range(group.shape[0]):
-            if not math.isfinite(values[group[k]]):
-                return 0.0, 0.0, _SENSOR
+    if not (
+        _finite(values, front)
+        and _finite(values, rear)
+        and _finite(values, ground)
+        and _finite(values, force)
+    ):
+        return 0.0, 0.0, _SENSOR
     if not (math.isfinite(left) and math.isfinite(right)):
         return 0.0, 0.0, _INVALID
     reason = _NONE

@@ -25,7 +25,7 @@ _IR_COS = np.cos(IR_HEADINGS)
 _IR_SIN = np.sin(IR_HEADINGS)
 
 
-@kernel
+@kernel(inline=True)
 def _lookup(d: float, table_d: np.ndarray, table_v: np.ndarray) -> float:
     # Linear interpolation in the table; beyond its ends, its end values.
     if d <= table_d[0]:
@@ -51,6 +51,8 @@ def ir_readings(
     # The model's numbers into locals once: the sensors below then call helpers of plain
     # numbers, a call with the whole Sensing costing more than a sensor's arithmetic (measured).
     r, ir_range, walls, wall = sn.robot_radius, sn.ir_range, sn.walls_visible, sn.wall_half
+    # The table's arrays too: each read of an array from the tuple takes a reference (atomic).
+    table_d, table_v = sn.ir_table_d, sn.ir_table_v
     reach2 = (ir_range + r) ** 2
     for k in range(7):
         px, py = IR_POSITIONS[k, 0], IR_POSITIONS[k, 1]
@@ -71,7 +73,7 @@ def ir_readings(
         if best >= ir_range:
             out[k] = 0.0
             continue
-        value = _lookup(best, sn.ir_table_d, sn.ir_table_v)
+        value = _lookup(best, table_d, table_v)
         if value > 0.0 and sn.ir_noise > 0.0:
             value += sn.ir_noise * value * gaussian(sn.seed, step, me, 32 + k)
         out[k] = value

@@ -128,11 +128,12 @@ def test_robots_as_lanes_compute_the_same_bits_as_one_robot_at_a_time(predefined
     seq = rng.random((8, robots, r))
     work = np.empty((r + 3 + ha, robots))
     previous, hidden = np.full((2, robots), 0.5), np.tile(weights.p_init[:, None], robots)
-    z, action, prediction = np.empty(robots), np.empty((2, robots)), np.empty((r, robots))
+    acc = np.empty((max(ha, hp, r, 2), robots))
+    action, prediction = np.empty((2, robots)), np.empty((r, robots))
     singles = [(np.full(2, 0.5), weights.p_init.copy()) for _ in range(robots)]
     for s in seq:
         work[:r] = s.T
-        lanes(*weights[:7], work, previous, hidden, z, action, prediction)
+        lanes(*weights[:7], work, previous, hidden, acc, action, prediction)
         for i, (prev_i, hidden_i) in enumerate(singles):
             a_i, p_i = np.empty(2), np.empty(r)
             one(*weights[:7], s[i].copy(), prev_i, hidden_i, np.empty(r + 3 + ha), a_i, p_i)

@@ -152,7 +152,9 @@ def wait_for_checkpoint(run: Path, process: subprocess.Popen[str], timeout: floa
 
 @pytest.mark.parametrize(
     ("engine", "signum", "evaluations", "steps"),
-    [("fast", signal.SIGINT, 3000, 300), ("agents", signal.SIGTERM, 400, 40)],
+    # The fast run is long enough (9e6 robot-steps, seconds) to be still going at its first
+    # commit, two seconds in, on a faster engine too.
+    [("fast", signal.SIGINT, 3000, 1000), ("agents", signal.SIGTERM, 400, 40)],
 )
 def test_sim_stops_quietly_on_a_signal_and_resume_finishes_the_run(
     tmp_path: Path, engine: str, signum: int, evaluations: int, steps: int
