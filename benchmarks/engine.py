@@ -16,7 +16,8 @@ child process on the same core (start-up, 1000 evaluations, the 10,000-step post
 run directory and report written): its robot-steps per CPU second of the child.
 
 Targets: issue 11, a whole paper-setting run at least as fast per robot-step as Enki's bare
-world; issue 25, the quick start at least 4 times Enki's bare world.
+world; issue 25, the quick start at least 4 times Enki's bare world, a batch of runs at least 8
+times.
 """
 
 from __future__ import annotations
@@ -43,14 +44,16 @@ from master_service.experiments.simulation_setup import (  # noqa: E402
 from minimize_surprise.evolution import OnePlusOne  # noqa: E402
 from minimize_surprise.fitness import swarm_fitness  # noqa: E402
 from minimize_surprise.network import GenomeLayout, spec_from_config  # noqa: E402
-from sim_stub.engine import Swarm  # noqa: E402
+from sim_stub.engine import Swarm, evaluate_swarms  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from sim import enki_python, measure_enki, pin_to_one_core  # noqa: E402
 
 
-def run_many(runs: int, evaluations: int) -> float:
-    """CPU seconds for ``evaluations`` evaluations of each of ``runs`` runs in this process."""
+def run_many(runs: int, evaluations: int, *, batched: bool = False) -> float:
+    """CPU seconds for ``evaluations`` evaluations of each of ``runs`` runs in this process: one
+    after the other, or ``batched``, every round's candidates in one call (``evaluate_swarms``,
+    as a study's batch)."""
     swarms, optimizers = [], []
     for seed in range(1, runs + 1):
         experiment = simulation_experiment("basic", setting="paper", seed=seed)
@@ -63,8 +66,15 @@ def run_many(runs: int, evaluations: int) -> float:
     swarms[0].evaluate(optimizers[0].ask().genome, 10)  # compiled before the clock starts
     cpu = time.process_time()
     for _ in range(evaluations):
-        for swarm, opt in zip(swarms, optimizers, strict=True):
-            record = swarm.evaluate(opt.ask().genome, steps)
+        if batched:
+            genomes = [opt.ask().genome for opt in optimizers]
+            records = evaluate_swarms(swarms, genomes, steps)
+        else:
+            records = [
+                swarm.evaluate(opt.ask().genome, steps)
+                for swarm, opt in zip(swarms, optimizers, strict=True)
+            ]
+        for opt, record in zip(optimizers, records, strict=True):
             opt.tell(swarm_fitness([float(f) for f in record.fitness]))
     return time.process_time() - cpu
 
@@ -114,9 +124,13 @@ def main() -> None:
         f"{per_step * args.evaluations / statistics.median(one):.0f} robot-steps/s"
     )
     print(f"engine_paper_basic_run_estimate: {10_100_000 / one_rate:.1f} s")
-    many = min(run_many(args.runs, args.evaluations // 2 or 1) for _ in range(args.repeats))
-    many_rate = per_step * args.runs * (args.evaluations // 2 or 1) / many
+    rounds = args.evaluations // 2 or 1
+    many = min(run_many(args.runs, rounds) for _ in range(args.repeats))
+    many_rate = per_step * args.runs * rounds / many
     print(f"engine_{args.runs}_runs_robot_steps_per_s: {many_rate:.0f} robot-steps/s")
+    batch = min(run_many(args.runs, rounds, batched=True) for _ in range(args.repeats))
+    batch_rate = per_step * args.runs * rounds / batch
+    print(f"engine_batch_of_{args.runs}_robot_steps_per_s: {batch_rate:.0f} robot-steps/s")
     quick_rate = None
     if args.quick_start:
         quick = time_quick_start()
@@ -131,6 +145,7 @@ def main() -> None:
     enki_rate = enki["robots"] / enki["cpu_per_step"]
     print(f"enki_bare_world_robot_steps_per_s: {enki_rate:.0f} robot-steps/s")
     print(f"engine_run_vs_enki_bare_world: {one_rate / enki_rate:.2f} x")
+    print(f"engine_batch_vs_enki_bare_world: {batch_rate / enki_rate:.2f} x")
     if quick_rate is not None:
         print(f"quick_start_vs_enki_bare_world: {quick_rate / enki_rate:.2f} x")
 

@@ -21,6 +21,7 @@ absent and the genome holds the actor only.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import msgspec
@@ -201,15 +202,19 @@ def network_step_lanes(
     action: np.ndarray,
     prediction: np.ndarray,
 ) -> None:
-    """:func:`network_step` for N robots sharing one genome, each robot a lane of every array:
-    every sum adds the same products in the same order as :func:`network_step`, so the results
-    are the same to the last bit, but the robots are innermost, where the compiler runs several
-    at once (vector instructions).
+    """:func:`network_step` for L robots at once, each robot a lane of every array, each lane
+    with weights of its own (robots of several runs, each run's genome; see
+    :func:`lane_weights`): every sum adds the same products in the same order as
+    :func:`network_step`, so the results are the same to the last bit, but the robots are
+    innermost, where the compiler runs several at once (vector instructions).
 
-    ``work`` (R + 3 + H_a, N): rows 0..R-1 hold the robots' readings s(t) on entry, the rest is
-    scratch; ``previous`` (2, N) a(t-1), becoming a(t); ``hidden`` (H_p, N) h(t-1), becoming
-    h(t); ``acc`` (at least max(H_a, H_p, R, 2), N) scratch; ``action`` (2, N) a(t);
-    ``prediction`` (R, N) p(t+1).
+    The weights are :class:`LaneWeights`' blocks, lanes last; blocks of a single lane are shared
+    by every lane (one genome: a broadcast, cheaper than a weight per lane). ``work``
+    (R + 3 + H_a, L): rows 0..R-1 hold the robots' readings s(t) on entry, the rest is scratch;
+    ``previous`` (2, L) a(t-1), becoming a(t); ``hidden`` (H_p, L) h(t-1), becoming h(t);
+    ``acc`` (at least max(H_a, H_p, R, 2), L) scratch; ``action`` (2, L) a(t); ``prediction``
+    (R, L) p(t+1).
+    ``free`` and ``fixed`` are the same for every lane (one network shape).
     """
     # Each layer's sums run input by input over all its units at once (``acc``, a row per
     # unit): consecutive additions go to different sums, so none waits for the one before, which
@@ -222,20 +227,15 @@ def network_step_lanes(
         work[r, i] = previous[0, i]
         work[r + 1, i] = previous[1, i]
         work[r + 2, i] = 1.0
-    _clear(acc, ha)
-    _add_inputs(a_in, work, inputs, acc)
+    for j in range(ha):
+        for i in range(n):
+            acc[j, i] = 0.0
+    _add_products(acc, a_in, work, 0, inputs)
     for j in range(ha):
         for i in range(n):
             work[inputs + j, i] = tanh(acc[j, i])
-    for m in range(2):
-        bias = a_out[m, ha]
-        for i in range(n):
-            acc[m, i] = bias
-    for j in range(ha):
-        for m in range(2):
-            w = a_out[m, j]
-            for i in range(n):
-                acc[m, i] += w * work[inputs + j, i]
+    _set_column(acc, a_out, ha)
+    _add_products(acc, a_out, work, inputs, ha)
     for m in range(2):
         for i in range(n):
             a = tanh(acc[m, i])
@@ -251,45 +251,62 @@ def network_step_lanes(
         work[r, i] = action[0, i]
         work[r + 1, i] = action[1, i]
     for j in range(hp):
-        w = p_self[j]
-        for i in range(n):
-            acc[j, i] = w * hidden[j, i]
-    _add_inputs(p_in, work, inputs, acc)
+        if p_self.shape[1] == 1:
+            w = p_self[j, 0]
+            for i in range(n):
+                acc[j, i] = w * hidden[j, i]
+        else:
+            for i in range(n):
+                acc[j, i] = p_self[j, i] * hidden[j, i]
+    _add_products(acc, p_in, work, 0, inputs)
     for j in range(hp):
         for i in range(n):
             hidden[j, i] = sigmoid(acc[j, i])
-    outputs = free.shape[0]
-    for o in range(outputs):
-        bias = p_out[o, hp]
-        for i in range(n):
-            acc[o, i] = bias
-    for j in range(hp):
-        for o in range(outputs):
-            w = p_out[o, j]
-            for i in range(n):
-                acc[o, i] += w * hidden[j, i]
-    for o in range(outputs):
+    _set_column(acc, p_out, hp)
+    _add_products(acc, p_out, hidden, 0, hp)
+    for o in range(free.shape[0]):
         row = free[o]
         for i in range(n):
             prediction[row, i] = sigmoid(acc[o, i])
 
 
-@kernel
-def _clear(acc: np.ndarray, units: int) -> None:
-    # The first ``units`` sums to 0.
-    for j in range(units):
-        for i in range(acc.shape[1]):
-            acc[j, i] = 0.0
-
-
-@kernel
-def _add_inputs(weights: np.ndarray, work: np.ndarray, inputs: int, acc: np.ndarray) -> None:
-    # acc[j, i] += weights[j, k] * work[k, i] for k ascending, for every unit j and lane i.
-    for k in range(inputs):
-        for j in range(weights.shape[0]):
-            w = weights[j, k]
+@kernel(inline=True)
+def _set_column(acc: np.ndarray, weights: np.ndarray, k: int) -> None:
+    # acc[j, i] = weights[j, k, i] for every unit j and lane i (a layer's biases); one lane of
+    # weights: the same in all.
+    shared = weights.shape[2] == 1
+    for j in range(weights.shape[0]):
+        if shared:
+            w = weights[j, k, 0]
             for i in range(acc.shape[1]):
-                acc[j, i] += w * work[k, i]
+                acc[j, i] = w
+        else:
+            for i in range(acc.shape[1]):
+                acc[j, i] = weights[j, k, i]
+
+
+@kernel(inline=True)
+def _add_products(
+    acc: np.ndarray, weights: np.ndarray, x: np.ndarray, first: int, inputs: int
+) -> None:
+    # acc[j, i] += weights[j, k, i] * x[first + k, i] for k ascending from 0, for every unit j
+    # and lane i; one lane of weights: the same in all (a broadcast, cheaper than a weight per
+    # lane). Called once per layer: a call passing arrays costs reference counts, too many per
+    # product.
+    units, lanes = weights.shape[0], acc.shape[1]
+    if weights.shape[2] == 1:
+        for k in range(inputs):
+            row = first + k
+            for j in range(units):
+                w = weights[j, k, 0]
+                for i in range(lanes):
+                    acc[j, i] += w * x[row, i]
+        return
+    for k in range(inputs):
+        row = first + k
+        for j in range(units):
+            for i in range(lanes):
+                acc[j, i] += weights[j, k, i] * x[row, i]
 
 
 @kernel
@@ -411,4 +428,55 @@ def network_weights(layout: GenomeLayout, genome: np.ndarray) -> Weights:
         layout.free.astype(np.int64),
         layout.fixed.astype(np.float64),
         p_init,
+    )
+
+
+class LaneWeights(NamedTuple):
+    """Several genomes' weights as :func:`network_step_lanes` takes them: each block of
+    :class:`Weights` with a last axis of lanes, a lane per robot (see :func:`lane_weights`)."""
+
+    a_in: np.ndarray  # (H_a, R + 3, L)
+    a_out: np.ndarray  # (2, H_a + 1, L)
+    p_in: np.ndarray  # (H_p, R + 3, L)
+    p_self: np.ndarray  # (H_p, L)
+    p_out: np.ndarray  # (R_free, H_p + 1, L)
+    free: np.ndarray
+    fixed: np.ndarray
+    p_init: np.ndarray  # (H_p, L)
+
+
+def lane_weights(weights: Sequence[Weights], robots: int, lanes: int) -> LaneWeights:
+    """The lanes of ``len(weights)`` runs of ``robots`` robots each, run by run: genome ``g``'s
+    weights in lanes ``g * robots`` to ``(g + 1) * robots - 1``, zeros in the lanes beyond the
+    last run's (up to ``lanes``, a whole number of vectors). Every genome has the same shape. One
+    genome's weight blocks have a single lane, which every lane shares."""
+    first = weights[0]
+    if lanes < len(weights) * robots:
+        need = len(weights) * robots
+        raise ValueError(f"{len(weights)} runs of {robots} robots need {need} lanes, not {lanes}")
+
+    def block(name: str, width: int) -> np.ndarray:
+        shape = getattr(first, name).shape
+        out = np.zeros((*shape, width))
+        if width == 1:
+            out[..., 0] = getattr(first, name)
+            return out
+        for g, w in enumerate(weights):
+            value = getattr(w, name)
+            if value.shape != shape:
+                raise ValueError(f"genome {g}'s {name} has shape {value.shape}, not {shape}")
+            out[..., g * robots : (g + 1) * robots] = value[..., None]
+        return out
+
+    width = 1 if len(weights) == 1 else lanes
+    p_init = block("p_init", lanes) if width > 1 else np.repeat(first.p_init[:, None], lanes, 1)
+    return LaneWeights(
+        a_in=block("a_in", width),
+        a_out=block("a_out", width),
+        p_in=block("p_in", width),
+        p_self=block("p_self", width),
+        p_out=block("p_out", width),
+        free=first.free,
+        fixed=first.fixed,
+        p_init=p_init,
     )

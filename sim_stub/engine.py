@@ -21,17 +21,19 @@ robot ids) and evaluates genomes on it; the evolution around it is the master's 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from minimize_surprise.fitness import step_score
-from minimize_surprise.jit import kernel
+from minimize_surprise.jit import JIT, kernel
 from minimize_surprise.network import (
     GenomeLayout,
+    LaneWeights,
     NetworkSpec,
-    Weights,
+    lane_weights,
     network_step_lanes,
     network_weights,
 )
@@ -52,14 +54,13 @@ from sim_stub.scenarios import WorldConfig
 from sim_stub.world import World, box_frame_steps, box_frames
 
 __all__ = [
-    "Controller",
+    "Arenas",
     "EvaluationRecord",
-    "Outcome",
     "Recording",
     "SafetyLayers",
     "Swarm",
-    "WorldState",
     "evaluate",
+    "evaluate_swarms",
     "robot_ids",
 ]
 
@@ -76,19 +77,10 @@ def robot_ids(count: int) -> list[str]:
     return [f"sim-{i}" for i in range(count)]
 
 
-class Controller(NamedTuple):
-    """What every robot runs for one genome: its network's weights, the action a(-1) before the
-    first step, and ``columns``, the network's sensors among the world's (int64)."""
-
-    weights: Weights
-    initial_action: float
-    columns: np.ndarray
-
-
 class SafetyLayers(NamedTuple):
-    """Every robot's safety layer: its rules, the positions of each group of sensors in the
+    """The robots' safety layers: their rules, the positions of each group of sensors in the
     world's sensors (empty: that rule is off; see :func:`~minimize_surprise.safety.safety_step`)
-    and ``state`` (N, 5) int64, each robot's state, updated in place."""
+    and ``state`` (B, N, 5) int64, each robot's state in each arena, updated in place."""
 
     params: SafetyParams
     front: np.ndarray
@@ -98,23 +90,22 @@ class SafetyLayers(NamedTuple):
     state: np.ndarray
 
 
-class WorldState(NamedTuple):
-    """The world's live arrays, updated in place (see :attr:`World.kernel_state
-    <sim_stub.world.World.kernel_state>`)."""
+class Arenas(NamedTuple):
+    """B worlds of N robots each as the kernel takes them: per world its constants (lists of B)
+    and its live arrays, stacked (``pose`` (B, N, 3), ``cmd`` (B, N, 2), ``force`` (B, N),
+    ``clock`` (B) the worlds' step counts) or, for the boxes, of which each world has its own
+    number, one after the other (world b's in rows ``box_start[b]`` to ``box_start[b + 1] - 1`` of
+    ``boxes`` and ``pending``); all updated in place."""
 
+    geometry: Sequence[Geometry]
+    sensing: Sequence[Sensing]
     pose: np.ndarray
     cmd: np.ndarray
     force: np.ndarray
     boxes: np.ndarray
     pending: np.ndarray
-
-
-class Outcome(NamedTuple):
-    """What one evaluation gives per robot: ``fitness`` (N) and ``interventions`` (N,
-    len(REASON_OF_CODE)) int64, the count of each safety reason code."""
-
-    fitness: np.ndarray
-    interventions: np.ndarray
+    box_start: np.ndarray
+    clock: np.ndarray
 
 
 class Recording(NamedTuple):
@@ -135,102 +126,125 @@ class Recording(NamedTuple):
 
 @kernel
 def evaluate(
-    g: Geometry,
-    sn: Sensing,
-    net: Controller,
+    arenas: Arenas,
     safety: SafetyLayers,
-    world: WorldState,
-    world_step: int,
+    net: LaneWeights,
+    initial_action: float,
+    columns: np.ndarray,
     steps: int,
-    out: Outcome,
-    rec: Recording,
-) -> int:
-    """One evaluation of one genome on every robot of one arena, from the world's step
-    ``world_step``; returns the world's new step count. Each robot's safety state is reset for
-    the new genome (its generator kept); ``out`` receives the fitnesses and safety counts, ``rec``
-    the trace if it is on."""
+    fitness: np.ndarray,
+    interventions: np.ndarray,
+    record: bool,
+    recs: Sequence[Recording],
+) -> None:
+    """One evaluation on each of B arenas of N robots at once, each arena with its own genome
+    (lanes of ``net``: arena b's robots in lanes b N .. b N + N - 1), from each world's step
+    count on. Each robot's safety state is reset for the new genome (its generator kept);
+    ``fitness`` (B, N) receives the fitnesses, ``interventions`` (B, N, reasons) the safety
+    counts and, with ``record``, ``recs[b]`` arena b's trace. ``columns``: the network's sensors
+    among the world's. An arena's results do not depend on the others in the batch: each of its
+    numbers is computed as in a batch of one."""
     # Every field into a local once, by name: numba counts a reference each time an array is
     # read from a tuple, which in the loop below would cost a tenth of the speed (measured).
-    pose, cmd, force, boxes = world.pose, world.cmd, world.force, world.boxes
-    pending = world.pending
-    w = net.weights
-    a_in, a_out, p_in, p_self, p_out = w.a_in, w.a_out, w.p_in, w.p_self, w.p_out
-    free, fixed, p_init = w.free, w.fixed, w.p_init
-    initial_action, columns = net.initial_action, net.columns
+    geometries, sensings, poses, cmds = arenas.geometry, arenas.sensing, arenas.pose, arenas.cmd
+    forces, boxes, pending, clock = arenas.force, arenas.boxes, arenas.pending, arenas.clock
+    box_start = arenas.box_start
     sp, front, rear, ground = safety.params, safety.front, safety.rear, safety.ground
-    force_idx, state = safety.force, safety.state
-    fitness, interventions = out.fitness, out.interventions
-    record, box_every, rec_boxes = rec.on, rec.box_every, rec.boxes
-    rec_sensors, rec_predictions, rec_actions = rec.sensors, rec.predictions, rec.actions
-    rec_commands, rec_reasons, rec_poses = rec.commands, rec.reasons, rec.poses
-    n = pose.shape[0]
+    force_idx, states = safety.force, safety.state
+    a_in, a_out, p_in, p_self, p_out = net.a_in, net.a_out, net.p_in, net.p_self, net.p_out
+    free, fixed = net.free, net.fixed
+    b_count, n = fitness.shape[0], fitness.shape[1]
     r = columns.shape[0]
-    values = np.empty((n, sn.columns.shape[0]))
-    full = np.zeros((n, _FULL_WIDTH))
+    lanes = net.p_init.shape[1]
+    values = np.empty((b_count, n, sensings[0].columns.shape[0]))
+    full = np.zeros((b_count, n, _FULL_WIDTH))
     # The networks' arrays hold a robot in each column (network_step_lanes): readings s(t) in
-    # the first R rows of ``work``, a(t-1), h(t-1), p(t+1) as the robots' columns. Columns are
-    # padded to whole vectors (_LANES), so the compiler's vector loop covers every robot; the
-    # padding lanes compute on zeros, and nothing reads them.
-    lanes = -(-n // _LANES) * _LANES
+    # the first R rows of ``work``, a(t-1), h(t-1), p(t+1) as the robots' columns; the lanes
+    # beyond the last arena's robots (padding to whole vectors) compute on zeros, unread.
     work = np.zeros((r + 3 + a_in.shape[0], lanes))
-    units = max(a_in.shape[0], p_init.shape[0], r, 2)
-    acc = np.empty((units, lanes))
+    acc = np.empty((max(a_in.shape[0], p_in.shape[0], r, 2), lanes))
     previous = np.full((2, lanes), initial_action)
-    hidden = np.empty((p_init.shape[0], lanes))
+    hidden = net.p_init.copy()
     action = np.empty((2, lanes))
     predictions = np.empty((r, lanes))
-    for i in range(lanes):
-        hidden[:, i] = p_init
-    for i in range(n):
-        # A new genome: no manoeuvre carries over; the generator of escape turns does.
-        state[i, 0] = 0
-        state[i, 1] = 0
-        state[i, 2] = 0
-        state[i, 3] = 0
-    total = np.zeros(n)
-    interventions[:, :] = 0
+    total = np.zeros((b_count, n))
+    # Read once: an item of numba's list costs a call (70 ns for a Sensing), here per step.
+    need_force = np.zeros(b_count, dtype=np.bool_)
+    for b in range(b_count):
+        need_force[b] = sensings[b].need_force
+    # A new genome: no manoeuvre carries over; the generator of escape turns does.
+    states[:, :, :4] = 0
+    interventions[:, :, :] = 0
     for t in range(steps):
-        if record and boxes.shape[0] and t % box_every == 0:
-            rec_boxes[t // box_every, :, :] = boxes
-        physics.sense(sn, pose, force, world_step, values, full)
-        for i in range(n):
-            for k in range(r):
-                work[k, i] = values[i, columns[k]]
-            if t > 0:
-                total[i] += step_score(predictions[:, i], work[:r, i])
+        for b in range(b_count):
+            if record and t % recs[b].box_every == 0 and box_start[b + 1] > box_start[b]:
+                recs[b].boxes[t // recs[b].box_every, :, :] = boxes[box_start[b] : box_start[b + 1]]
+            physics.sense(sensings[b], poses[b], forces[b], clock[b], values[b], full[b])
+            for i in range(n):
+                lane = b * n + i
+                for k in range(r):
+                    work[k, lane] = values[b, i, columns[k]]
+                if t > 0:
+                    total[b, i] += step_score(predictions[:, lane], work[:r, lane])
         network_step_lanes(
             a_in, a_out, p_in, p_self, p_out, free, fixed, work, previous, hidden, acc, action,
             predictions,
         )  # fmt: skip
-        for i in range(n):
-            left, right, code = safety_step(
-                sp, front, rear, ground, force_idx, values[i], action[0, i], action[1, i], True,
-                0.0, state[i],
-            )  # fmt: skip
-            interventions[i, code] += 1
-            cmd[i, 0] = left
-            cmd[i, 1] = right
+        for b in range(b_count):
+            cmd, state, counts = cmds[b], states[b], interventions[b]
+            for i in range(n):
+                lane = b * n + i
+                left, right, code = safety_step(
+                    sp, front, rear, ground, force_idx, values[b, i], action[0, lane],
+                    action[1, lane], True, 0.0, state[i],
+                )  # fmt: skip
+                counts[i, code] += 1
+                cmd[i, 0] = left
+                cmd[i, 1] = right
+                if record:
+                    recs[b].reasons[t, i] = code
             if record:
-                rec_sensors[t, i, :] = work[:r, i]
-                rec_predictions[t, i, :] = predictions[:, i]
-                rec_actions[t, i, 0] = action[0, i]
-                rec_actions[t, i, 1] = action[1, i]
-                rec_commands[t, i, 0] = left
-                rec_commands[t, i, 1] = right
-                rec_reasons[t, i] = code
-                rec_poses[t, i, 0] = pose[i, 0]
-                rec_poses[t, i, 1] = pose[i, 1]
-                rec_poses[t, i, 2] = pose[i, 2]
-        physics.step_world(g, pose, cmd, force, boxes, pending, sn.need_force)
-        world_step += 1
+                _record(recs[b], t, b * n, poses[b], work, predictions, action, cmd)
+            first, last = box_start[b], box_start[b + 1]
+            physics.step_world(
+                geometries[b], poses[b], cmd, forces[b], boxes[first:last], pending[first:last],
+                need_force[b],
+            )  # fmt: skip
+            clock[b] += 1
     # Every robot stops; the lockstep counts that as everybody's command for one more step.
-    cmd[:, :] = 0.0
-    physics.step_world(g, pose, cmd, force, boxes, pending, sn.need_force)
-    world_step += 1
+    cmds[:, :, :] = 0.0
+    for b in range(b_count):
+        first, last = box_start[b], box_start[b + 1]
+        physics.step_world(
+            geometries[b], poses[b], cmds[b], forces[b], boxes[first:last], pending[first:last],
+            need_force[b],
+        )  # fmt: skip
+        clock[b] += 1
     scored = steps - 1
-    for i in range(n):
-        fitness[i] = total[i] / scored if scored > 0 else 0.0
-    return world_step
+    for b in range(b_count):
+        for i in range(n):
+            fitness[b, i] = total[b, i] / scored if scored > 0 else 0.0
+
+
+@kernel
+def _record(
+    rec: Recording, t: int, first: int, pose: np.ndarray, work: np.ndarray,
+    predictions: np.ndarray, action: np.ndarray, cmd: np.ndarray,
+) -> None:  # fmt: skip
+    # Step t of one arena's trace (all but the safety reasons): its robots are the lanes from
+    # ``first`` on, its commands those of the step, its poses those before it.
+    r = predictions.shape[0]
+    for i in range(pose.shape[0]):
+        lane = first + i
+        rec.sensors[t, i, :] = work[:r, lane]
+        rec.predictions[t, i, :] = predictions[:, lane]
+        rec.actions[t, i, 0] = action[0, lane]
+        rec.actions[t, i, 1] = action[1, lane]
+        rec.commands[t, i, 0] = cmd[i, 0]
+        rec.commands[t, i, 1] = cmd[i, 1]
+        rec.poses[t, i, 0] = pose[i, 0]
+        rec.poses[t, i, 1] = pose[i, 1]
+        rec.poses[t, i, 2] = pose[i, 2]
 
 
 @dataclass(frozen=True)
@@ -280,10 +294,6 @@ class Swarm:
         self.safety = np.zeros((world_config.robots, 5), dtype=np.int64)
         for i, robot_id in enumerate(self.ids):
             self.safety[i] = layer.initial_state(safety_seed(robot_id)).to_array()
-        # The kernel's view of the safety layers; ``restore`` keeps ``self.safety`` in place.
-        self._layers = SafetyLayers(
-            layer.params, layer.front, layer.rear, layer.ground, layer.force, self.safety
-        )
         missing = [name for name in spec.sensors if name not in world_config.sensors]
         if missing:
             raise ValueError(f"the world's robots do not carry {', '.join(missing)}")
@@ -303,17 +313,27 @@ class Swarm:
 
     def evaluate(self, genome: np.ndarray, steps: int, *, record: bool = False) -> EvaluationRecord:
         """Run ``genome`` on every robot for ``steps`` steps from where the swarm stands."""
+        (result,) = evaluate_swarms([self], [genome], steps, record=record)
+        return result
+
+    def check_batch(self, other: Swarm) -> None:
+        """Raise ValueError unless ``other`` can be evaluated in one batch with this swarm: the
+        same network shape, number of robots, world sensors and safety rules."""
+        mine = (self.spec, len(self.ids), self.world.config.sensors, self.layer.config)
+        theirs = (other.spec, len(other.ids), other.world.config.sensors, other.layer.config)
+        if mine != theirs:
+            raise ValueError(
+                "swarms of one batch need the same network shape, robots, sensors and safety "
+                f"rules: {mine} against {theirs}"
+            )
+
+    def _recording(self, steps: int, record: bool) -> Recording:
         world = self.world
-        n = world.n_robots
-        net = Controller(
-            network_weights(self.layout, genome), self.spec.initial_action, self._columns
-        )
-        r = len(self.spec.sensors)
-        out = Outcome(np.empty(n), np.zeros((n, self._reasons), dtype=np.int64))
+        n, r = world.n_robots, len(self.spec.sensors)
         shape = (steps, n) if record else (0, n)
         every = box_frame_steps(world.config.dt)
         frames = box_frames(steps, every) if record else 0
-        rec = Recording(
+        return Recording(
             on=record,
             sensors=np.empty((*shape, r)),
             predictions=np.empty((*shape, r)),
@@ -324,19 +344,101 @@ class Swarm:
             box_every=every,
             boxes=np.empty((frames, len(world.box_positions), 2)),
         )
-        geometry, sensing = world.kernel_constants
-        steps_after = evaluate(
-            geometry, sensing, net, self._layers, WorldState(*world.kernel_state), world.steps,
-            steps, out, rec,
-        )  # fmt: skip
-        world.advance_to(steps_after)
-        interventions = [
+
+
+def evaluate_swarms(
+    swarms: Sequence[Swarm], genomes: Sequence[np.ndarray], steps: int, *, record: bool = False
+) -> list[EvaluationRecord]:
+    """Run ``genomes[b]`` on every robot of ``swarms[b]`` for ``steps`` steps, every swarm in one
+    compiled call (their robots' networks side by side as lanes); each swarm's result is the one
+    it has when evaluated alone, to the last bit. The swarms must be compatible
+    (:meth:`Swarm.check_batch`)."""
+    if not swarms or len(swarms) != len(genomes):
+        raise ValueError(f"{len(swarms)} swarms and {len(genomes)} genomes: need one each")
+    first = swarms[0]
+    for swarm in swarms[1:]:
+        first.check_batch(swarm)
+    n = len(first.ids)
+    lanes = -(-len(swarms) * n // _LANES) * _LANES
+    net = lane_weights(
+        [network_weights(swarm.layout, g) for swarm, g in zip(swarms, genomes, strict=True)],
+        n, lanes,
+    )  # fmt: skip
+    worlds = [swarm.world for swarm in swarms]
+    # The worlds' arrays of one shape stacked (copied back below), the others listed.
+    states = [world.kernel_state for world in worlds]
+    geometry, sensing, empty = _world_lists(swarms, steps, record)
+    box_start = np.cumsum([0] + [len(state[3]) for state in states])
+    arenas = Arenas(
+        geometry=geometry,
+        sensing=sensing,
+        pose=np.stack([state[0] for state in states]),
+        cmd=np.stack([state[1] for state in states]),
+        force=np.stack([state[2] for state in states]),
+        boxes=np.concatenate([state[3] for state in states]),
+        pending=np.concatenate([state[4] for state in states]),
+        box_start=box_start,
+        clock=np.array([world.steps for world in worlds], dtype=np.int64),
+    )
+    layer = first.layer
+    safety = SafetyLayers(
+        layer.params, layer.front, layer.rear, layer.ground, layer.force,
+        np.stack([swarm.safety for swarm in swarms]),
+    )  # fmt: skip
+    recs = [swarm._recording(steps, record) for swarm in swarms] if record else empty
+    fitness = np.empty((len(swarms), n))
+    interventions = np.zeros((len(swarms), n, len(REASON_OF_CODE)), dtype=np.int64)
+    evaluate(
+        arenas, safety, net, first.spec.initial_action, first._columns, steps, fitness,
+        interventions, record, recs if not record else _typed_list(recs),
+    )  # fmt: skip
+    results = []
+    for b, (swarm, world, state) in enumerate(zip(swarms, worlds, states, strict=True)):
+        state[0][:] = arenas.pose[b]
+        state[1][:] = arenas.cmd[b]
+        state[2][:] = arenas.force[b]
+        state[3][:] = arenas.boxes[box_start[b] : box_start[b + 1]]
+        state[4][:] = arenas.pending[box_start[b] : box_start[b + 1]]
+        swarm.safety[:] = safety.state[b]
+        world.advance_to(int(arenas.clock[b]))
+        counts = [
             {REASONS[c - 1]: int(k) for c, k in enumerate(row) if c and k}
-            for row in out.interventions
+            for row in interventions[b]
         ]
         if not record:
-            return EvaluationRecord(out.fitness, interventions)
-        return EvaluationRecord(
-            out.fitness, interventions, rec.sensors, rec.predictions, rec.actions, rec.commands,
-            rec.reasons, rec.poses, boxes=rec.boxes,
-        )  # fmt: skip
+            results.append(EvaluationRecord(fitness[b].copy(), counts))
+            continue
+        rec = recs[b]
+        trace = (rec.sensors, rec.predictions, rec.actions, rec.commands, rec.reasons, rec.poses)
+        results.append(EvaluationRecord(fitness[b].copy(), counts, *trace, boxes=rec.boxes))
+    return results
+
+
+#: The lists of the last batch evaluated (:func:`_world_lists`), by the identity of what is in
+#: them. Building numba's lists costs about 15 us an item, more than an evaluation step.
+_last_lists: list[tuple[tuple[int, ...], tuple[Any, ...]]] = []
+
+
+def _world_lists(swarms: Sequence[Swarm], steps: int, record: bool) -> tuple[Any, ...]:
+    # The kernel's per-world lists: geometries, sensings, and recordings that record nothing. A
+    # world's constants are replaced when it is reset or restored, so the same objects mean the
+    # same lists; held here, they stay alive and their ids unique.
+    parts = [swarm.world.kernel_constants for swarm in swarms]
+    key = tuple(id(item) for part in parts for item in part)
+    if _last_lists and _last_lists[0][0] == key:
+        return _last_lists[0][1][:3]
+    lists = tuple(_typed_list([part[k] for part in parts]) for k in range(2))
+    empty = _typed_list([swarm._recording(0, False) for swarm in swarms])
+    value = (*lists, empty, parts)
+    _last_lists[:] = [(key, value)]
+    return value[:3]
+
+
+def _typed_list(items: list[Any]) -> Any:
+    # numba's list of one type, as the kernel takes its per-world lists; without numba a plain
+    # list does.
+    if not JIT:
+        return items
+    from numba.typed import List
+
+    return List(items)

@@ -33,12 +33,31 @@ from minimize_surprise.text import plural
 __all__ = ["main"]
 
 
+def _positive(text: str) -> int:
+    # argparse's type: a whole number of at least 1, or its own one-line error.
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected at least 1, got {value}")
+    return value
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="surprise-study", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     run = sub.add_parser("run", help="run (or go on with) a study")
     run.add_argument("study", help="the study file (YAML), or a shipped study's name (see `list`)")
     run.add_argument("--out", type=Path, required=True, help="the study's directory")
+    run.add_argument(
+        "--batch",
+        type=_positive,
+        default=None,
+        metavar="N",
+        help="evolved runs of one shape stepped together per worker, at most N (default 4; "
+        "1: each run alone; docs/studies.md)",
+    )
     where = run.add_mutually_exclusive_group()
     where.add_argument("--workers", type=int, help="local worker processes (default: one per core)")
     where.add_argument(
@@ -124,6 +143,7 @@ def _executor(args: argparse.Namespace):
 
 
 def _run(args: argparse.Namespace) -> int:
+    from studies.batches import BATCH_RUNS
     from studies.executors import SchedulerLostError
     from studies.progress import StudyProgress
     from studies.runner import prepare, run_study, study_status
@@ -136,7 +156,12 @@ def _run(args: argparse.Namespace) -> int:
     try:
         with StudyProgress() as progress:
             counts = run_study(
-                args.study, args.out, executor, on_update=progress.update, on_notice=print
+                args.study,
+                args.out,
+                executor,
+                on_update=progress.update,
+                on_notice=print,
+                batch=args.batch or BATCH_RUNS,
             )
     except KeyboardInterrupt:
         print(f"stopped: run `surprise-study run {args.study} --out {args.out}` to go on")

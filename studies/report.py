@@ -78,7 +78,7 @@ def load_runs(out: str | Path):
             row[key.split(".")[-1]] = value
         for key in (
             "scenario", "setting", "robots", "evaluations", "best_fitness", "fitness",
-            "post_fitness", "pattern", "quality", "size", "seconds", "host", "error",
+            "post_fitness", "pattern", "quality", "size", "seconds", "batch", "host", "error",
         ):  # fmt: skip
             if key in summary:
                 row[key] = summary[key]

@@ -32,6 +32,7 @@ from typing import Any
 from minimize_surprise.errors import ConfigError
 from minimize_surprise.files import write_json
 from minimize_surprise.text import plural
+from studies.batches import BATCH_RUNS, plan_batches, run_tasks
 from studies.executors import Executor, SchedulerLostError
 from studies.spec import expand, load_study, task_stages
 from studies.tasks import (
@@ -43,7 +44,6 @@ from studies.tasks import (
     run_busy,
     run_dir,
     run_lock,
-    run_task,
     stored_summary,
 )
 
@@ -152,8 +152,12 @@ def run_study(
     *,
     on_update: Callable[[Counts, float], None] | None = None,
     on_notice: Callable[[str], None] | None = None,
+    batch: int = BATCH_RUNS,
 ) -> Counts:
     """Run every unfinished task of the study into ``out``; the counts at the end.
+
+    Compatible evolved runs go to the workers in batches of up to ``batch``, stepped together
+    (:mod:`studies.batches`; 1: each run alone).
 
     ``on_update(counts, elapsed_s)`` is called after every completed run, ``on_notice(line)``
     with what the study waits for. Raises :class:`SchedulerLostError` or :class:`DiskFullError`
@@ -186,7 +190,7 @@ def run_study(
         on_update(counts, 0.0)
     # A group that uses other groups' runs (``after``) starts once they have all ended.
     for stage in task_stages(pending):
-        _run_stage(stage, out, executor, counts, update)
+        _run_stage(stage, out, executor, counts, update, batch)
     return counts
 
 
@@ -196,13 +200,16 @@ def _run_stage(
     executor: Executor,
     counts: Counts,
     update: Callable[[], None],
+    batch: int,
 ) -> None:
-    futures = {executor.submit(run_task, task, str(out)): task for task in stage}
+    batches = plan_batches(stage, executor.workers, batch)
+    futures = {executor.submit(run_tasks, tasks, str(out)): tasks for tasks in batches}
     try:
         for future in executor.as_completed(list(futures)):
             # Forgotten once read: a Dask cluster losing the worker that holds a result still
             # wanted would run that task again just to restore it.
-            counts.add(_outcome(executor, futures.pop(future), future, out))
+            for summary in _outcomes(executor, futures.pop(future), future, out):
+                counts.add(summary)
             del future
             update()
     except (SchedulerLostError, DiskFullError):
@@ -210,24 +217,30 @@ def _run_stage(
         raise
 
 
-def _outcome(executor: Executor, task: dict[str, Any], future: Any, out: Path) -> dict[str, Any]:
-    # The summary a task ended with. A worker that died under it (killed, out of memory) more
-    # often than the executor retries is the run's failure, unless the run finished anyway.
+def _outcomes(
+    executor: Executor, tasks: list[dict[str, Any]], future: Any, out: Path
+) -> list[dict[str, Any]]:
+    # The summaries a batch ended with. A worker that died under it (killed, out of memory)
+    # more often than the executor retries is its runs' failure, unless a run finished anyway.
     try:
-        return executor.result(future)
+        return list(executor.result(future))
     except (SchedulerLostError, DiskFullError):
         raise
     except Exception as exc:
-        directory = run_dir(out, task)
-        stored = stored_summary(directory)
-        if stored is not None:
-            return stored
-        summary = {"run": task["run"], "status": "failed", "error": f"worker: {exc!r}"}
-        with naming_full_disk(directory), run_lock(directory, wait=False) as held:
-            if held:  # else another process is running it: its summary will tell
-                directory.mkdir(parents=True, exist_ok=True)
-                write_json(directory / FAILED, summary)
-        return summary
+        return [_lost(task, exc, out) for task in tasks]
+
+
+def _lost(task: dict[str, Any], exc: Exception, out: Path) -> dict[str, Any]:
+    directory = run_dir(out, task)
+    stored = stored_summary(directory)
+    if stored is not None:
+        return stored
+    summary = {"run": task["run"], "status": "failed", "error": f"worker: {exc!r}"}
+    with naming_full_disk(directory), run_lock(directory, wait=False) as held:
+        if held:  # else another process is running it: its summary will tell
+            directory.mkdir(parents=True, exist_ok=True)
+            write_json(directory / FAILED, summary)
+    return summary
 
 
 def study_status(out: str | Path) -> dict[str, Any]:

@@ -280,14 +280,19 @@ def run_task(task: dict[str, Any], root: str) -> dict[str, Any]:
         return _run_afresh(task, directory)
 
 
+def task_base(task: dict[str, Any]) -> dict[str, Any]:
+    """The fields of a task every summary of its run repeats."""
+    return {key: task[key] for key in ("group", "kind", "seed", "sweep", "run")}
+
+
 def _run_afresh(task: dict[str, Any], directory: Path) -> dict[str, Any]:
     # A directory without a summary is what a killed run left: start it afresh.
     if directory.exists():
         shutil.rmtree(directory)
-    base = {key: task[key] for key in ("group", "kind", "seed", "sweep", "run")}
+    base = task_base(task)
     started = time.perf_counter()
     try:
-        with _quiet():
+        with quiet():
             result = _runner(task["kind"])(task, directory)
         summary = {**base, "status": "done", **result}
     except BaseException as exc:
@@ -311,6 +316,11 @@ def _run_afresh(task: dict[str, Any], directory: Path) -> dict[str, Any]:
 _RUN_OPTIONS = ("plots", "traces")
 
 
+def task_experiment(task: dict[str, Any]) -> Any:
+    """The experiment of an evolved or random task (its ``params`` decoded, its seed)."""
+    return _experiment(task)
+
+
 def _experiment(task: dict[str, Any]):
     from master_service.experiments.simulation_setup import simulation_experiment
 
@@ -323,13 +333,26 @@ def _experiment(task: dict[str, Any]):
 
 def _run_evolved(task: dict[str, Any], directory: Path) -> dict[str, Any]:
     from master_service.experiments.engine_run import FastRun
-    from master_service.rundir import TRACES
 
     experiment = _experiment(task)
     # No pictures per run unless asked: they cost a run about 4 s of its 20 to 30 (the study's
     # report draws its own figures; `surprise-master report RUN` draws any run's).
-    plots = bool(task["params"].get("plots", False))
-    result = FastRun(experiment).run(directory, plots=plots)
+    result = FastRun(experiment).run(directory, plots=run_plots(task))
+    return evolved_summary(task, experiment, directory, result)
+
+
+def run_plots(task: dict[str, Any]) -> bool:
+    """Whether an evolved run draws its pictures (its ``plots`` option; default false)."""
+    return bool(task["params"].get("plots", False))
+
+
+def evolved_summary(
+    task: dict[str, Any], experiment: Any, directory: Path, result: Any
+) -> dict[str, Any]:
+    """What an evolved run's summary holds, from its :class:`~master_service.experiments.
+    simulation_setup.SimulatedRun` ``result``; drops the traces if the task says so."""
+    from master_service.rundir import TRACES
+
     if result is None:  # only when told to stop, and nothing here tells it to
         raise RuntimeError(f"the evolved run in {directory} stopped before its end")
     if not task["params"].get("traces", True):
@@ -417,8 +440,9 @@ def _runner(kind: str) -> Callable[[dict[str, Any], Path], dict[str, Any]]:
 
 
 @contextlib.contextmanager
-def _quiet():
-    # A study runs hundreds of runs: their per-evaluation logging stays in their own files.
+def quiet() -> Iterator[None]:
+    """The master's per-evaluation logging kept in each run's own files: a study runs hundreds
+    of runs."""
     logger = logging.getLogger("master_service")
     level = logger.level
     logger.setLevel(logging.WARNING)

@@ -20,13 +20,14 @@ import asyncio
 import logging
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Final
 
 import numpy as np
 
 from master_service.config import MasterConfig
-from master_service.evaluation import Evaluation, Progress
+from master_service.evaluation import Evaluation, Progress, RunSummary
 from master_service.evolution_run import EvolutionRun
 from master_service.experiments.simulation_setup import (
     SimulatedRun,
@@ -40,10 +41,10 @@ from master_service.rundir import RunDir, RunState
 from minimize_surprise.config import ExperimentConfig
 from minimize_surprise.network import spec_from_config
 from minimize_surprise.wire import EvaluationStats, Result, Trace
-from sim_stub.engine import EvaluationRecord, Swarm
+from sim_stub.engine import EvaluationRecord, Swarm, evaluate_swarms
 from sim_stub.world import box_frame_steps
 
-__all__ = ["COMMIT_INTERVAL", "EngineEvaluator", "FastRun"]
+__all__ = ["COMMIT_INTERVAL", "EngineEvaluator", "FastRun", "SwarmBatcher", "run_batch"]
 
 #: Seconds between two commits at most: a stopped run repeats at most this much of its work.
 COMMIT_INTERVAL: Final = 2.0
@@ -93,8 +94,18 @@ class FastRun:
         report writes its metrics but draws nothing. ``replay`` (a new run only) post-evaluates
         that genome instead of evolving one (:mod:`master_service.replay`).
         """
-        from master_service.reporting.report import write_report  # matplotlib: only when reporting
+        opened = self._open(run_dir, resume=resume, replay=replay)
+        try:
+            # The loop logs a failed write into master.log; the command line says it too.
+            summary = asyncio.run(opened.run(should_stop))
+        finally:
+            opened.close()
+        return self._finish(opened, summary, plots)
 
+    def _open(
+        self, run_dir: str | Path, *, resume: bool, replay: ReplaySource | None = None
+    ) -> _OpenRun:
+        # The run directory opened and the evolution loaded, ready to run.
         directory = RunDir(run_dir)
         log = _run_log(directory)
         evolution = EvolutionRun(
@@ -108,28 +119,36 @@ class FastRun:
         )
         if self.on_progress is not None:
             evolution.add_progress_listener(self.on_progress)
-        state = evolution.load(resume=resume, roster=self.ids, replay=replay)
-        evolution.open(resume=resume)
-        if replay is not None and not resume:
-            write_replay_file(directory, replay)
-        if replay is not None:
-            self.evaluator.replay_safety = replay.safety_for(len(self.ids))
+        opened = _OpenRun(directory, log, evolution)
         try:
+            state = evolution.load(resume=resume, roster=self.ids, replay=replay)
+            evolution.open(resume=resume)
+            if replay is not None and not resume:
+                write_replay_file(directory, replay)
+            if replay is not None:
+                self.evaluator.replay_safety = replay.safety_for(len(self.ids))
             if not resume:
                 self._write_simulation_file(directory.path)
             elif state.simulation is not None:
                 self.swarm.restore(state.simulation)
             if resume:
                 log.info("resumed: %d evaluations done", state.optimizer.evaluations)
-            # The loop logs a failed write into master.log; the command line says it too.
-            summary = asyncio.run(_run(evolution, should_stop))
-        finally:
-            directory.close()
-            directory.close_log(log)
+        except BaseException:
+            opened.close()
+            raise
+        return opened
+
+    def _finish(
+        self, opened: _OpenRun, summary: RunSummary | None, plots: bool
+    ) -> SimulatedRun | None:
+        # After the loop: simulation.json and the report of a finished run.
+        from master_service.reporting.report import write_report  # matplotlib: only when reporting
+
         if summary is None:
             return None
-        self._write_simulation_file(directory.path)
-        return SimulatedRun(summary, write_report(directory.path, plots=plots))
+        path = opened.directory.path
+        self._write_simulation_file(path)
+        return SimulatedRun(summary, write_report(path, plots=plots))
 
     def _write_simulation_file(self, run_dir: Path) -> None:
         write_simulation_file(
@@ -160,6 +179,8 @@ class EngineEvaluator:
         #: a replay's: the safety states its source's post-evaluation began with
         self.replay_safety: list[list[int]] | None = None
         self._recorded: EvaluationRecord | None = None
+        #: evaluates this run's swarm with other runs' in one compiled call (None: alone)
+        self.batcher: SwarmBatcher | None = None
 
     @property
     def robots_connected(self) -> int:
@@ -189,10 +210,15 @@ class EngineEvaluator:
     async def evaluate(
         self, evaluation_id: int, genome: np.ndarray, steps: int, *, record: bool
     ) -> Evaluation:
-        """One evaluation on the engine (it never fails: no robot can drop out)."""
-        began = time.monotonic()
-        record_ = self.engine.evaluate(genome, steps, record=record)
-        seconds = time.monotonic() - began
+        """One evaluation on the engine (it never fails: no robot can drop out); with a
+        :attr:`batcher`, in one call with the other runs' evaluations, its time the batch's
+        divided among them."""
+        if self.batcher is not None:
+            record_, seconds = await self.batcher.evaluate(self.engine, genome, steps, record)
+        else:
+            began = time.monotonic()
+            record_ = self.engine.evaluate(genome, steps, record=record)
+            seconds = time.monotonic() - began
         fitnesses = [float(f) for f in record_.fitness]
         results = None
         if record:
@@ -231,11 +257,23 @@ class EngineEvaluator:
         return self.engine.snapshot()
 
 
-async def _run(evolution: EvolutionRun, should_stop: Callable[[], bool] | None) -> Any:
-    try:
-        return await evolution.run(should_stop)
-    finally:
-        await evolution.close()
+@dataclass
+class _OpenRun:
+    """A run whose directory is open: its loop, and what :meth:`close` releases."""
+
+    directory: RunDir
+    log: logging.Logger
+    evolution: EvolutionRun
+
+    async def run(self, should_stop: Callable[[], bool] | None) -> RunSummary | None:
+        try:
+            return await self.evolution.run(should_stop)
+        finally:
+            await self.evolution.close()
+
+    def close(self) -> None:
+        self.directory.close()
+        self.directory.close_log(self.log)
 
 
 def _result(evaluation_id: int, record: EvaluationRecord, robot: int, steps: int) -> Result:
@@ -266,3 +304,108 @@ def _run_log(directory: RunDir) -> logging.Logger:
     log.setLevel(logging.INFO)
     log.propagate = False
     return log
+
+
+class SwarmBatcher:
+    """Evaluates the swarms of ``runs`` runs of one event loop together: each run's evaluation
+    waits until every run still going has asked for one, then all run in one compiled call
+    (:func:`~sim_stub.engine.evaluate_swarms`), grouped by length and recording. A run that
+    ends says so (:meth:`run_ended`) so the others no longer wait for it. Each swarm's results
+    are those it has alone, to the last bit."""
+
+    def __init__(self, runs: int) -> None:
+        self.live = runs
+        self._pending: list[tuple[Swarm, np.ndarray, int, bool, asyncio.Future[Any]]] = []
+
+    async def evaluate(
+        self, swarm: Swarm, genome: np.ndarray, steps: int, record: bool
+    ) -> tuple[EvaluationRecord, float]:
+        """``swarm.evaluate(genome, steps, record=record)`` in a batch; with the seconds of the
+        batch's call divided by its swarms."""
+        future: asyncio.Future[Any] = asyncio.get_running_loop().create_future()
+        self._pending.append((swarm, genome, steps, record, future))
+        self._flush_if_complete()
+        result: tuple[EvaluationRecord, float] = await future
+        return result
+
+    def run_ended(self) -> None:
+        """One run is over (done, stopped or failed): stop waiting for it."""
+        self.live -= 1
+        self._flush_if_complete()
+
+    def _flush_if_complete(self) -> None:
+        if not self._pending or len(self._pending) < self.live:
+            return
+        pending, self._pending = self._pending, []
+        groups: dict[tuple[int, bool], list[Any]] = {}
+        for item in pending:
+            groups.setdefault((item[2], item[3]), []).append(item)
+        for (steps, record), items in groups.items():
+            began = time.monotonic()
+            try:
+                results = evaluate_swarms(
+                    [item[0] for item in items], [item[1] for item in items], steps,
+                    record=record,
+                )  # fmt: skip
+            except Exception as exc:  # every run of the batch fails alike
+                for item in items:
+                    item[4].set_exception(exc)
+                continue
+            share = (time.monotonic() - began) / len(items)
+            for item, result in zip(items, results, strict=True):
+                item[4].set_result((result, share))
+
+
+def run_batch(
+    runs: list[tuple[FastRun, Path]], *, plots: bool = False
+) -> list[SimulatedRun | BaseException]:
+    """Run new runs into their directories at once, their swarms evaluated together
+    (:class:`SwarmBatcher`): one process, one compiled call per evaluation of them all. Each
+    run is what it is alone (its seed, evolution, checkpoints, run directory and results, to the
+    last bit); its outcome, or the exception that stopped it, in order. The runs' swarms must be
+    compatible (:meth:`~sim_stub.engine.Swarm.check_batch`)."""
+    for fast, _ in runs[1:]:
+        runs[0][0].swarm.check_batch(fast.swarm)
+    batcher = SwarmBatcher(len(runs))
+    opened: list[_OpenRun | BaseException] = []
+    for fast, run_dir in runs:
+        fast.evaluator.batcher = batcher
+        try:
+            opened.append(fast._open(run_dir, resume=False))
+        except Exception as exc:
+            opened.append(exc)
+            batcher.run_ended()
+
+    async def one(run: _OpenRun) -> RunSummary | None:
+        try:
+            return await run.run(None)
+        finally:
+            batcher.run_ended()
+
+    async def all_runs() -> list[Any]:
+        live = [run for run in opened if isinstance(run, _OpenRun)]
+        return await asyncio.gather(*(one(run) for run in live), return_exceptions=True)
+
+    try:
+        summaries = iter(asyncio.run(all_runs()))
+    finally:
+        for run in opened:
+            if isinstance(run, _OpenRun):
+                run.close()
+    outcomes: list[SimulatedRun | BaseException] = []
+    for (fast, _), run in zip(runs, opened, strict=True):
+        if isinstance(run, BaseException):
+            outcomes.append(run)
+            continue
+        summary = next(summaries)
+        if isinstance(summary, BaseException):
+            outcomes.append(summary)
+            continue
+        try:
+            finished = fast._finish(run, summary, plots)
+        except Exception as exc:
+            outcomes.append(exc)
+            continue
+        assert finished is not None, "a run of a batch is never told to stop"
+        outcomes.append(finished)
+    return outcomes

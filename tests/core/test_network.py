@@ -112,31 +112,46 @@ def test_batch_equals_independent_single_robots():
     "predefined", [{}, {"ground.0": 0.4}, {s: 0.1 for s in SENSORS}], ids=["free", "one", "all"]
 )
 @pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "interpreted"])
-def test_robots_as_lanes_compute_the_same_bits_as_one_robot_at_a_time(predefined, compiled):
-    # The simulator's engine steps a swarm's networks with robots as lanes (network_step_lanes);
-    # a robot's agent steps its own alone (network_step): every action, prediction, hidden
-    # state and next input must be the same to the last bit, over steps.
-    from minimize_surprise.network import network_step, network_step_lanes, network_weights
+@pytest.mark.parametrize("genomes", [1, 2], ids=["shared", "per-lane"])
+def test_robots_as_lanes_compute_the_same_bits_as_one_robot_at_a_time(
+    predefined, compiled, genomes
+):
+    # The simulator's engine steps swarms' networks with robots as lanes (network_step_lanes),
+    # one genome shared by every lane or a genome per run; a robot's agent steps its own alone
+    # (network_step): every action, prediction, hidden state and next input must be the same to
+    # the last bit, over steps.
+    from minimize_surprise.network import (
+        lane_weights,
+        network_step,
+        network_step_lanes,
+        network_weights,
+    )
 
-    lanes = network_step_lanes if compiled else network_step_lanes.py_func
+    lanes_step = network_step_lanes if compiled else network_step_lanes.py_func
     one = network_step if compiled else network_step.py_func
     sp = spec(predefined=predefined, initial_action=0.5)
     rng = np.random.default_rng(11)
-    weights = network_weights(GenomeLayout(sp), rng.uniform(-3, 3, GenomeLayout(sp).size))
+    layout = GenomeLayout(sp)
+    weights = [network_weights(layout, rng.uniform(-3, 3, layout.size)) for _ in range(genomes)]
     robots, r, ha = 5, len(SENSORS), sp.actor_hidden
-    hp = weights.p_in.shape[0]
-    seq = rng.random((8, robots, r))
-    work = np.empty((r + 3 + ha, robots))
-    previous, hidden = np.full((2, robots), 0.5), np.tile(weights.p_init[:, None], robots)
-    acc = np.empty((max(ha, hp, r, 2), robots))
-    action, prediction = np.empty((2, robots)), np.empty((r, robots))
-    singles = [(np.full(2, 0.5), weights.p_init.copy()) for _ in range(robots)]
+    lanes = 8 * -(-genomes * robots // 8)  # padded as the engine pads
+    net = lane_weights(weights, robots, lanes)
+    hp = net.p_in.shape[0]
+    seq = rng.random((8, lanes, r))
+    work = np.empty((r + 3 + ha, lanes))
+    previous, hidden = np.full((2, lanes), 0.5), net.p_init.copy()
+    acc = np.empty((max(ha, hp, r, 2), lanes))
+    action, prediction = np.empty((2, lanes)), np.empty((r, lanes))
+    singles = [
+        (weights[i // robots], np.full(2, 0.5), weights[i // robots].p_init.copy())
+        for i in range(genomes * robots)
+    ]
     for s in seq:
         work[:r] = s.T
-        lanes(*weights[:7], work, previous, hidden, acc, action, prediction)
-        for i, (prev_i, hidden_i) in enumerate(singles):
+        lanes_step(*net[:7], work, previous, hidden, acc, action, prediction)
+        for i, (w, prev_i, hidden_i) in enumerate(singles):
             a_i, p_i = np.empty(2), np.empty(r)
-            one(*weights[:7], s[i].copy(), prev_i, hidden_i, np.empty(r + 3 + ha), a_i, p_i)
+            one(*w[:7], s[i].copy(), prev_i, hidden_i, np.empty(r + 3 + ha), a_i, p_i)
             assert np.array_equal(action[:, i], a_i) and np.array_equal(prediction[:, i], p_i)
             assert np.array_equal(previous[:, i], prev_i)
             assert np.array_equal(hidden[:, i], hidden_i) and hidden_i.shape == (hp,)

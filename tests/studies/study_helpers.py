@@ -40,8 +40,9 @@ def write_study(tmp_path: Path, text: str = TINY, name: str = "tiny.yaml") -> Pa
     return path
 
 
-#: Columns of runs.csv that depend on where and when a run ran, not on what it computed.
-VOLATILE = ("seconds", "host")
+#: Columns of runs.csv that depend on where and when a run ran (and with which others), not on
+#: what it computed.
+VOLATILE = ("seconds", "host", "batch")
 
 
 def table(out: Path):

@@ -36,6 +36,26 @@ def test_local_pool_runs_every_run_and_reports(local_table, tmp_path):
     assert local_table["best_fitness"].between(0, 1).all()
 
 
+def test_runs_stepped_together_give_the_table_of_runs_alone(local_table, tmp_path):
+    # The four evolved runs of the tiny study as one batch on one worker, and each alone: both
+    # give the local pool's table (two batches of two there) to the last digit.
+    def run(batch: int) -> pd.DataFrame:
+        out = tmp_path / f"batch-{batch}"
+        pool = LocalPool(1)
+        try:
+            counts = run_study(write_study(tmp_path), out, pool, batch=batch)
+        finally:
+            pool.close()
+        assert counts.done == TINY_RUNS
+        pd.testing.assert_frame_equal(table(out), local_table)
+        return pd.read_csv(out / "report" / "runs.csv")
+
+    together, alone = run(4), run(1)
+    evolved = together["kind"] == "evolved"
+    assert set(together.loc[evolved, "batch"]) == {4}
+    assert "batch" not in alone or alone["batch"].isna().all()
+
+
 def test_a_local_dask_cluster_gives_the_same_table(local_table, tmp_path):
     cluster = DaskCluster(None, workers=2)
     try:

@@ -1,0 +1,178 @@
+"""Runs of a study stepped together: a batch is a plain list of tasks, run by one worker.
+
+Evolved runs whose swarms have the same shape (robots, sensors, network, safety rules and
+evaluation length; arenas, boxes and seeds may differ) are run as one batch
+(:func:`run_tasks`): one process evolves them side by side and evaluates all their swarms in one
+compiled call per evaluation, their networks as lanes of one set of arrays
+(:func:`master_service.experiments.engine_run.run_batch`). Each run keeps its own seed,
+evolution, checkpoints, directory, lock and summary, and ends exactly as it would alone. Any
+other task is a batch of one. :func:`plan_batches` makes the batches of a study's stage.
+
+A run's ``seconds`` in a batch is its share of the batch's time (the batch's divided by its
+runs), its ``batch`` the number of runs stepped with it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import shutil
+import time
+import traceback
+from pathlib import Path
+from typing import Any, Final
+
+from minimize_surprise.files import write_json
+from studies.tasks import (
+    ERROR,
+    FAILED,
+    SUMMARY,
+    disk_full,
+    evolved_summary,
+    naming_full_disk,
+    quiet,
+    run_dir,
+    run_lock,
+    run_plots,
+    run_task,
+    stored_summary,
+    task_base,
+    task_experiment,
+)
+
+__all__ = ["BATCH_RUNS", "batch_key", "plan_batches", "run_tasks"]
+
+#: Runs per batch at most, by default: four runs of ten robots fill five vectors of eight lanes
+#: exactly, and four of four robots two; more lanes gain little (benchmarks/engine.py).
+BATCH_RUNS: Final = 4
+
+
+def batch_key(task: dict[str, Any]) -> str | None:
+    """What runs of one batch share, as text; None for a task that runs alone (not evolved, or
+    its parameters do not decode: it fails alone with its own error)."""
+    if task["kind"] != "evolved":
+        return None
+    from master_service.experiments.simulation_setup import simulated_safety, world_config
+    from minimize_surprise.network import spec_from_config
+
+    try:
+        experiment = task_experiment(task)
+        sensors = world_config(experiment).sensors
+        safety = simulated_safety(experiment)
+    except Exception:
+        return None
+    shape = (
+        repr(spec_from_config(experiment)),
+        experiment.robots,
+        list(sensors),
+        repr(safety),
+        experiment.evaluation_steps,
+        experiment.post_evaluation_steps,
+        run_plots(task),
+    )
+    return json.dumps(shape)
+
+
+def plan_batches(
+    tasks: list[dict[str, Any]], workers: int, size: int = BATCH_RUNS
+) -> list[list[dict[str, Any]]]:
+    """``tasks`` in batches of compatible runs, at most ``size`` each, and no larger than keeps
+    every one of ``workers`` busy; in the order of their first task."""
+    groups: dict[str | None, list[dict[str, Any]]] = {}
+    alone: list[list[dict[str, Any]]] = []
+    order: list[tuple[int, list[dict[str, Any]]]] = []
+    for index, task in enumerate(tasks):
+        key = batch_key(task) if size > 1 else None
+        if key is None:
+            alone.append([task])
+            order.append((index, alone[-1]))
+            continue
+        if key not in groups:
+            groups[key] = []
+            order.append((index, groups[key]))
+        groups[key].append(task)
+    batches: list[list[dict[str, Any]]] = []
+    for _, group in sorted(order, key=lambda item: item[0]):
+        width = max(1, min(size, math.ceil(len(group) / max(1, workers))))
+        batches += [group[i : i + width] for i in range(0, len(group), width)]
+    return batches
+
+
+def run_tasks(tasks: list[dict[str, Any]], root: str) -> list[dict[str, Any]]:
+    """Run a batch of tasks (see the module docstring) into their directories below ``root``;
+    their summaries, in order. A finished run is not run again; a run that fails fails alone.
+    Raises only :class:`~studies.tasks.DiskFullError` (the runs stay pending)."""
+    if len(tasks) == 1 or tasks[0]["kind"] != "evolved":
+        return [run_task(task, root) for task in tasks]
+    directories = [run_dir(root, task) for task in tasks]
+    with contextlib.ExitStack() as stack:
+        for directory in directories:
+            stack.enter_context(naming_full_disk(directory))
+            stack.enter_context(run_lock(directory))
+        summaries: list[dict[str, Any] | None] = [stored_summary(d) for d in directories]
+        todo = [i for i, summary in enumerate(summaries) if summary is None]
+        for i, summary in zip(todo, _run_evolved_batch(tasks, directories, todo), strict=True):
+            summaries[i] = summary
+    return [summary for summary in summaries if summary is not None]
+
+
+def _run_evolved_batch(
+    tasks: list[dict[str, Any]], directories: list[Path], todo: list[int]
+) -> list[dict[str, Any]]:
+    from master_service.experiments.engine_run import FastRun, run_batch
+
+    started = time.perf_counter()
+    runs, experiments, ready, summaries = [], [], [], {}
+    for i in todo:
+        if directories[i].exists():  # what a killed run left: start it afresh
+            shutil.rmtree(directories[i])
+        try:
+            experiment = task_experiment(tasks[i])
+            runs.append((FastRun(experiment), directories[i]))
+        except Exception as exc:
+            summaries[i] = _failed(tasks[i], directories[i], exc)
+            continue
+        experiments.append(experiment)
+        ready.append(i)
+    plots = run_plots(tasks[todo[0]])
+    with quiet():
+        outcomes = run_batch(runs, plots=plots) if runs else []
+    share = (time.perf_counter() - started) / max(1, len(ready))
+    for i, experiment, outcome in zip(ready, experiments, outcomes, strict=True):
+        task, directory = tasks[i], directories[i]
+        try:
+            if isinstance(outcome, BaseException):
+                raise outcome
+            summary = {
+                **task_base(task),
+                "status": "done",
+                **evolved_summary(task, experiment, directory, outcome),
+            }
+        except Exception as exc:
+            summaries[i] = _failed(task, directory, exc)
+            continue
+        summary |= {"seconds": share, "host": os.uname().nodename, "batch": len(ready)}
+        write_json(directory / SUMMARY, summary)
+        summaries[i] = summary
+    for i in summaries:  # the failed ones: their share too
+        summaries[i].setdefault("seconds", share)
+    return [summaries[i] for i in todo]
+
+
+def _failed(task: dict[str, Any], directory: Path, exc: BaseException) -> dict[str, Any]:
+    # As a run failing alone: the traceback in error.txt, the summary in failed.json.
+    if disk_full(exc, directory):
+        raise exc
+    directory.mkdir(parents=True, exist_ok=True)
+    text = "".join(traceback.format_exception(exc))
+    (directory / ERROR).write_text(text, encoding="utf-8")
+    summary = {
+        **task_base(task),
+        "status": "failed",
+        "error": f"{type(exc).__name__}: {exc}",
+        "host": os.uname().nodename,
+    }
+    write_json(directory / FAILED, summary)
+    return summary
