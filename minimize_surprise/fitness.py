@@ -14,7 +14,7 @@ import numpy as np
 from minimize_surprise.jit import kernel
 
 
-@kernel
+@kernel(inline=True)
 def step_score(prediction: np.ndarray, sensors: np.ndarray) -> float:
     """``1 - mean |p - s|`` over the sensors of one robot and step, summed in sensor order (the
     kernel the engine runs too, so agent and engine agree to the last bit)."""

@@ -79,7 +79,9 @@ def plan_batches(
     tasks: list[dict[str, Any]], workers: int, size: int = BATCH_RUNS
 ) -> list[list[dict[str, Any]]]:
     """``tasks`` in batches of compatible runs, at most ``size`` each, and no larger than keeps
-    every one of ``workers`` busy; in the order of their first task."""
+    every one of ``workers`` busy; the batches of several runs first (the long ones), then the
+    runs alone (a study's random pairs, a tenth of a second each, fill the workers' last
+    minutes), each in the order of their first task."""
     groups: dict[str | None, list[dict[str, Any]]] = {}
     alone: list[list[dict[str, Any]]] = []
     order: list[tuple[int, list[dict[str, Any]]]] = []
@@ -97,7 +99,7 @@ def plan_batches(
     for _, group in sorted(order, key=lambda item: item[0]):
         width = max(1, min(size, math.ceil(len(group) / max(1, workers))))
         batches += [group[i : i + width] for i in range(0, len(group), width)]
-    return batches
+    return [b for b in batches if len(b) > 1] + [b for b in batches if len(b) == 1]
 
 
 def run_tasks(tasks: list[dict[str, Any]], root: str) -> list[dict[str, Any]]:

@@ -91,18 +91,17 @@ def _box_box(
     g: Geometry, boxes: np.ndarray, pose: np.ndarray, check: np.ndarray, rank: np.ndarray,
     pusher: np.ndarray, owner: np.ndarray, held: np.ndarray, gave: np.ndarray,
     moved: np.ndarray, cell: np.ndarray, heads: np.ndarray, nexts: np.ndarray, cells: int,
+    pairs: np.ndarray, shares: np.ndarray,
 ) -> None:  # fmt: skip
     # Separate every overlapping pair that involves a box marked in ``check``; all shifts are
     # computed from the same positions, then applied. A grid of cells one box wide finds the
-    # neighbours.
+    # neighbours. ``pairs`` and ``shares`` (P, 2): scratch for the pairs found and each box's
+    # share of their overlap (grown here should a jam hold more than P pairs).
     nb = boxes.shape[0]
     size = g.box_size
     mx = np.zeros(nb)
     my = np.zeros(nb)
-    pairs_i = []
-    pairs_j = []
-    weights_i = []
-    weights_j = []
+    count = 0
     for i in range(nb):
         if not check[i]:
             continue
@@ -149,18 +148,20 @@ def _box_box(
                             my[i] += wi * k * dy
                             mx[j] -= wj * k * dx
                             my[j] -= wj * k * dy
-                            pairs_i.append(i)
-                            pairs_j.append(j)
-                            weights_i.append(wi)
-                            weights_j.append(wj)
+                            if count == pairs.shape[0]:
+                                pairs, shares = _grown(pairs, shares)
+                            pairs[count, 0] = i
+                            pairs[count, 1] = j
+                            shares[count, 0] = wi
+                            shares[count, 1] = wj
+                            count += 1
                     j = nexts[j]
     for i in range(nb):
         if mx[i] != 0.0 or my[i] != 0.0:
             boxes[i, 0] += mx[i]
             boxes[i, 1] += my[i]
-    count = len(pairs_i)
     for p in range(count):
-        i, j, wi, wj = pairs_i[p], pairs_j[p], weights_i[p], weights_j[p]
+        i, j, wi, wj = pairs[p, 0], pairs[p, 1], shares[p, 0], shares[p, 1]
         if wi > 0.0:
             moved[i] = True
         if wj > 0.0:
@@ -171,16 +172,16 @@ def _box_box(
             gave[j] = True
     # The box that gave way all of it joins its pusher's chain, one link farther.
     for p in range(count):
-        if weights_i[p] == 1.0:
-            _join_chain(pairs_i[p], pairs_j[p], rank, pusher, owner, boxes, pose)
+        if shares[p, 0] == 1.0:
+            _join_chain(pairs[p, 0], pairs[p, 1], rank, pusher, owner, boxes, pose)
     for p in range(count):
-        if weights_j[p] == 1.0:
-            _join_chain(pairs_j[p], pairs_i[p], rank, pusher, owner, boxes, pose)
+        if shares[p, 1] == 1.0:
+            _join_chain(pairs[p, 1], pairs[p, 0], rank, pusher, owner, boxes, pose)
     # A box that gave way to a held box is itself held now (decided on the held flags from
     # before this pass).
     newly = np.zeros(nb, dtype=np.bool_)
     for p in range(count):
-        i, j = pairs_i[p], pairs_j[p]
+        i, j = pairs[p, 0], pairs[p, 1]
         if held[j] and not held[i]:
             newly[i] = True
         elif held[i] and not held[j]:
@@ -188,6 +189,16 @@ def _box_box(
     for b in range(nb):
         if newly[b]:
             held[b] = True
+
+
+@kernel
+def _grown(pairs: np.ndarray, shares: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    # The pair scratch of _box_box twice as long, the pairs so far kept.
+    more_pairs = np.empty((2 * pairs.shape[0], 2), dtype=np.int64)
+    more_shares = np.empty((2 * pairs.shape[0], 2))
+    more_pairs[: pairs.shape[0]] = pairs
+    more_shares[: pairs.shape[0]] = shares
+    return more_pairs, more_shares
 
 
 @kernel
@@ -239,16 +250,25 @@ def _relax(
     for i in range(n):
         c[i] = math.cos(pose[i, 2])
         s[i] = math.sin(pose[i, 2])
-    for _ in range(g.box_iterations):
-        moved = np.zeros(nb, dtype=np.bool_)
+    # Per pass: the boxes it moves (two buffers, taking turns: the last pass's stay ``active``),
+    # how far, and which to check against the others; allocated once.
+    moved_buffers = np.zeros((2, nb), dtype=np.bool_)
+    shift = np.empty((nb, 2))
+    check = np.empty(nb, dtype=np.bool_)
+    pairs = np.empty((max(16, nb), 2), dtype=np.int64)
+    shares = np.empty((max(16, nb), 2))
+    for pass_ in range(g.box_iterations):
+        moved = moved_buffers[pass_ % 2]
+        moved[:] = False
         robots_moved = False
         back_d[:] = 0.0
         # Boxes move by the sum of the pushes of every robot touching them (computed from the
         # positions at the start of the pass).
-        shift = np.zeros((nb, 2))
         for b in range(nb):
             if not near[b]:
                 continue
+            shift[b, 0] = 0.0
+            shift[b, 1] = 0.0
             touched_any = False
             again = False
             deepest = 0.0
@@ -324,17 +344,15 @@ def _relax(
             # than rocked to and fro.
             robots_moved = worst < 2
             _keep_inside_walls(g, pose)
-        check = np.zeros(nb, dtype=np.bool_)
         any_check = False
         for b in range(nb):
-            if active[b] or moved[b]:
-                check[b] = True
-                any_check = True
+            check[b] = active[b] or moved[b]
+            any_check |= check[b]
         if any_check:
             _grid(boxes, -g.wall_half, g.box_size, cells, cell, heads, nexts)
             _box_box(
                 g, boxes, pose, check, rank, pusher, owner, held, gave, moved, cell, heads,
-                nexts, cells,
+                nexts, cells, pairs, shares,
             )  # fmt: skip
         # Walls hold boxes: a clamped box cannot give way any more this step.
         any_moved = False

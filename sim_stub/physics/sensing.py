@@ -85,9 +85,14 @@ def _sense(
     # neighbours in the grid; numba compiles one of each, the choices on ``cells is None`` away.
     n = pose.shape[0]
     bodies = np.empty((n, 2))
+    # Each heading's cosine and sine once, for the bodies and the sensors.
+    cos_sin = np.empty((n, 2))
     for i in range(n):
-        bodies[i, 0] = pose[i, 0] + sn.body_offset * math.cos(pose[i, 2])
-        bodies[i, 1] = pose[i, 1] + sn.body_offset * math.sin(pose[i, 2])
+        c, s = math.cos(pose[i, 2]), math.sin(pose[i, 2])
+        cos_sin[i, 0] = c
+        cos_sin[i, 1] = s
+        bodies[i, 0] = pose[i, 0] + sn.body_offset * c
+        bodies[i, 1] = pose[i, 1] + sn.body_offset * s
     # With cells: the grid's arrays, read once (numba counts a reference at every read from a
     # tuple). ``candidates``: the robots a robot's IR may see (every robot, or its neighbours in
     # the grid); ``near``: the body centres of those within its reach, in a row.
@@ -100,8 +105,8 @@ def _sense(
         side, cell, start, order = cells
         build(bodies[:, 0], bodies[:, 1], sn.wall_half, side, cell, start, order)
     for i in range(n):
-        x, y, th = pose[i, 0], pose[i, 1], pose[i, 2]
-        c, s = math.cos(th), math.sin(th)
+        x, y = pose[i, 0], pose[i, 1]
+        c, s = cos_sin[i, 0], cos_sin[i, 1]
         if sn.need_ir:
             m = n if cells is None else gather(i, side, cell, start, order, candidates, False)
             m = _within(bodies, i, candidates, m, reach, near)

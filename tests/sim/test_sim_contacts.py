@@ -214,3 +214,36 @@ def test_nothing_overlaps_after_many_random_steps(scenario, seed, segments):
     values = world.sensor_matrix()
     assert values.min() >= 0.0 and values.max() <= 1.0
     assert math.isclose(world.time, world.steps * cfg.dt)
+
+
+def test_a_jam_of_more_pairs_than_the_scratch_holds_parts_the_same():
+    # Boxes part pair by pair into scratch arrays that grow in a jam larger than they are; the
+    # result must not depend on where they started.
+    from sim_stub.physics.boxes import _box_box, _grid
+
+    world = World(scenario_config("boxes", {"robots": 1}), seed=3)
+    geometry, _ = world.kernel_constants
+    rng = np.random.default_rng(3)
+    nb = 40
+    start = rng.normal(0.0, 0.01, (nb, 2))  # forty boxes piled within a few centimetres
+    cells = max(1, int(2 * geometry.wall_half / geometry.box_size) + 1)
+    results = []
+    for capacity in (1, 4096):
+        boxes = start.copy()
+        flags = [np.zeros(nb, dtype=np.bool_) for _ in range(3)]
+        rank, pusher, owner = np.full(nb, np.inf), np.full(nb, -1), np.full(nb, -1)
+        cell, heads, nexts = (
+            np.empty(nb, np.int64),
+            np.empty(cells * cells, np.int64),
+            np.empty(nb, np.int64),
+        )
+        _grid(boxes, -geometry.wall_half, geometry.box_size, cells, cell, heads, nexts)
+        _box_box(
+            geometry, boxes, np.zeros((1, 3)), np.ones(nb, dtype=np.bool_), rank, pusher, owner,
+            *flags, cell, heads, nexts, cells, np.empty((capacity, 2), np.int64),
+            np.empty((capacity, 2)),
+        )  # fmt: skip
+        results.append((boxes, *flags))
+    assert not np.array_equal(results[0][0], start)  # they did part
+    for small, large in zip(results[0], results[1], strict=True):
+        assert np.array_equal(small, large)

@@ -84,3 +84,44 @@ def test_a_run_option_that_is_not_true_or_false_is_refused_by_name(key):
     with pytest.raises(ConfigError, match="expected true or false") as caught:
         check_task(evolved(**{key: "no"}))
     assert caught.value.key == key
+
+
+def test_batches_group_runs_of_one_shape_and_keep_every_worker_busy():
+    from studies.batches import plan_batches
+
+    def task(group, kind, seed, **params):
+        params = {"setting": "paper", "scenario": "basic", **params}
+        return {
+            "group": group,
+            "kind": kind,
+            "seed": seed,
+            "params": params,
+            "run": f"{group}/{seed}",
+        }
+
+    tasks = [
+        *(
+            task("basic", "evolved", s, simulation={"arena_side": 0.7 + 0.1 * (s % 2)})
+            for s in range(1, 8)
+        ),
+        *(task("random", "random", s) for s in (101, 102)),
+        *(task("boxes", "evolved", s, scenario="boxes") for s in (1, 2, 3)),
+        task("longer", "evolved", 1, evaluation_steps=500),
+    ]
+    batches = plan_batches(tasks, workers=2)
+    runs = [[t["run"] for t in batch] for batch in batches]
+    # Seven basic runs (two arena sides, one shape) on two workers: batches of four and three;
+    # three boxes runs: two and one; a run of another length and the random pairs alone, last.
+    assert runs[:3] == [
+        ["basic/1", "basic/2", "basic/3", "basic/4"],
+        ["basic/5", "basic/6", "basic/7"],
+        ["boxes/1", "boxes/2"],
+    ]
+    assert sorted(map(tuple, runs[3:])) == [
+        ("boxes/3",),
+        ("longer/1",),
+        ("random/101",),
+        ("random/102",),
+    ]
+    assert [len(b) for b in plan_batches(tasks, workers=8)][:2] == [1, 1]  # one run per worker
+    assert all(len(b) == 1 for b in plan_batches(tasks, workers=1, size=1))
