@@ -80,8 +80,10 @@ def plan_batches(
 ) -> list[list[dict[str, Any]]]:
     """``tasks`` in batches of compatible runs, at most ``size`` each, and no larger than keeps
     every one of ``workers`` busy; the batches of several runs first (the long ones), then the
-    runs alone (a study's random pairs, a tenth of a second each, fill the workers' last
-    minutes), each in the order of their first task."""
+    runs alone (a study's random pairs, a tenth of a second each), each in the order of their
+    first task. With more than twice as many batches of several runs as workers, the last
+    ``workers`` of them are split into runs alone: at the end of a study the workers then
+    finish within a run of each other, not a batch."""
     groups: dict[str | None, list[dict[str, Any]]] = {}
     alone: list[list[dict[str, Any]]] = []
     order: list[tuple[int, list[dict[str, Any]]]] = []
@@ -99,7 +101,12 @@ def plan_batches(
     for _, group in sorted(order, key=lambda item: item[0]):
         width = max(1, min(size, math.ceil(len(group) / max(1, workers))))
         batches += [group[i : i + width] for i in range(0, len(group), width)]
-    return [b for b in batches if len(b) > 1] + [b for b in batches if len(b) == 1]
+    several = [b for b in batches if len(b) > 1]
+    alone = [b for b in batches if len(b) == 1]
+    if len(several) <= 2 * workers:
+        return several + alone
+    cut = len(several) - workers
+    return several[:cut] + [[task] for batch in several[cut:] for task in batch] + alone
 
 
 def run_tasks(tasks: list[dict[str, Any]], root: str) -> list[dict[str, Any]]:

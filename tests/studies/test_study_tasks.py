@@ -124,4 +124,8 @@ def test_batches_group_runs_of_one_shape_and_keep_every_worker_busy():
         ("random/102",),
     ]
     assert [len(b) for b in plan_batches(tasks, workers=8)][:2] == [1, 1]  # one run per worker
+    # Five batches of four on two workers: the last two go as runs alone, so that the workers
+    # end together.
+    many = [task("basic", "evolved", s) for s in range(1, 21)]
+    assert [len(b) for b in plan_batches(many, workers=2)] == [4, 4, 4] + [1] * 8
     assert all(len(b) == 1 for b in plan_batches(tasks, workers=1, size=1))
