@@ -41,7 +41,7 @@ from master_service.rundir import (
     evaluation_header,
     format_row,
 )
-from minimize_surprise.dominance import dominance
+from minimize_surprise.dominance import dominance, ground_at_start
 from minimize_surprise.errors import FileWriteError
 from minimize_surprise.evolution import OnePlusOne
 from minimize_surprise.fitness import swarm_fitness
@@ -343,7 +343,11 @@ class EvolutionRun:
             ", ".join(f"{r} {results[r].fitness:.4f}" for r in attempt.robots),
             100 * attempt.safety_share,
         )
-        found = dominance(attempt.safety_share, [r.stats.interventions for r in results.values()])
+        found = dominance(
+            attempt.safety_share,
+            [r.stats.interventions for r in results.values()],
+            at_start=ground_at_start(r.trace.safety for r in results.values() if r.trace),
+        )
         if found is not None:
             # A fault of the set-up is a warning; the evolved behaviour itself is a note.
             log = self.log.warning if found.actionable else self.log.info

@@ -2,15 +2,20 @@
 
 Above :data:`~minimize_surprise.safety.SAFETY_DOMINATES` of the steps, what a run shows is mostly
 the safety layer's doing. Whether a person should act on that depends on why it drove
-(docs/safety.md, "When the layer drives most of the steps"):
+(docs/runs.md, the notes and warnings of a report):
 
 - robots held against a neighbour or a wall (front or rear obstacles), turned away again and
   again (escape manoeuvres) or cut short reversing (the backward limit) are what the evolved
   networks do in this arena (held, they stand still, as the paper's *stopped* robots do); it is a
   result, said as a **note**;
-- the ground rule on every step (a floor the thresholds take for the edge), the force limit,
-  stale readings and failing sensors are faults of the set-up: a **warning**, naming what to
-  check.
+- the ground rule on most steps is either: robots driving to the edge of the arena and held
+  there (an outcome, like a wall) or a floor the thresholds take for the edge everywhere (a
+  fault). The first steps tell them apart: robots start on the floor, away from its edge, so
+  a floor mistaken for the edge stops them at once, while an evolved approach to the edge takes
+  time. When the caller knows the share of robots the ground rule held in their first steps
+  (:data:`START_STEPS`) and it is at most half, it is a note; else a warning;
+- the force limit, stale readings and failing sensors are faults of the set-up: a **warning**,
+  naming what to check.
 """
 
 from __future__ import annotations
@@ -31,7 +36,10 @@ from minimize_surprise.safety import (
     intervention_reasons,
 )
 
-__all__ = ["ACTIONABLE_REASONS", "Dominance", "dominance"]
+__all__ = ["ACTIONABLE_REASONS", "START_STEPS", "Dominance", "dominance", "ground_at_start"]
+
+#: The first steps of a robot's trace in which the ground rule holding it means a wrong floor.
+START_STEPS: Final = 5
 
 #: What to check, per actionable reason.
 _CHECK: Final[dict[str, str]] = {
@@ -59,6 +67,21 @@ _OUTCOME: Final[dict[str, str]] = {
 }
 
 
+#: The ground rule, when the robots met the edge only after they had set off.
+_AT_THE_EDGE: Final = (
+    "mostly at the edge of the arena: the robots drive to the boundary and the layer holds them "
+    "there, standing still as the paper's stopped robots do (the ground rule; it held few of "
+    "them in their first steps, so the floor is not mistaken for the edge)"
+)
+
+
+def ground_at_start(reasons: Iterable[Iterable[str]]) -> float | None:
+    """The share of robots whose safety layer applied the ground rule in one of their first
+    :data:`START_STEPS` steps, from each robot's per-step reasons; None without robots."""
+    held = [REASON_GROUND in list(steps)[:START_STEPS] for steps in reasons]
+    return sum(held) / len(held) if held else None
+
+
 class Dominance(NamedTuple):
     """The layer drove most of the steps: ``text``, one sentence, and whether a person should
     act on it (``actionable``: a warning) or it describes the behaviour (a note)."""
@@ -67,18 +90,25 @@ class Dominance(NamedTuple):
     actionable: bool
 
 
-def dominance(share: float, counts: Iterable[Mapping[str, int]]) -> Dominance | None:
+def dominance(
+    share: float, counts: Iterable[Mapping[str, int]], *, at_start: float | None = None
+) -> Dominance | None:
     """None unless the layer drove more than ``SAFETY_DOMINATES`` of the steps; otherwise what
     that means, from the commonest reason over every robot's ``counts`` of interventions per
-    reason. Without counts the reason is unknown, and that is worth a look: a warning."""
+    reason. Without counts the reason is unknown, and that is worth a look: a warning.
+    ``at_start``: the share of robots the ground rule held in their first steps
+    (:func:`ground_at_start`), which tells an arena's edge from a wrong floor."""
     if share <= SAFETY_DOMINATES:
         return None
     reasons = intervention_reasons(counts)
     reason = max(reasons, key=lambda r: reasons[r]) if reasons else None
-    if reason in _OUTCOME:
+    outcome = _OUTCOME.get(reason) if reason is not None else None
+    if reason == REASON_GROUND and at_start is not None and at_start <= 0.5:
+        outcome = _AT_THE_EDGE
+    if outcome is not None:
         return Dominance(
-            f"the safety layer drove {100 * share:.0f} % of the steps, {_OUTCOME[reason]}; an "
-            "outcome of the evolution, not a fault",
+            f"the safety layer drove {100 * share:.0f} % of the steps, {outcome}; an outcome of "
+            "the evolution, not a fault",
             actionable=False,
         )
     text = (

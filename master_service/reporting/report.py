@@ -40,7 +40,7 @@ from master_service.rundir import (
     writing,
 )
 from minimize_surprise.config import ExperimentConfig
-from minimize_surprise.dominance import dominance
+from minimize_surprise.dominance import dominance, ground_at_start
 from minimize_surprise.errors import ConfigError
 from minimize_surprise.safety import intervention_reasons, intervention_share
 from sim_stub import metrics as sim_metrics
@@ -165,7 +165,9 @@ def _post_metrics(
 
 
 def _safety_metrics(
-    rows: list[dict[str, Any]], post: dict[str, Any] | None
+    rows: list[dict[str, Any]],
+    post: dict[str, Any] | None,
+    traces: dict[str, dict[str, np.ndarray]],
 ) -> dict[str, Any] | None:
     """How much the safety layer drove: over the run, its last tenth and the post-evaluation."""
     metrics: dict[str, Any] = {}
@@ -195,7 +197,8 @@ def _safety_metrics(
     notes: list[str] = []
     post_found = None
     if "post_evaluation_share" in metrics:
-        post_found = dominance(metrics["post_evaluation_share"], counts)
+        at_start = ground_at_start([t["safety"].tolist() for t in traces.values() if "safety" in t])
+        post_found = dominance(metrics["post_evaluation_share"], counts, at_start=at_start)
         if post_found is not None:
             said = warnings if post_found.actionable else notes
             said.append(f"in the post-evaluation {post_found.text}")
@@ -288,7 +291,7 @@ def _metrics(data: _Run) -> dict[str, Any]:
             },
         )
     metrics["robot_stats"] = robot_stats(rows, robots)
-    metrics["safety"] = _safety_metrics(rows, data.post)
+    metrics["safety"] = _safety_metrics(rows, data.post, data.traces)
     metrics["warnings"] = list((metrics["safety"] or {}).get("warnings", []))
     metrics["post_evaluation"] = (
         None

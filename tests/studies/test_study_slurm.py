@@ -147,7 +147,7 @@ def test_jobs_at_their_walltime_are_replaced_and_each_run_ends_once(
         running.wait_for(lambda: replaced(running.out())[1], "no job was replaced")
         before = summaries(out)
         released = time.monotonic()
-    assert running.wait() == 0, running
+    assert running.wait() == 0, str(running)  # what the study printed
     record("jobs at their walltime", released, running)
     assert_each_run_once(out, before, local_table)
     ended, new = replaced(running.out())
@@ -176,7 +176,7 @@ def test_jobs_cancelled_mid_study_are_replaced_and_each_run_ends_once(slurm, loc
             lambda: set(replaced(running.out())[0]) >= set(first),
             "the cancelled jobs were not replaced",
         )
-    assert running.wait() == 0, running
+    assert running.wait() == 0, str(running)  # what the study printed
     record("jobs cancelled", cancelled, running)
     assert_each_run_once(out, before, local_table)
     ended, new = replaced(running.out())
@@ -208,7 +208,7 @@ def test_new_jobs_that_sbatch_refuses_are_submitted_once_it_takes_them(
         running.wait_for(
             lambda: again.search(running.out()), "no new job once the partition took them again"
         )
-    assert running.wait() == 0, running
+    assert running.wait() == 0, str(running)  # what the study printed
     record("sbatch refused, then took the jobs", reopened, running)
     assert_each_run_once(out, before, local_table)
     # As many as the runs left need (the two held), refused, then submitted.
