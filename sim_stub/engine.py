@@ -300,7 +300,6 @@ class Swarm:
         self._columns = np.array(
             [world_config.sensors.index(name) for name in spec.sensors], dtype=np.int64
         )
-        self._reasons = len(REASON_OF_CODE)
 
     def snapshot(self) -> dict[str, object]:
         """The swarm's state (world and safety layers) as plain data; see :meth:`restore`."""

@@ -17,20 +17,14 @@ from __future__ import annotations
 import contextlib
 import json
 import math
-import os
 import shutil
 import time
-import traceback
 from pathlib import Path
 from typing import Any, Final
 
-from minimize_surprise.files import write_json
 from studies.tasks import (
-    ERROR,
-    FAILED,
-    SUMMARY,
-    disk_full,
     evolved_summary,
+    failed_summary,
     naming_full_disk,
     quiet,
     run_dir,
@@ -40,6 +34,7 @@ from studies.tasks import (
     stored_summary,
     task_base,
     task_experiment,
+    write_summary,
 )
 
 __all__ = ["BATCH_RUNS", "batch_key", "plan_batches", "run_tasks"]
@@ -141,47 +136,20 @@ def _run_evolved_batch(
             experiment = task_experiment(tasks[i])
             runs.append((FastRun(experiment), directories[i]))
         except Exception as exc:
-            summaries[i] = _failed(tasks[i], directories[i], exc)
+            summaries[i] = failed_summary(tasks[i], directories[i], exc)
             continue
         experiments.append(experiment)
         ready.append(i)
-    plots = run_plots(tasks[todo[0]])
     with quiet():
-        outcomes = run_batch(runs, plots=plots) if runs else []
-    share = (time.perf_counter() - started) / max(1, len(ready))
+        outcomes = run_batch(runs, plots=run_plots(tasks[todo[0]])) if runs else []
     for i, experiment, outcome in zip(ready, experiments, outcomes, strict=True):
         task, directory = tasks[i], directories[i]
         try:
             if isinstance(outcome, BaseException):
                 raise outcome
-            summary = {
-                **task_base(task),
-                "status": "done",
-                **evolved_summary(task, experiment, directory, outcome),
-            }
+            result = evolved_summary(task, experiment, directory, outcome)
+            summaries[i] = {**task_base(task), "status": "done", **result, "batch": len(ready)}
         except Exception as exc:
-            summaries[i] = _failed(task, directory, exc)
-            continue
-        summary |= {"seconds": share, "host": os.uname().nodename, "batch": len(ready)}
-        write_json(directory / SUMMARY, summary)
-        summaries[i] = summary
-    for i in summaries:  # the failed ones: their share too
-        summaries[i].setdefault("seconds", share)
-    return [summaries[i] for i in todo]
-
-
-def _failed(task: dict[str, Any], directory: Path, exc: BaseException) -> dict[str, Any]:
-    # As a run failing alone: the traceback in error.txt, the summary in failed.json.
-    if disk_full(exc, directory):
-        raise exc
-    directory.mkdir(parents=True, exist_ok=True)
-    text = "".join(traceback.format_exception(exc))
-    (directory / ERROR).write_text(text, encoding="utf-8")
-    summary = {
-        **task_base(task),
-        "status": "failed",
-        "error": f"{type(exc).__name__}: {exc}",
-        "host": os.uname().nodename,
-    }
-    write_json(directory / FAILED, summary)
-    return summary
+            summaries[i] = failed_summary(task, directory, exc)
+    share = (time.perf_counter() - started) / max(1, len(ready))
+    return [write_summary(directories[i], summaries[i], share) for i in todo]

@@ -259,7 +259,7 @@ def check_task(task: dict[str, Any]) -> None:
     kind = task["kind"]
     _runner(kind)
     if kind in _KIND_RUNNERS:
-        _experiment(task)
+        task_experiment(task)
     else:
         from gridworld.tasks import check_params
 
@@ -289,21 +289,34 @@ def _run_afresh(task: dict[str, Any], directory: Path) -> dict[str, Any]:
     # A directory without a summary is what a killed run left: start it afresh.
     if directory.exists():
         shutil.rmtree(directory)
-    base = task_base(task)
     started = time.perf_counter()
     try:
         with quiet():
             result = _runner(task["kind"])(task, directory)
-        summary = {**base, "status": "done", **result}
+        summary = {**task_base(task), "status": "done", **result}
     except BaseException as exc:
-        if isinstance(exc, KeyboardInterrupt | SystemExit) or disk_full(exc, directory):
-            raise  # a full disk is not the run's fault: it stays pending, not failed
-        directory.mkdir(parents=True, exist_ok=True)
-        (directory / ERROR).write_text(traceback.format_exc(), encoding="utf-8")
-        summary = {**base, "status": "failed", "error": f"{type(exc).__name__}: {exc}"}
-    summary["seconds"] = time.perf_counter() - started
-    summary["host"] = os.uname().nodename
-    # the summary marks the run finished: written atomically, last, never left empty
+        if isinstance(exc, KeyboardInterrupt | SystemExit):
+            raise
+        summary = failed_summary(task, directory, exc)
+    return write_summary(directory, summary, time.perf_counter() - started)
+
+
+def failed_summary(task: dict[str, Any], directory: Path, exc: BaseException) -> dict[str, Any]:
+    """The summary of a run that raised ``exc``, its traceback written to ``error.txt``; a full
+    disk is raised again instead (not the run's fault: it stays pending, not failed)."""
+    if disk_full(exc, directory):
+        raise exc
+    directory.mkdir(parents=True, exist_ok=True)
+    text = "".join(traceback.format_exception(exc))
+    (directory / ERROR).write_text(text, encoding="utf-8")
+    return {**task_base(task), "status": "failed", "error": f"{type(exc).__name__}: {exc}"}
+
+
+def write_summary(directory: Path, summary: dict[str, Any], seconds: float) -> dict[str, Any]:
+    """``summary`` with its ``seconds`` and ``host``, written as the run's last file:
+    ``summary.json`` when done (atomically, never left empty: it marks the run finished),
+    ``failed.json`` when failed."""
+    summary |= {"seconds": seconds, "host": os.uname().nodename}
     write_json(directory / (SUMMARY if summary["status"] == "done" else FAILED), summary)
     return summary
 
@@ -318,10 +331,6 @@ _RUN_OPTIONS = ("plots", "traces")
 
 def task_experiment(task: dict[str, Any]) -> Any:
     """The experiment of an evolved or random task (its ``params`` decoded, its seed)."""
-    return _experiment(task)
-
-
-def _experiment(task: dict[str, Any]):
     from master_service.experiments.simulation_setup import simulation_experiment
 
     params = dict(task["params"])
@@ -334,7 +343,7 @@ def _experiment(task: dict[str, Any]):
 def _run_evolved(task: dict[str, Any], directory: Path) -> dict[str, Any]:
     from master_service.experiments.engine_run import FastRun
 
-    experiment = _experiment(task)
+    experiment = task_experiment(task)
     # No pictures per run unless asked: they cost a run about 4 s of its 20 to 30 (the study's
     # report draws its own figures; `surprise-master report RUN` draws any run's).
     result = FastRun(experiment).run(directory, plots=run_plots(task))
@@ -382,7 +391,7 @@ def evolved_summary(
 def _run_random(task: dict[str, Any], directory: Path) -> dict[str, Any]:
     from master_service.experiments.baseline import run_baseline
 
-    experiment = _experiment(task)
+    experiment = task_experiment(task)
     data = run_baseline(experiment, 1, directory)
     (pair,) = data["pairs"]
     return {

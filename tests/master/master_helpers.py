@@ -14,8 +14,10 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from master_service import Master, MasterConfig, Progress
-from master_service.rundir import evaluation_header, format_row
+from master_service.rundir import RunDir, evaluation_header, format_row
 from minimize_surprise.config import EvolutionConfig, ExperimentConfig
 from minimize_surprise.evolution import OnePlusOne
 from minimize_surprise.fitness import swarm_fitness
@@ -163,3 +165,27 @@ def write_experiment(path: Path, evaluations: int, steps: int) -> Path:
         f"evolution:\n  evaluations: {evaluations}\n"
     )
     return path
+
+
+#: The arrays of a robot's post-evaluation trace.
+TRACE_ARRAYS = ("sensors", "predictions", "actions", "commands", "safety", "poses")
+
+
+def run_rows(run: Path, ignore: frozenset[str] | set[str]) -> list[dict[str, str]]:
+    """The rows of a run's evaluations.csv without the columns in ``ignore``."""
+    return [{k: v for k, v in row.items() if k not in ignore} for row in RunDir(run).read_rows()]
+
+
+def assert_same_run(a: Path, b: Path, robots: int, ignore: frozenset[str] | set[str]) -> None:
+    """Two simulated runs ended alike: every row (but the ``ignore`` columns), every robot's
+    post-evaluation trace and the boxes the post-evaluation began with."""
+    assert run_rows(a, ignore) == run_rows(b, ignore)
+    for robot in [f"sim-{i}" for i in range(robots)]:
+        with (
+            np.load(a / "traces" / f"{robot}.npz") as x,
+            np.load(b / "traces" / f"{robot}.npz") as y,
+        ):
+            for name in TRACE_ARRAYS:
+                assert np.array_equal(x[name], y[name]), (robot, name)
+    first, second = RunDir(a).read_json("simulation.json"), RunDir(b).read_json("simulation.json")
+    assert first.get("post_evaluation_boxes") == second.get("post_evaluation_boxes")

@@ -7,8 +7,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import msgspec
-import numpy as np
 import pytest
+from master_helpers import assert_same_run, run_rows
 
 from master_service.experiments import engine_run
 from master_service.experiments.engine_run import FastRun, run_batch
@@ -16,7 +16,6 @@ from master_service.experiments.simulate import simulation_experiment
 from master_service.rundir import RunDir
 from sim_stub.engine import evaluate_swarms
 
-TRACE_ARRAYS = ("sensors", "predictions", "actions", "commands", "safety", "poses")
 #: The wall clock's columns: a batch's time is shared among its runs.
 TIMING_COLUMNS = {"duration_s"}
 
@@ -31,24 +30,9 @@ def small(scenario: str, seed: int, evaluations: int, side: float | None = None)
     )
 
 
-def rows(run: Path) -> list[dict[str, str]]:
-    return [
-        {k: v for k, v in row.items() if k not in TIMING_COLUMNS} for row in RunDir(run).read_rows()
-    ]
-
-
-def assert_same_run(a: Path, b: Path, robots: int) -> None:
-    assert rows(a) == rows(b)
-    assert len(rows(a)) > 0
-    for robot in [f"sim-{i}" for i in range(robots)]:
-        with (
-            np.load(a / "traces" / f"{robot}.npz") as x,
-            np.load(b / "traces" / f"{robot}.npz") as y,
-        ):
-            for name in TRACE_ARRAYS:
-                assert np.array_equal(x[name], y[name]), (robot, name)
-    first, second = RunDir(a).read_json("simulation.json"), RunDir(b).read_json("simulation.json")
-    assert first.get("post_evaluation_boxes") == second.get("post_evaluation_boxes")
+def assert_same_batched_run(a: Path, b: Path, robots: int) -> None:
+    assert_same_run(a, b, robots, TIMING_COLUMNS)
+    assert len(run_rows(a, TIMING_COLUMNS)) > 0
     best = [RunDir(p).read_checkpoint_data()["optimizer"]["best"] for p in (a, b)]
     assert best[0] == best[1] and best[0] is not None
 
@@ -79,7 +63,7 @@ def test_runs_evolved_together_end_as_each_alone(tmp_path: Path, scenario: str, 
     for outcome, a, b in zip(outcomes, alone, together, strict=True):
         assert not isinstance(outcome, BaseException), outcome
         assert outcome.summary.run_dir == b
-        assert_same_run(a, b, robots=3)
+        assert_same_batched_run(a, b, robots=3)
     # Evaluated together: three at a time until the first run ends, two until the second; the
     # post-evaluations of runs ending at different times alone.
     assert sizes.count(3) >= 12 and sizes.count(2) >= 3 and max(sizes) == 3

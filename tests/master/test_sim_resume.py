@@ -17,9 +17,8 @@ import time
 from pathlib import Path
 
 import msgspec
-import numpy as np
 import pytest
-from master_helpers import write_experiment
+from master_helpers import assert_same_run, write_experiment
 
 from master_service.experiments.engine_run import FastRun
 from master_service.experiments.simulate import SimulatedSwarm, simulation_experiment
@@ -28,7 +27,6 @@ from needs import obeying_modes
 
 pytestmark = pytest.mark.slow
 
-TRACE_ARRAYS = ("sensors", "predictions", "actions", "commands", "safety", "poses")
 #: Columns that depend on the wall clock or on the stop itself (the attempt in flight when the
 #: run stopped is counted again), not on the simulation.
 TIMING_COLUMNS = {"duration_s", "attempts"}
@@ -43,25 +41,6 @@ def small(scenario: str, evaluations: int, **overrides):
         post_evaluation_steps=80,
         **overrides,
     )
-
-
-def rows(run: Path) -> list[dict[str, str]]:
-    return [
-        {k: v for k, v in row.items() if k not in TIMING_COLUMNS} for row in RunDir(run).read_rows()
-    ]
-
-
-def assert_same_run(a: Path, b: Path, robots: int) -> None:
-    assert rows(a) == rows(b)
-    for robot in [f"sim-{i}" for i in range(robots)]:
-        with (
-            np.load(a / "traces" / f"{robot}.npz") as x,
-            np.load(b / "traces" / f"{robot}.npz") as y,
-        ):
-            for name in TRACE_ARRAYS:
-                assert np.array_equal(x[name], y[name]), (robot, name)
-    first, second = RunDir(a).read_json("simulation.json"), RunDir(b).read_json("simulation.json")
-    assert first.get("post_evaluation_boxes") == second.get("post_evaluation_boxes")
 
 
 @pytest.mark.parametrize("scenario", ["basic", "boxes"])
@@ -82,7 +61,7 @@ def test_a_stopped_engine_run_resumes_to_the_uninterrupted_result(tmp_path: Path
 
     result = FastRun(config).run(stopped, plots=False, resume=True)
     assert result is not None and result.summary.evaluations == 30
-    assert_same_run(stopped, whole, config.robots)
+    assert_same_run(stopped, whole, config.robots, TIMING_COLUMNS)
 
 
 def test_a_resumed_run_needs_the_experiment_it_was_started_with(tmp_path: Path):
@@ -117,7 +96,7 @@ def test_a_cancelled_agents_run_resumes_to_the_uninterrupted_result(tmp_path: Pa
 
     result = asyncio.run(SimulatedSwarm(config).run(stopped, resume=True))
     assert result.summary.evaluations == 16
-    assert_same_run(stopped, whole, config.robots)
+    assert_same_run(stopped, whole, config.robots, TIMING_COLUMNS)
 
 
 # -- the command line ------------------------------------------------------------------------------

@@ -129,3 +129,19 @@ def test_batches_group_runs_of_one_shape_and_keep_every_worker_busy():
     many = [task("basic", "evolved", s) for s in range(1, 21)]
     assert [len(b) for b in plan_batches(many, workers=2)] == [4, 4, 4] + [1] * 8
     assert all(len(b) == 1 for b in plan_batches(tasks, workers=1, size=1))
+
+
+def test_a_batch_run_again_keeps_its_finished_runs_and_runs_the_rest(tmp_path):
+    # As Dask does when a worker dies under a batch: the runs that finished are not run again,
+    # the one killed half-way is, and a batch of finished runs only returns their summaries.
+    from studies.batches import run_tasks
+
+    tasks = [{**evolved(), "seed": s, "run": f"e/seed-{s}"} for s in (1, 2)]
+    first = run_tasks(tasks, str(tmp_path))
+    assert [s["status"] for s in first] == ["done", "done"] and first[0]["batch"] == 2
+    (run_dir(tmp_path, tasks[1]) / SUMMARY).unlink()  # killed before its summary
+    kept = (run_dir(tmp_path, tasks[0]) / SUMMARY).stat().st_mtime_ns
+    again = run_tasks(tasks, str(tmp_path))
+    assert again[0] == first[0] and again[1]["best_fitness"] == first[1]["best_fitness"]
+    assert (run_dir(tmp_path, tasks[0]) / SUMMARY).stat().st_mtime_ns == kept
+    assert run_tasks(tasks, str(tmp_path)) == again  # all finished: nothing runs
