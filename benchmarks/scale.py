@@ -85,13 +85,13 @@ def experiment_at(robots: int, seed: int = 1) -> ExperimentConfig:
 def _world_steps(
     g: Geometry, sn: Sensing, pose: np.ndarray, cmd: np.ndarray, force: np.ndarray,
     boxes: np.ndarray, pending: np.ndarray, commands: np.ndarray, values: np.ndarray,
-    full: np.ndarray, steps: int,
+    work: physics.SenseWork, steps: int,
 ) -> None:  # fmt: skip
     # ``steps`` steps: commands (steps // HOLD + 1, N, 2), each held for HOLD steps.
     for t in range(steps):
         physics.clamp_commands(commands[t // HOLD], cmd)
         physics.step_world(g, pose, cmd, force, boxes, pending, sn.need_force)
-        physics.sense(sn, pose, force, t + 1, values, full)
+        physics.sense(sn, pose, force, t + 1, values, work)
 
 
 def time_world(robots: int, steps: int, seed: int = 1) -> float:
@@ -102,12 +102,12 @@ def time_world(robots: int, steps: int, seed: int = 1) -> float:
     g, sn = world.kernel_constants
     pose, cmd, force, boxes, pending = world.kernel_state
     values = np.empty((robots, len(world.sensors)))
-    full = np.zeros((robots, 12))
-    _world_steps(g, sn, pose, cmd, force, boxes, pending, commands, values, full, 20)  # warm-up
+    work = physics.sense_work(robots)
+    _world_steps(g, sn, pose, cmd, force, boxes, pending, commands, values, work, 20)  # warm-up
     world.reset()
     pose, cmd, force, boxes, pending = world.kernel_state
     cpu = time.process_time()
-    _world_steps(g, sn, pose, cmd, force, boxes, pending, commands, values, full, steps)
+    _world_steps(g, sn, pose, cmd, force, boxes, pending, commands, values, work, steps)
     return (time.process_time() - cpu) / steps
 
 

@@ -27,14 +27,15 @@ import os
 import shutil
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import ModuleType
 from typing import Any, Literal, TypeVar
 
-__all__ = ["JIT", "kernel"]
+__all__ = ["JIT", "borrow", "kernel", "typed_list"]
 
 F = TypeVar("F", bound=Callable[..., Any])
+T = TypeVar("T")
 
 _numba: ModuleType | None
 try:  # numba is optional: the `sim` extra brings it, a robot may do without
@@ -127,18 +128,19 @@ _CACHE: bool = _numba is not None and _use_fingerprinted_cache(_numba)
 def kernel(
     function: F | None = None,
     *,
-    error_model: Literal["python", "numpy"] = "python",
+    error_model: Literal["python", "numpy"] = "numpy",
     inline: bool = False,
 ) -> Any:
     """Compile ``function`` with numba (no Python objects, cached on disk) if available.
 
     The original function stays reachable as ``.py_func`` either way, so tests can check that the
-    interpreted and the compiled kernel agree. ``@kernel(error_model="numpy")`` compiles without
-    Python's division-by-zero check (x / 0 gives inf or nan): the check is a branch that keeps
-    loops from being vectorised, so an arithmetic kernel whose divisor is never 0 uses it.
-    ``@kernel(inline=True)`` compiles a small helper into each kernel that calls it: a call
-    that passes arrays costs a reference count taken and dropped per array (atomic operations,
-    each a few nanoseconds), more than a small helper's own work.
+    interpreted and the compiled kernel agree. ``@kernel(inline=True)`` compiles a small helper
+    into each kernel that calls it: a call that passes arrays costs a reference count taken and
+    dropped per array (atomic operations, each a few nanoseconds), more than a small helper's
+    own work. Division is numpy's by default (``error_model="numpy"``: x / 0 gives inf or nan
+    where the interpreted kernel raises, so a kernel keeps its divisors away from 0). With
+    Python's, every division is a path that may raise, which keeps numba from pruning the
+    reference counts along it and the compiler from vectorising the loop around it.
     """
     if function is None:
         return lambda f: kernel(f, error_model=error_model, inline=inline)
@@ -148,3 +150,93 @@ def kernel(
     return _numba.njit(
         cache=_CACHE, nogil=True, error_model=error_model, inline="always" if inline else "never"
     )(function)
+
+
+def _members(tuple_type: Any) -> tuple[Any, ...]:
+    # A numba tuple type's member types (numba has no type hints).
+    return tuple(tuple_type.types)
+
+
+def _owns_memory(numba_type: Any) -> bool:
+    # Whether a value of this numba type holds arrays (whose memory numba reference-counts).
+    from numba import types
+
+    if isinstance(numba_type, types.Array):
+        return True
+    if isinstance(numba_type, types.BaseTuple):
+        return any(_owns_memory(member) for member in _members(numba_type))
+    return False
+
+
+def _unowned(context: Any, builder: Any, numba_type: Any, value: Any) -> Any:
+    # ``value`` with the owner of every array in it set to null (the LLVM value of an array is
+    # a struct whose ``meminfo`` numba counts references on, a tuple a struct of its members).
+    from numba import types
+    from numba.core import cgutils
+
+    if isinstance(numba_type, types.Array):
+        array = cgutils.create_struct_proxy(numba_type)(context, builder, value=value)
+        array.meminfo = cgutils.get_null_value(array.meminfo.type)
+        array.parent = cgutils.get_null_value(array.parent.type)
+        return array._getvalue()
+    if isinstance(numba_type, types.BaseTuple):
+        for k, member in enumerate(_members(numba_type)):
+            if _owns_memory(member):
+                item = _unowned(context, builder, member, builder.extract_value(value, k))
+                value = builder.insert_value(value, item, k)
+    return value
+
+
+def _borrow_intrinsic(numba: ModuleType) -> Any:
+    @numba.extending.intrinsic
+    def borrow(typingctx: Any, value: Any) -> Any:
+        def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+            out = _unowned(context, builder, signature.args[0], args[0])
+            # What is left counted (a typed list in a tuple) is the caller's new reference.
+            if context.enable_nrt:
+                context.nrt.incref(builder, signature.return_type, out)
+            return out
+
+        return value(value), codegen
+
+    return borrow
+
+
+def _identity(value: T) -> T:
+    return value
+
+
+#: ``borrow(value)`` in a kernel: ``value`` (an array, or a tuple holding arrays) with no
+#: ownership of its arrays' memory, so that numba counts no references on it nor on any view
+#: or item taken from it. Every view of an owned array takes and drops a reference, an atomic
+#: operation; in the engine's loop over robots those cost more than the robots' arithmetic
+#: (docs/simulation.md, "Speed"). Borrow only what outlives the kernel's use of it: the
+#: kernel's own arguments (the caller holds them for the call) or items of an argument's
+#: list, never an array the kernel allocates (numba frees it after its owner's last use), and
+#: never return or store a borrowed array. Without numba it is the identity.
+borrow: Callable[[T], T] = _borrow_intrinsic(_numba) if _numba is not None else _identity
+
+
+def _compiled_list_builder(numba: ModuleType) -> Callable[[tuple[Any, ...]], Any]:
+    from numba.typed import List
+
+    def build(items: tuple[Any, ...]) -> Any:
+        out = List()
+        for item in items:
+            out.append(item)
+        return out
+
+    return numba.njit(cache=_CACHE)(build)
+
+
+_build_list = _compiled_list_builder(_numba) if _numba is not None else None
+
+
+def typed_list(items: Sequence[T]) -> Sequence[T]:
+    """numba's typed list of ``items`` (all of one type), as a kernel takes a list of named
+    tuples; without numba, a plain list. It is built by a compiled kernel, cached on disk like
+    the others: numba building one from Python compiles its list methods for the item type in
+    every process, about half a second a type, not cached."""
+    if _build_list is None:
+        return list(items)
+    return _build_list(tuple(items))

@@ -28,7 +28,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from minimize_surprise.fitness import step_score
-from minimize_surprise.jit import JIT, kernel
+from minimize_surprise.jit import borrow, kernel, typed_list
 from minimize_surprise.network import (
     GenomeLayout,
     LaneWeights,
@@ -47,9 +47,8 @@ from minimize_surprise.safety import (
     safety_seed,
     safety_step,
 )
-from minimize_surprise.sensors import ALL_SENSORS
 from sim_stub import physics
-from sim_stub.physics import Geometry, Sensing
+from sim_stub.physics import Geometry, SenseWork, Sensing
 from sim_stub.scenarios import WorldConfig
 from sim_stub.world import World, box_frame_steps, box_frames
 
@@ -58,14 +57,14 @@ __all__ = [
     "EvaluationRecord",
     "Recording",
     "SafetyLayers",
+    "Scratch",
     "Swarm",
     "evaluate",
     "evaluate_swarms",
+    "new_scratch",
     "robot_ids",
 ]
 
-#: Sensors in the world's full frame, every sensor it simulates (as ``World`` allocates it).
-_FULL_WIDTH = len(ALL_SENSORS)
 #: The networks' lanes come in multiples of this: the vector loops the compiler makes of
 #: network_step_lanes run eight doubles at a time (AVX-512, or AVX2 unrolled twice) and leave a
 #: remainder to slow scalar code; ten robots padded to 16 cost less than ten (measured).
@@ -124,12 +123,59 @@ class Recording(NamedTuple):
     boxes: np.ndarray
 
 
+class Scratch(NamedTuple):
+    """The working arrays of one :func:`evaluate` call (:func:`new_scratch`), allocated by
+    its caller so that the kernel may borrow them: ``values`` (B, N, world's sensors) the
+    readings, ``sensing`` each world's :class:`~sim_stub.physics.SenseWork` stacked (B, N,
+    ...); the networks' lanes (``work``, ``acc``, ``previous`` a(t-1) starting as the initial
+    action, ``hidden`` h(t-1) starting as the initial hidden state, ``action``,
+    ``predictions``); ``total`` (B, N) the summed scores; ``need_force`` (B) each world's flag,
+    read from its Sensing once."""
+
+    values: np.ndarray
+    sensing: SenseWork
+    work: np.ndarray
+    acc: np.ndarray
+    previous: np.ndarray
+    hidden: np.ndarray
+    action: np.ndarray
+    predictions: np.ndarray
+    total: np.ndarray
+    need_force: np.ndarray
+
+
+def new_scratch(
+    sensings: Sequence[Sensing], robots: int, net: LaneWeights, sensors: int,
+    initial_action: float,
+) -> Scratch:  # fmt: skip
+    """Fresh working arrays for :func:`evaluate` on worlds with these ``sensings`` of ``robots``
+    robots each, networks ``net`` reading ``sensors`` of the world's sensors."""
+    count, lanes = len(sensings), net.p_init.shape[1]
+    inputs = net.a_in.shape[0]
+    one = physics.sense_work(robots)
+    # The networks' arrays hold a robot in each column (network_step_lanes): readings s(t) in
+    # the first R rows of ``work``, a(t-1), h(t-1), p(t+1) as the robots' columns; the lanes
+    # beyond the last arena's robots (padding to whole vectors) compute on zeros, unread.
+    return Scratch(
+        values=np.empty((count, robots, len(sensings[0].columns))),
+        sensing=SenseWork(*(np.stack([part] * count) for part in one)),
+        work=np.zeros((sensors + 3 + inputs, lanes)),
+        acc=np.empty((max(inputs, net.p_in.shape[0], sensors, 2), lanes)),
+        previous=np.full((2, lanes), initial_action),
+        hidden=net.p_init.copy(),
+        action=np.empty((2, lanes)),
+        predictions=np.empty((sensors, lanes)),
+        total=np.zeros((count, robots)),
+        need_force=np.array([sn.need_force for sn in sensings], dtype=np.bool_),
+    )
+
+
 @kernel
 def evaluate(
     arenas: Arenas,
     safety: SafetyLayers,
     net: LaneWeights,
-    initial_action: float,
+    scratch: Scratch,
     columns: np.ndarray,
     steps: int,
     fitness: np.ndarray,
@@ -144,8 +190,11 @@ def evaluate(
     counts and, with ``record``, ``recs[b]`` arena b's trace. ``columns``: the network's sensors
     among the world's. An arena's results do not depend on the others in the batch: each of its
     numbers is computed as in a batch of one."""
-    # Every field into a local once, by name: numba counts a reference each time an array is
-    # read from a tuple, which in the loop below would cost a tenth of the speed (measured).
+    # Everything borrowed (jit.borrow): the robots' loops below take views of these arrays at
+    # every step, and an owned view costs a reference count taken and dropped, atomically.
+    arenas, safety, net, scratch = borrow(arenas), borrow(safety), borrow(net), borrow(scratch)
+    columns, fitness, interventions = borrow(columns), borrow(fitness), borrow(interventions)
+    # Every field into a local once, by name (a field read in the loop costs more than a local).
     geometries, sensings, poses, cmds = arenas.geometry, arenas.sensing, arenas.pose, arenas.cmd
     forces, boxes, pending, clock = arenas.force, arenas.boxes, arenas.pending, arenas.clock
     box_start = arenas.box_start
@@ -153,25 +202,12 @@ def evaluate(
     force_idx, states = safety.force, safety.state
     a_in, a_out, p_in, p_self, p_out = net.a_in, net.a_out, net.p_in, net.p_self, net.p_out
     free, fixed = net.free, net.fixed
+    values, work, acc = scratch.values, scratch.work, scratch.acc
+    full, bodies, cos_sin, candidates, near = scratch.sensing
+    previous, hidden, action = scratch.previous, scratch.hidden, scratch.action
+    predictions, total, need_force = scratch.predictions, scratch.total, scratch.need_force
     b_count, n = fitness.shape[0], fitness.shape[1]
     r = columns.shape[0]
-    lanes = net.p_init.shape[1]
-    values = np.empty((b_count, n, sensings[0].columns.shape[0]))
-    full = np.zeros((b_count, n, _FULL_WIDTH))
-    # The networks' arrays hold a robot in each column (network_step_lanes): readings s(t) in
-    # the first R rows of ``work``, a(t-1), h(t-1), p(t+1) as the robots' columns; the lanes
-    # beyond the last arena's robots (padding to whole vectors) compute on zeros, unread.
-    work = np.zeros((r + 3 + a_in.shape[0], lanes))
-    acc = np.empty((max(a_in.shape[0], p_in.shape[0], r, 2), lanes))
-    previous = np.full((2, lanes), initial_action)
-    hidden = net.p_init.copy()
-    action = np.empty((2, lanes))
-    predictions = np.empty((r, lanes))
-    total = np.zeros((b_count, n))
-    # Read once: an item of numba's list costs a call (70 ns for a Sensing), here per step.
-    need_force = np.zeros(b_count, dtype=np.bool_)
-    for b in range(b_count):
-        need_force[b] = sensings[b].need_force
     # A new genome: no manoeuvre carries over; the generator of escape turns does.
     states[:, :, :4] = 0
     interventions[:, :, :] = 0
@@ -179,7 +215,9 @@ def evaluate(
         for b in range(b_count):
             if record and t % recs[b].box_every == 0 and box_start[b + 1] > box_start[b]:
                 recs[b].boxes[t // recs[b].box_every, :, :] = boxes[box_start[b] : box_start[b + 1]]
-            physics.sense(sensings[b], poses[b], forces[b], clock[b], values[b], full[b])
+            sensing = borrow(sensings[b])  # its list, an argument, holds it
+            arrays = SenseWork(full[b], bodies[b], cos_sin[b], candidates[b], near[b])
+            physics.sense(sensing, poses[b], forces[b], clock[b], values[b], arrays)
             for i in range(n):
                 lane = b * n + i
                 for k in range(r):
@@ -206,8 +244,9 @@ def evaluate(
             if record:
                 _record(recs[b], t, b * n, poses[b], work, predictions, action, cmd)
             first, last = box_start[b], box_start[b + 1]
+            geometry = borrow(geometries[b])
             physics.step_world(
-                geometries[b], poses[b], cmd, forces[b], boxes[first:last], pending[first:last],
+                geometry, poses[b], cmd, forces[b], boxes[first:last], pending[first:last],
                 need_force[b],
             )  # fmt: skip
             clock[b] += 1
@@ -215,8 +254,9 @@ def evaluate(
     cmds[:, :, :] = 0.0
     for b in range(b_count):
         first, last = box_start[b], box_start[b + 1]
+        geometry = borrow(geometries[b])
         physics.step_world(
-            geometries[b], poses[b], cmds[b], forces[b], boxes[first:last], pending[first:last],
+            geometry, poses[b], cmds[b], forces[b], boxes[first:last], pending[first:last],
             need_force[b],
         )  # fmt: skip
         clock[b] += 1
@@ -387,9 +427,13 @@ def evaluate_swarms(
     recs = [swarm._recording(steps, record) for swarm in swarms] if record else empty
     fitness = np.empty((len(swarms), n))
     interventions = np.zeros((len(swarms), n, len(REASON_OF_CODE)), dtype=np.int64)
+    arrays = new_scratch(
+        [world.kernel_constants[1] for world in worlds], n, net, len(first._columns),
+        first.spec.initial_action,
+    )  # fmt: skip
     evaluate(
-        arenas, safety, net, first.spec.initial_action, first._columns, steps, fitness,
-        interventions, record, recs if not record else _typed_list(recs),
+        arenas, safety, net, arrays, first._columns, steps, fitness, interventions, record,
+        recs if not record else typed_list(recs),
     )  # fmt: skip
     results = []
     for b, (swarm, world, state) in enumerate(zip(swarms, worlds, states, strict=True)):
@@ -414,7 +458,7 @@ def evaluate_swarms(
 
 
 #: The lists of the last batch evaluated (:func:`_world_lists`), by the identity of what is in
-#: them. Building numba's lists costs about 15 us an item, more than an evaluation step.
+#: them. Building numba's lists costs about 10 us, more than an evaluation step.
 _last_lists: list[tuple[tuple[int, ...], tuple[Any, ...]]] = []
 
 
@@ -426,18 +470,8 @@ def _world_lists(swarms: Sequence[Swarm], steps: int, record: bool) -> tuple[Any
     key = tuple(id(item) for part in parts for item in part)
     if _last_lists and _last_lists[0][0] == key:
         return _last_lists[0][1][:3]
-    lists = tuple(_typed_list([part[k] for part in parts]) for k in range(2))
-    empty = _typed_list([swarm._recording(0, False) for swarm in swarms])
+    lists = tuple(typed_list([part[k] for part in parts]) for k in range(2))
+    empty = typed_list([swarm._recording(0, False) for swarm in swarms])
     value = (*lists, empty, parts)
     _last_lists[:] = [(key, value)]
     return value[:3]
-
-
-def _typed_list(items: list[Any]) -> Any:
-    # numba's list of one type, as the kernel takes its per-world lists; without numba a plain
-    # list does.
-    if not JIT:
-        return items
-    from numba.typed import List
-
-    return List(items)

@@ -19,7 +19,15 @@ from drivers.body import clamp_unit
 from minimize_surprise.errors import ConfigError
 from minimize_surprise.sensors import ALL_SENSORS
 from sim_stub import physics
-from sim_stub.physics import GROUND_POSITIONS, IR_HEADINGS, IR_POSITIONS, Geometry, Sensing
+from sim_stub.physics import (
+    GROUND_POSITIONS,
+    IR_HEADINGS,
+    IR_POSITIONS,
+    Geometry,
+    Sensing,
+    ir_reach,
+    sense_work,
+)
 from sim_stub.scenarios import WorldConfig
 
 __all__ = [
@@ -180,6 +188,7 @@ def compile_world(config: WorldConfig, seed: int) -> tuple[Geometry, Sensing]:
         noise=config.noise,
         columns=np.array([ALL_SENSORS.index(n) for n in config.sensors], dtype=np.int64),
         seed=int(seed) & 0xFFFFFFFF,
+        ir_reach=ir_reach(config.robot_radius, config.body_offset, config.ir_range),
     )
     return geometry, sensing
 
@@ -200,7 +209,7 @@ class World:
         self._cmd = np.zeros((n, 2))
         self._force = np.zeros(n)
         self._boxes = np.zeros((0, 2))
-        self._full = np.zeros((n, len(ALL_SENSORS)))
+        self._sense_work = sense_work(n)
         self._recording: list[np.ndarray] | None = [] if record else None
         self._box_recording: list[np.ndarray] = []
         self._box_every = box_frame_steps(config.dt)
@@ -567,7 +576,9 @@ class World:
         order; computed once per step for all robots."""
         if self._cache is None:
             out = np.empty((self._n, len(self.config.sensors)))
-            physics.sense(self._sensing, self._pose, self._force, self._steps, out, self._full)
+            physics.sense(
+                self._sensing, self._pose, self._force, self._steps, out, self._sense_work
+            )
             out.flags.writeable = False
             self._cache = out
         return self._cache

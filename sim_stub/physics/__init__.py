@@ -54,7 +54,7 @@ from sim_stub.physics.model import (
     gaussian,
 )
 from sim_stub.physics.motion import clamp_commands, step_world
-from sim_stub.physics.sensing import sense
+from sim_stub.physics.sensing import SenseWork, ir_reach, sense, sense_work
 
 __all__ = [
     "GRID_ROBOTS",
@@ -64,9 +64,12 @@ __all__ = [
     "IR_POSITIONS",
     "IR_RAY",
     "Geometry",
+    "SenseWork",
     "Sensing",
     "clamp_commands",
     "gaussian",
+    "ir_reach",
     "sense",
+    "sense_work",
     "step_world",
 ]

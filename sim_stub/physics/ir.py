@@ -40,7 +40,7 @@ def _lookup(d: float, table_d: np.ndarray, table_v: np.ndarray) -> float:
     return table_v[k - 1] + f * (table_v[k] - table_v[k - 1])
 
 
-@kernel
+@kernel(inline=True)
 def ir_readings(
     sn: Sensing, bodies: np.ndarray, n: int, me: int, x: float, y: float, c: float, s: float,
     step: int, out: np.ndarray,
@@ -79,7 +79,7 @@ def ir_readings(
         out[k] = value
 
 
-@kernel
+@kernel(inline=True)
 def _cone_nearest(
     bodies: np.ndarray, n: int, sx: float, sy: float, cp: float, sp: float, r: float,
     reach2: float, ca: float, sa: float, walls: bool, wall: float,
@@ -130,7 +130,7 @@ def _cone_nearest(
     return best
 
 
-@kernel
+@kernel(inline=True)
 def _ray_nearest(
     bodies: np.ndarray, n: int, sx: float, sy: float, cp: float, sp: float, r: float,
     reach2: float, robot_reflectance: float, walls: bool, wall: float, wall_reflectance: float,

@@ -97,6 +97,9 @@ class Sensing(NamedTuple):
     noise: float
     columns: np.ndarray
     seed: int
+    #: the farthest apart two body centres are when one robot's IR sees the other
+    #: (.sensing.ir_reach)
+    ir_reach: float
     #: from this many robots on, the IR finds the robots it may see in a cell grid (.grid)
     grid_robots: int = GRID_ROBOTS
 

@@ -8,6 +8,7 @@ lamp's fall-off or uniform. Then Gaussian ``noise`` on every value, clipped to [
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
@@ -16,25 +17,27 @@ from sim_stub.physics.grid import Cells, build, gather, grid_side, new_cells
 from sim_stub.physics.ir import ir_readings
 from sim_stub.physics.model import GROUND_POSITIONS, IR_POSITIONS, Sensing, gaussian
 
-__all__ = ["sense"]
+__all__ = ["SenseWork", "ir_reach", "sense", "sense_work"]
 
 
 # Indices of the sensors in the full frame (minimize_surprise.sensors.ALL_SENSORS).
 _IR0, _GROUND0, _FORCE, _LIGHT0 = 0, 7, 9, 10
+#: Sensors in the full frame.
+_FULL = 12
 # Metres added to the IR's reach when picking the bodies a robot may see: rounding in the
 # distances never drops one the sensors would see.
 _REACH_SLACK = 1e-6
 
 
-@kernel
-def ir_reach(sn: Sensing) -> float:
+def ir_reach(robot_radius: float, body_offset: float, ir_range: float) -> float:
     """The farthest apart two body centres can be for one robot's IR to see the other: the
     IR's reach from a sensor (its range beyond the other body's radius) plus the farthest
-    sensor from the body's centre."""
-    far = 0.0
-    for k in range(IR_POSITIONS.shape[0]):
-        far = max(far, math.hypot(IR_POSITIONS[k, 0] - sn.body_offset, IR_POSITIONS[k, 1]))
-    return sn.ir_range + sn.robot_radius + far
+    sensor from the body's centre (``Sensing.ir_reach``)."""
+    far = max(
+        math.hypot(IR_POSITIONS[k, 0] - body_offset, IR_POSITIONS[k, 1])
+        for k in range(IR_POSITIONS.shape[0])
+    )
+    return ir_range + robot_radius + far
 
 
 @kernel
@@ -58,35 +61,59 @@ def _within(
     return kept
 
 
+class SenseWork(NamedTuple):
+    """The working arrays of :func:`sense` for N robots (:func:`sense_work`): ``full`` (N, 12)
+    every sensor's value before the configured ones are picked; ``bodies`` and ``cos_sin`` (N,
+    2) the body centres and the headings' cosines and sines; ``candidates`` (N) and ``near`` (N,
+    2) the robots one robot's IR may see and the body centres of those in its reach. Held by the
+    caller across steps: allocating them at every step cost more than a robot's sensing."""
+
+    full: np.ndarray
+    bodies: np.ndarray
+    cos_sin: np.ndarray
+    candidates: np.ndarray
+    near: np.ndarray
+
+
+def sense_work(robots: int) -> SenseWork:
+    """Working arrays of :func:`sense` for ``robots`` robots."""
+    return SenseWork(
+        full=np.zeros((robots, _FULL)),
+        bodies=np.empty((robots, 2)),
+        cos_sin=np.empty((robots, 2)),
+        candidates=np.empty(robots, dtype=np.int64),
+        near=np.empty((robots, 2)),
+    )
+
+
 @kernel
 def sense(
     sn: Sensing, pose: np.ndarray, force: np.ndarray, step: int, out: np.ndarray,
-    full: np.ndarray,
+    work: SenseWork,
 ) -> None:  # fmt: skip
     """Every robot's sensor values for the arena as it is at ``step`` into ``out`` (N, R), in
-    the order of ``sn.columns``; ``full`` (N, 12) is scratch space. From ``sn.grid_robots``
-    robots on, a robot's IR looks only at the robots in the cells of a grid around its own
-    (.grid)."""
+    the order of ``sn.columns``; ``work`` the working arrays (:func:`sense_work`). From
+    ``sn.grid_robots`` robots on, a robot's IR looks only at the robots in the cells of a grid
+    around its own (.grid)."""
     n = pose.shape[0]
     if sn.need_ir and n >= sn.grid_robots:
-        side = grid_side(sn.wall_half, ir_reach(sn), n)
+        side = grid_side(sn.wall_half, sn.ir_reach, n)
         if side > 1:
-            _sense(sn, pose, force, step, out, full, new_cells(n, side))
+            _sense(sn, pose, force, step, out, work, new_cells(n, side))
             return
-    _sense(sn, pose, force, step, out, full, None)
+    _sense(sn, pose, force, step, out, work, None)
 
 
 @kernel
 def _sense(
     sn: Sensing, pose: np.ndarray, force: np.ndarray, step: int, out: np.ndarray,
-    full: np.ndarray, cells: Cells | None,
+    work: SenseWork, cells: Cells | None,
 ) -> None:  # fmt: skip
     # ``sense`` with every robot's IR looking at every other robot (``cells`` None) or at its
     # neighbours in the grid; numba compiles one of each, the choices on ``cells is None`` away.
     n = pose.shape[0]
-    bodies = np.empty((n, 2))
+    full, bodies, cos_sin, candidates, near = work
     # Each heading's cosine and sine once, for the bodies and the sensors.
-    cos_sin = np.empty((n, 2))
     for i in range(n):
         c, s = math.cos(pose[i, 2]), math.sin(pose[i, 2])
         cos_sin[i, 0] = c
@@ -96,9 +123,9 @@ def _sense(
     # With cells: the grid's arrays, read once (numba counts a reference at every read from a
     # tuple). ``candidates``: the robots a robot's IR may see (every robot, or its neighbours in
     # the grid); ``near``: the body centres of those within its reach, in a row.
-    candidates = np.arange(n)
-    near = np.empty((n, 2))
-    reach = ir_reach(sn) + _REACH_SLACK
+    for i in range(n):
+        candidates[i] = i
+    reach = sn.ir_reach + _REACH_SLACK
     if cells is None:
         side, cell, start, order = 0, None, None, None
     else:

@@ -3,6 +3,7 @@ asked for, all at once: a figure failing to draw leaves no file, not even a part
 
 from __future__ import annotations
 
+import re
 import struct
 from pathlib import Path
 
@@ -73,6 +74,15 @@ def test_tight_crops_to_the_drawing_as_bbox_inches_tight_does(tmp_path):
     fig.savefig(direct, dpi=120, bbox_inches="tight")
     assert path.read_bytes() == direct.read_bytes()
     assert _png_size(path) != (4 * 120, 3 * 120)  # the drawing's size, not the figure's
+    # Two formats share one box, found once: the raster is still savefig's to the byte, and
+    # the vector picture has the raster's size.
+    png, pdf = save_figure(fig, tmp_path / "both", dpi=120)
+    assert png.read_bytes() == direct.read_bytes()
+    page = re.search(rb"/MediaBox \[ *0 0 ([0-9.]+) ([0-9.]+) *\]", pdf.read_bytes())
+    assert page is not None
+    width, height = _png_size(png)
+    assert float(page[1]) == pytest.approx(width / 120 * 72, abs=1)
+    assert float(page[2]) == pytest.approx(height / 120 * 72, abs=1)
 
 
 def test_suffix_false_writes_exactly_the_path_given(tmp_path):
@@ -88,6 +98,10 @@ class _Broken:
 
     def __init__(self) -> None:
         self.calls = 0
+        self.figure = _figure()
+
+    def __getattr__(self, name):
+        return getattr(self.figure, name)
 
     def savefig(self, fname, **kwargs):
         self.calls += 1

@@ -16,11 +16,9 @@ import math
 import numpy as np
 import pytest
 
-from minimize_surprise.sensors import ALL_SENSORS
 from sim_stub import physics
 from sim_stub.physics.contacts import contact_reach
 from sim_stub.physics.grid import build, gather, grid_side, new_cells
-from sim_stub.physics.sensing import ir_reach
 from sim_stub.scenarios import WorldConfig, scenario_config
 from sim_stub.settings import world_overrides
 from sim_stub.world import World
@@ -43,17 +41,17 @@ def step_swarm(config: WorldConfig, steps: int, *, grid: bool, seed: int = 3) ->
         # The grid is on for this many robots, and has more than one cell for both ranges.
         assert n >= physics.GRID_ROBOTS == g.grid_robots == sn.grid_robots
         assert grid_side(g.wall_half, contact_reach(g), n) > 1
-        assert grid_side(sn.wall_half, ir_reach(sn), n) > 1
+        assert grid_side(sn.wall_half, sn.ir_reach, n) > 1
     else:
         g, sn = g._replace(grid_robots=NEVER), sn._replace(grid_robots=NEVER)
     pose, cmd, force, boxes, pending = (a.copy() for a in world.kernel_state)
     rng = np.random.default_rng(seed)
     commands = rng.uniform(-0.5, 1.0, size=(steps // 10 + 1, n, 2))
     values = np.empty((n, len(config.sensors)))
-    full = np.zeros((n, len(ALL_SENSORS)))
+    work = physics.sense_work(n)
     out: dict[str, list[np.ndarray]] = {"pose": [], "values": [], "boxes": [], "force": []}
     for t in range(steps):
-        physics.sense(sn, pose, force, t, values, full)
+        physics.sense(sn, pose, force, t, values, work)
         physics.clamp_commands(commands[t // 10], cmd)
         physics.step_world(g, pose, cmd, force, boxes, pending, sn.need_force)
         for key, array in (("pose", pose), ("values", values), ("boxes", boxes), ("force", force)):
