@@ -2,13 +2,14 @@
 
 :mod:`gridworld.runs` runs whole generations with them. The named structures here
 (:class:`Torus`, :class:`WorldTables`, :class:`Noise`) are what the kernels take. Both networks
-start their hidden units' input sums from a per-genome table of the sums over the first inputs for
-every pattern of their bits (:func:`prefix_sums`) and continue them over the remaining inputs in
-order: the authors' float32 operations, so their sums bit for bit, at a quarter of the work. The
-actor's decision (:func:`actor_decision`) is computed with a fast tanh and again with the code's
-tanh only when an output lies too near zero for the fast one to decide its sign. The predictor's
-hidden units use :func:`tanh_fast` (a rational approximation good to float32 rounding) unless
-``exact`` asks for the code's exp-based tanh.
+take their hidden units' input sums from a per-genome table of the sums over the first inputs for
+every pattern of their bits (:func:`prefix_sums`; the actor over its first 11 inputs, continued
+over the remaining ones in order, the predictor over all of them): the authors' float32
+operations, so their sums bit for bit, at a fraction of the work. The actor's decision
+(:func:`actor_decision`) is computed with a fast tanh and again with the code's tanh only when an
+output lies too near zero for the fast one to decide its sign. The predictor's hidden units use
+:func:`tanh_fast` (a rational approximation good to float32 rounding) unless ``exact`` asks for the
+code's exp-based tanh.
 """
 
 from __future__ import annotations
@@ -30,7 +31,6 @@ __all__ = [
     "build_torus",
     "noise_bits",
     "prefix_sums",
-    "read_outputs",
     "tanh_fast",
     "world_tables",
 ]
@@ -91,7 +91,7 @@ _B2 = np.float32(2.26843463243900e-03)
 _B0 = np.float32(4.89352518554385e-03)
 
 
-@kernel(error_model="numpy")
+@kernel
 def tanh_fast(x: np.float32) -> np.float32:
     """tanh of a float32 by a rational approximation (absolute error below 3e-7; its divisor is
     never 0, and without branches or division checks the loops that call it vectorise)."""
@@ -141,7 +141,7 @@ def prefix_sums(u: np.ndarray, w: np.ndarray, g: int, bits: int, out: np.ndarray
 SIGN_MARGIN = np.float32(3e-6)
 
 
-@kernel(error_model="numpy")
+@kernel
 def actor_decision(
     a_u: np.ndarray,
     a_hidden: np.ndarray,
@@ -189,22 +189,6 @@ def actor_decision(
     a0 = 0 if c_negative(z0) else 1
     left = 1 if c_negative(z1) else 0
     return a0 + 2 * left
-
-
-@kernel
-def read_outputs(acc: np.ndarray, sensor: int, q: int, pmask: np.ndarray, ones: np.ndarray) -> None:
-    # Output q's net inputs to prediction bits of its sensor in pmask, counted in ones[q].
-    tiny = False
-    for a in range(acc.shape[0]):
-        bit = acc[a] >= 0.0
-        pmask[a] |= np.int64(bit) << sensor
-        ones[q, a] += bit
-        tiny |= (acc[a] < 0.0) & (acc[a] > -1e-10)
-    if tiny:  # where the code's tanh may round to 0, let it decide
-        for a in range(acc.shape[0]):
-            if acc[a] < 0.0 and not c_negative(acc[a]):
-                pmask[a] |= np.int64(1) << sensor
-                ones[q, a] += 1
 
 
 @kernel

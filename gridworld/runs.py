@@ -9,30 +9,27 @@ has moved into it during this step (so conflicts go to the lower index and nobod
 being vacated), a turn always succeeds; (3) all agents take their new poses.
 
 Sensing is synchronous, so the networks of all agents of a step are computed together (the
-predictor vectorised across agents); only the moves are resolved one agent after the other. Both
-networks start their hidden units' input sums from a per-genome table of the sums over the first
-inputs for every pattern of their bits (:func:`prefix_sums`) and continue them over the remaining
-inputs in order: the code's float32 operations, so its sums bit for bit, at a quarter of the
-work. The actor has no state: its decision is a function of the R + 1 input bits, computed the
-first time a genome meets an input and looked up afterwards; it is computed with a fast tanh and
-computed again with the code's tanh only when an output lies too near zero for the fast one to
-decide its sign, so the decision is the code's. The predictor's hidden units use
-:func:`tanh_fast` (a rational approximation good to float32 rounding) unless ``exact`` asks for
-the code's exp-based tanh: trajectories never depend on it, only the rare prediction whose output
-lies within float32 rounding of zero can.
+predictor vectorised across agents, :mod:`gridworld.predictor`); only the moves are resolved one
+agent after the other. Both networks take their hidden units' input sums from a per-genome table
+of the sums over the first inputs for every pattern of their bits (:func:`prefix_sums`; the
+actor's continued over its remaining inputs in order, the predictor's over all of them): the
+code's float32 operations, so its sums bit for bit, at a fraction of the work. The actor has no
+state: its decision is a function of the R + 1 input bits, computed the first time a genome meets an
+input and looked up afterwards; it is computed with a fast tanh and computed again with the code's
+tanh only when an output lies too near zero for the fast one to decide its sign, so the decision is
+the code's. The predictor's hidden units use :func:`tanh_fast` (a rational approximation good to
+float32 rounding) unless ``exact`` asks for the code's exp-based tanh: trajectories never depend on
+it, only the rare prediction whose output lies within float32 rounding of zero can.
 
 Sensor noise flips each sensor value an agent reads with probability ``noise`` (independent per
 run, step, agent and sensor; the same flips for every genome given the same ``noise_key``). The
 noisy values go into both networks and the fitness; moves are blocked by true occupancy only.
 
 :func:`simulate_genome` runs a genome's runs side by side as a loop of named steps, each over all
-agents of all runs: ``_sense`` (with the noise), ``_score``, ``_act``, ``_predict_hidden``,
-``_predict_outputs``, ``_move``; they share the agents' poses and decisions (:class:`Agents`),
+agents of all runs: ``_sense`` (with the noise), ``_score``, ``_act``, ``predict_hidden``,
+``predict_outputs``, ``_move``; they share the agents' poses and decisions (:class:`Agents`),
 the runs' occupancy (:class:`Occupancy`), the genome's networks (:class:`Actor`,
-:class:`Predictor`) and working space (:class:`Sums`).
-
-Why one file of over 600 lines: the steps are private to the one kernel that calls them in order,
-and about half of the file is their docstrings.
+:class:`gridworld.predictor.Predictor`) and working space (:class:`gridworld.predictor.Sums`).
 """
 
 from __future__ import annotations
@@ -49,10 +46,15 @@ from gridworld.kernels import (
     actor_decision,
     noise_bits,
     prefix_sums,
-    read_outputs,
-    tanh_fast,
 )
-from minimize_surprise.gridnet import GridNetworks, c_activation
+from gridworld.predictor import (
+    Sums,
+    count_unscored,
+    make_predictor,
+    predict_hidden,
+    predict_outputs,
+)
+from minimize_surprise.gridnet import GridNetworks
 from minimize_surprise.jit import kernel
 
 __all__ = ["BatchOutcome", "RunOutcome", "evaluate_batch", "simulate_genome"]
@@ -123,38 +125,6 @@ class Actor(NamedTuple):
     scratch: np.ndarray
 
 
-class Predictor(NamedTuple):
-    """Genome ``g``'s predictor as the prediction steps take it: the batch's ``u``, ``hidden``,
-    ``self_loop``, ``out`` (:class:`GridNetworks` ``p_*``), ``outputs`` the sensor of each
-    output, ``prefix`` (H_p, 2^bits) its input-layer sums over the first ``bits`` inputs,
-    ``first`` the first step's (fixed) predictions as bits, sensor k at bit k, ``exact``: the
-    code's tanh in the hidden units."""
-
-    u: np.ndarray
-    hidden: np.ndarray
-    self_loop: np.ndarray
-    out: np.ndarray
-    outputs: np.ndarray
-    g: int
-    prefix: np.ndarray
-    bits: int
-    first: np.int64
-    exact: bool
-
-
-class Sums(NamedTuple):
-    """The prediction steps' working space per lane: ``low`` a lane's prefix table column
-    (unsigned, as every index of a per-lane loop: a signed index costs a check for negative
-    values that keeps the loop from being compiled tightly), ``acc`` ... ``acc4`` the sums of up
-    to four units."""
-
-    low: np.ndarray
-    acc: np.ndarray
-    acc2: np.ndarray
-    acc3: np.ndarray
-    acc4: np.ndarray
-
-
 # The steps of a run (simulate_genome's loop, each called once per time step) take structures
 # they read (nearly) all of, and plain arrays, and read the fields into locals at their top: a
 # compiled call costs about a nanosecond for each array of its arguments it does not use (passed
@@ -171,21 +141,6 @@ def _actor(nets: GridNetworks, g: int, memo: np.ndarray) -> Actor:
     prefix_sums(a_u, a_hidden, g, bits, prefix)
     scratch = np.zeros(a_hidden.shape[1], dtype=np.float32)
     return Actor(a_u, a_hidden, nets.a_out, g, prefix, bits, memo, scratch)
-
-
-@kernel
-def _predictor(nets: GridNetworks, g: int, exact: bool) -> Predictor:
-    """Genome g's :class:`Predictor`."""
-    p_u, p_hidden, fixed = nets.p_u, nets.p_hidden, nets.fixed
-    bits = min(PREFIX_BITS, p_u.shape[2])
-    prefix = np.empty((p_hidden.shape[1], 1 << bits), dtype=np.float32)
-    prefix_sums(p_u, p_hidden, g, bits, prefix)
-    first = np.int64(0)
-    for k in range(fixed.shape[0]):
-        first |= np.int64(fixed[k]) << k
-    return Predictor(
-        p_u, p_hidden, nets.p_self, nets.p_out, nets.outputs, g, prefix, bits, first, exact
-    )
 
 
 @kernel
@@ -230,7 +185,7 @@ def _record(trace: np.ndarray, t: int, agents: Agents, rep: int) -> None:
         trace[t, a, 1] = head[rep * n + a]
 
 
-@kernel(error_model="numpy")
+@kernel
 def _sense(
     torus: Torus,
     noise: Noise,
@@ -302,7 +257,7 @@ def _score(
         correct[rep] += n * r - wrong
 
 
-@kernel(error_model="numpy")
+@kernel
 def _act(actor: Actor, agents: Agents, key: np.ndarray, pkey: np.ndarray) -> None:
     """The actor's decisions for every lane's sensor bits (``key``) and last a0, into
     ``agents.a0`` and ``agents.left``, and the predictor's inputs (``pkey``: ``key`` with the
@@ -320,113 +275,6 @@ def _act(actor: Actor, agents: Agents, key: np.ndarray, pkey: np.ndarray) -> Non
         a0[a] = m & 1
         left[a] = m >> 1
         pkey[a] = np.int32(key[a] | ((m & 1) << r))
-
-
-@kernel(error_model="numpy")
-def _predict_hidden(predictor: Predictor, pkey: np.ndarray, hidden: np.ndarray, sums: Sums) -> None:
-    """The predictor's hidden units on all lanes (``hidden``: (H_p, lanes), their state) for
-    inputs ``pkey``: the input layer (the table's sums over the first inputs, continued in
-    order), then the self-loops."""
-    p_u, p_hidden, p_self, g = predictor.u, predictor.hidden, predictor.self_loop, predictor.g
-    p_prefix, bits, exact = predictor.prefix, predictor.bits, predictor.exact
-    low, acc = sums.low, sums.acc
-    lanes = pkey.shape[0]
-    inputs = p_u.shape[2]
-    hp = p_hidden.shape[1]
-    low_mask = (1 << bits) - 1
-    for a in range(lanes):
-        low[a] = np.uint32(pkey[a] & low_mask)
-    for j in range(hp):
-        row = p_prefix[j]
-        for a in range(lanes):
-            acc[a] = row[low[a]]
-        i = bits
-        while i + 4 <= inputs:  # four inputs per pass over the agents, added in order
-            u0, u1, u2, u3 = p_u[g, 0, i], p_u[g, 0, i + 1], p_u[g, 0, i + 2], p_u[g, 0, i + 3]
-            o0, o1, o2, o3 = p_u[g, 1, i], p_u[g, 1, i + 1], p_u[g, 1, i + 2], p_u[g, 1, i + 3]
-            w0, w1 = p_hidden[g, j, i], p_hidden[g, j, i + 1]
-            w2, w3 = p_hidden[g, j, i + 2], p_hidden[g, j, i + 3]
-            y0, y1, y2, y3 = u0 * w0, u1 * w1, u2 * w2, u3 * w3
-            x0, x1, x2, x3 = o0 * w0, o1 * w1, o2 * w2, o3 * w3
-            b0 = np.int32(1) << np.int32(i)
-            b1, b2, b3 = b0 << 1, b0 << 2, b0 << 3
-            for a in range(lanes):
-                k = pkey[a]
-                acc[a] = (
-                    acc[a]
-                    + (x0 if k & b0 else y0)
-                    + (x1 if k & b1 else y1)
-                    + (x2 if k & b2 else y2)
-                    + (x3 if k & b3 else y3)
-                )
-            i += 4
-        while i < inputs:
-            y0 = p_u[g, 0, i] * p_hidden[g, j, i]
-            x0 = p_u[g, 1, i] * p_hidden[g, j, i]
-            b0 = np.int32(1) << np.int32(i)
-            for a in range(lanes):
-                acc[a] += x0 if pkey[a] & b0 else y0
-            i += 1
-        v = p_self[g, j]
-        if exact:
-            for a in range(lanes):
-                hidden[j, a] = c_activation(acc[a] + hidden[j, a] * v)
-        else:
-            for a in range(lanes):
-                hidden[j, a] = tanh_fast(acc[a] + hidden[j, a] * v)
-
-
-@kernel(error_model="numpy")
-def _predict_outputs(
-    predictor: Predictor, hidden: np.ndarray, pmask: np.ndarray, ones: np.ndarray, sums: Sums
-) -> None:
-    """The predictor's outputs on all lanes, four at a time: the next step's predictions into
-    ``pmask`` (over the first step's fixed ones), each output's predictions of 1 counted in
-    ``ones`` (O, lanes)."""
-    p_out, outputs, g, first = predictor.out, predictor.outputs, predictor.g, predictor.first
-    acc, acc2, acc3, acc4 = sums.acc, sums.acc2, sums.acc3, sums.acc4
-    lanes = pmask.shape[0]
-    hp = hidden.shape[0]
-    o = outputs.shape[0]
-    if o > 0:
-        for a in range(lanes):
-            pmask[a] = first
-    for q in range(0, o, 4):
-        qa = min(q + 1, o - 1)
-        qb = min(q + 2, o - 1)
-        qc = min(q + 3, o - 1)
-        for a in range(lanes):
-            acc[a] = 0.0
-            acc2[a] = 0.0
-            acc3[a] = 0.0
-            acc4[a] = 0.0
-        for j in range(0, hp - 1, 2):
-            w, w1 = p_out[g, q, j], p_out[g, q, j + 1]
-            x, x1 = p_out[g, qa, j], p_out[g, qa, j + 1]
-            y, y1 = p_out[g, qb, j], p_out[g, qb, j + 1]
-            z, z1 = p_out[g, qc, j], p_out[g, qc, j + 1]
-            for a in range(lanes):
-                h, h1 = hidden[j, a], hidden[j + 1, a]
-                acc[a] = acc[a] + h * w + h1 * w1
-                acc2[a] = acc2[a] + h * x + h1 * x1
-                acc3[a] = acc3[a] + h * y + h1 * y1
-                acc4[a] = acc4[a] + h * z + h1 * z1
-        if hp % 2 == 1:
-            w, x = p_out[g, q, hp - 1], p_out[g, qa, hp - 1]
-            y, z = p_out[g, qb, hp - 1], p_out[g, qc, hp - 1]
-            for a in range(lanes):
-                h = hidden[hp - 1, a]
-                acc[a] += h * w
-                acc2[a] += h * x
-                acc3[a] += h * y
-                acc4[a] += h * z
-        read_outputs(acc, outputs[q], q, pmask, ones)
-        if qa != q:
-            read_outputs(acc2, outputs[qa], qa, pmask, ones)
-        if qb != qa:
-            read_outputs(acc3, outputs[qb], qb, pmask, ones)
-        if qc != qb:
-            read_outputs(acc4, outputs[qc], qc, pmask, ones)
 
 
 @kernel
@@ -472,26 +320,20 @@ def _tally(
     out: RunOutcome,
 ) -> None:
     """After the last step: each run's final poses and its scored predictions per sensor (the
-    first step's fixed one, then those made before the last step; ``ones`` counts every
-    prediction of 1 made, ``pmask`` holds the last step's, never scored)."""
+    first step's fixed one, then those made before the last step; ``ones`` (reps, O) counts
+    every prediction of 1 made, ``pmask`` holds the last step's, never scored)."""
     outputs, fixed = nets.outputs, nets.fixed
     cell, head = agents.cell, agents.head
     predsum, final = out.predsum, out.final
     reps, n, r, o = final.shape[0], final.shape[1], fixed.shape[0], outputs.shape[0]
-    lanes = reps * n
-    for q in range(o):
-        for a in range(lanes):
-            ones[q, a] -= (pmask[a] >> outputs[q]) & 1
+    count_unscored(outputs, pmask, ones)
     learned = np.zeros(r, dtype=np.bool_)
     for q in range(o):
         learned[outputs[q]] = True
     counts = np.zeros((reps, r), dtype=np.int64)
     for rep in range(reps):
         for q in range(o):
-            total = 0
-            for a in range(rep * n, rep * n + n):
-                total += ones[q, a]
-            counts[rep, outputs[q]] = total
+            counts[rep, outputs[q]] = ones[rep, q]
         for a in range(n):
             final[rep, a, 0] = cell[rep * n + a]
             final[rep, a, 1] = head[rep * n + a]
@@ -502,7 +344,7 @@ def _tally(
                 predsum[rep, k] = fixed[k] * n * steps
 
 
-@kernel(error_model="numpy")
+@kernel
 def simulate_genome(
     torus: Torus,
     starts: np.ndarray,
@@ -510,6 +352,7 @@ def simulate_genome(
     nets: GridNetworks,
     g: int,
     memo: np.ndarray,
+    table: np.ndarray,
     noise: Noise,
     exact: bool,
     out: RunOutcome,
@@ -517,8 +360,9 @@ def simulate_genome(
     """Genome ``g`` of ``nets`` on every start configuration of ``starts`` ((reps, N, 2): cell,
     heading), the runs side by side so the networks work on reps x N agents at once; results
     into ``out`` (:class:`RunOutcome`). ``memo`` caches the actor's decisions by input bits (-1:
-    not yet known). With a ``torus.window`` the sensors are read from bit rows and columns of
-    the occupancy; without, cell by cell.
+    not yet known); ``table`` ((H_p, 2^(R + 1)) float32) is room for the predictor's input sums
+    (:func:`gridworld.predictor.make_predictor`). With a ``torus.window`` the sensors are read from
+    bit rows and columns of the occupancy; without, cell by cell.
     """
     tables = torus.tables
     popcount = tables.popcount
@@ -527,16 +371,17 @@ def simulate_genome(
     lanes = reps * n
     agents, occupancy = _place_agents(torus, starts)
     actor = _actor(nets, g, memo)
-    predictor = _predictor(nets, g, exact)
+    predictor = make_predictor(nets, g, exact, table)
     outputs = predictor.outputs.shape[0]
     # per lane: the sensor bits read this step; the predictor's inputs (those bits with this
-    # step's a0 above them), its hidden state and the bits of its prediction to be scored at the
-    # next step; per output and lane: how many of its predictions said 1
+    # step's a0 above them), its hidden state (rows beyond H_p stay 0: see gridworld.predictor)
+    # and the bits of its prediction to be scored at the next step; per run and output: how
+    # many of its predictions said 1
     key = np.zeros(lanes, dtype=np.int64)
     pkey = np.zeros(lanes, dtype=np.int32)
-    hidden = np.zeros((predictor.hidden.shape[1], lanes), dtype=np.float32)
+    hidden = np.zeros((predictor.out.shape[1], lanes), dtype=np.float32)
     pmask = np.full(lanes, predictor.first, dtype=np.int64)
-    ones = np.zeros((max(outputs, 1), lanes), dtype=np.int32)
+    ones = np.zeros((reps, outputs), dtype=np.int64)
     base = np.zeros(lanes, dtype=np.int64)
     flips = np.zeros(n * r, dtype=np.uint8)
     sums = Sums(
@@ -555,8 +400,8 @@ def simulate_genome(
         _score(popcount, key, pmask, r, correct)
         _act(actor, agents, key, pkey)
         if outputs > 0:  # without outputs every prediction is fixed
-            _predict_hidden(predictor, pkey, hidden, sums)
-            _predict_outputs(predictor, hidden, pmask, ones, sums)
+            predict_hidden(predictor, pkey, hidden, sums)
+            predict_outputs(predictor, hidden, pmask, ones, sums)
         _move(tables, agents, occupancy, t)
     _tally(nets, agents, pmask, ones, steps, out)
     if trace_rep >= 0:
@@ -604,13 +449,14 @@ def evaluate_batch(
     reps, n = starts.shape[0], starts.shape[1]
     r = nb.shape[2]
     memo = np.empty(1 << (r + 1), dtype=np.int8)
+    table = np.empty((nets.p_hidden.shape[1], 1 << (r + 1)), dtype=np.float32)
     correct = np.empty(reps, dtype=np.int64)
     predsum = np.empty((reps, r), dtype=np.float64)
     for g in range(genomes):
         memo[:] = -1
         trace_rep = trace_run - g * reps if g * reps <= trace_run < (g + 1) * reps else -1
         run = RunOutcome(correct, predsum, final[g], trace, trace_rep)
-        simulate_genome(torus, starts, steps, nets, g, memo, noise, exact, run)
+        simulate_genome(torus, starts, steps, nets, g, memo, table, noise, exact, run)
         for rep in range(reps):
             fitness[g, rep] = correct[rep] / (steps * n * r)
             for k in range(r):
