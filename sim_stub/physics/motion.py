@@ -20,11 +20,24 @@ __all__ = ["clamp_commands", "step_world"]
 # boxes may touch another robot again, which may push it into boxes again; most steps need one
 # or two, jams of bladed robots among boxes up to five.
 _CONTACT_ROUNDS = 6
+_FOUR_PI = 2.0 * _TWO_PI
 
 
-@kernel
+@kernel(inline=True)
 def _wrap(theta: float) -> float:
-    return (theta + math.pi) % _TWO_PI - math.pi
+    # (theta + pi) % 2 pi - pi with Python's floored modulo, to the bit, without its call to
+    # fmod for an angle at most a turn out of range: fmod(x, 2 pi) is then x, or x - 2 pi
+    # (exact for 2 pi <= x < 4 pi), and the modulo adds 2 pi to a negative one.
+    x = theta + math.pi
+    if 0.0 <= x < _TWO_PI:
+        m = x
+    elif _TWO_PI <= x < _FOUR_PI:
+        m = x - _TWO_PI
+    elif -_TWO_PI < x < 0.0:
+        m = x + _TWO_PI
+    else:
+        m = x % _TWO_PI
+    return m - math.pi
 
 
 @kernel
@@ -59,7 +72,8 @@ def step_world(
     pending: np.ndarray, need_force: bool,
 ) -> None:  # fmt: skip
     """Advance one arena by one step of ``g.dt`` with the commands ``cmd``."""
-    start = pose.copy()
+    # Where the robots were, for the boxes to send one back to (no copy without boxes).
+    start = pose.copy() if boxes.shape[0] > 0 else pose
     _move(g, pose, cmd)
     force[:] = 0.0
     for round_ in range(_CONTACT_ROUNDS):

@@ -7,12 +7,20 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from minimize_surprise.sensors import ALL_SENSORS
+from sim_stub.physics.model import gaussian, normal_quantile
+from sim_stub.physics.motion import _wrap
 from sim_stub.scenarios import scenario_config
 from sim_stub.world import World
 
 IR_F2 = 2
+_WRAP_EDGES = [
+    0.0, -0.0, math.pi, -math.pi, 2 * math.pi, -2 * math.pi, 3 * math.pi, -3 * math.pi,
+    math.nextafter(math.pi, 0.0), math.nextafter(-math.pi, 0.0), math.nextafter(3 * math.pi, 0.0),
+]  # fmt: skip
 
 
 def lone_robot(x=0.0, y=0.0, theta=0.0, **overrides) -> World:
@@ -28,6 +36,15 @@ def body_centre(world: World, i: int) -> np.ndarray:
 
 
 # --- motion ----------------------------------------------------------------------------------
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.floats(-30.0, 30.0) | st.sampled_from(_WRAP_EDGES))
+def test_headings_wrap_as_pythons_modulo_to_the_bit(theta):
+    # The compiled wrap skips fmod for angles near the range; it must give Python's modulo.
+    expected = (theta + math.pi) % (2 * math.pi) - math.pi
+    got = _wrap(theta)
+    assert got == expected and math.copysign(1.0, got) == math.copysign(1.0, expected)
 
 
 def test_full_speed_straight_covers_max_speed_times_time():
@@ -247,6 +264,22 @@ def test_noise_is_gaussian_clipped_and_seeded():
     ground = np.array(samples)[:, 7:9]  # 0.4: far from the clipping bounds
     assert ground.std() == pytest.approx(0.05, rel=0.15)
     assert abs(ground.mean()) < 0.01
+
+
+def test_the_noise_is_the_normal_quantile_of_hashed_uniforms():
+    # The generator's quantile against scipy's, over the whole range of the 2^32 uniforms it
+    # draws (tails included); its draws have the normal's moments and tail shares.
+    stats = pytest.importorskip("scipy.stats")
+    rng = np.random.default_rng(0)
+    tails = (np.arange(1, 3000) + 0.5) / 2**32
+    p = np.concatenate([rng.uniform(0.0, 1.0, 20_000), tails, 1.0 - tails, [0.075, 0.925]])
+    ours = np.array([normal_quantile(x) for x in p])
+    assert np.allclose(ours, stats.norm.ppf(p), rtol=1e-14, atol=1e-14)
+    keys = itertools.product(range(400), range(10), range(12))
+    draws = np.array([gaussian(7, t, r, c) for t, r, c in keys])
+    assert abs(draws.mean()) < 0.03 and draws.std() == pytest.approx(1.0, abs=0.02)
+    assert np.mean(np.abs(draws) > 1.96) == pytest.approx(0.05, abs=0.006)
+    assert stats.kstest(draws, "norm").pvalue > 0.01
 
 
 def test_sensor_values_are_computed_once_per_step():
