@@ -22,6 +22,7 @@ once.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import shutil
@@ -210,14 +211,18 @@ def _identity(value: T) -> T:
 #: ownership of its arrays' memory, so that numba counts no references on it nor on any view
 #: or item taken from it. Every view of an owned array takes and drops a reference, an atomic
 #: operation; in the engine's loop over robots those cost more than the robots' arithmetic
-#: (docs/simulation.md, "Speed"). Borrow only what outlives the kernel's use of it: the
+#: (docs/simulation.md, "Two engines"). Borrow only what outlives the kernel's use of it: the
 #: kernel's own arguments (the caller holds them for the call) or items of an argument's
 #: list, never an array the kernel allocates (numba frees it after its owner's last use), and
 #: never return or store a borrowed array. Without numba it is the identity.
 borrow: Callable[[T], T] = _borrow_intrinsic(_numba) if _numba is not None else _identity
 
 
-def _compiled_list_builder(numba: ModuleType) -> Callable[[tuple[Any, ...]], Any]:
+@functools.cache
+def _list_builder() -> Callable[[tuple[Any, ...]], Any] | None:
+    # Made at the first use: numba's typed lists take a tenth of a second to import.
+    if _numba is None:
+        return None
     from numba.typed import List
 
     def build(items: tuple[Any, ...]) -> Any:
@@ -226,10 +231,7 @@ def _compiled_list_builder(numba: ModuleType) -> Callable[[tuple[Any, ...]], Any
             out.append(item)
         return out
 
-    return numba.njit(cache=_CACHE)(build)
-
-
-_build_list = _compiled_list_builder(_numba) if _numba is not None else None
+    return _numba.njit(cache=_CACHE)(build)
 
 
 def typed_list(items: Sequence[T]) -> Sequence[T]:
@@ -237,6 +239,7 @@ def typed_list(items: Sequence[T]) -> Sequence[T]:
     tuples; without numba, a plain list. It is built by a compiled kernel, cached on disk like
     the others: numba building one from Python compiles its list methods for the item type in
     every process, about half a second a type, not cached."""
-    if _build_list is None:
+    build = _list_builder()
+    if build is None:
         return list(items)
-    return _build_list(tuple(items))
+    return build(tuple(items))

@@ -244,9 +244,8 @@ def evaluate(
             if record:
                 _record(recs[b], t, b * n, poses[b], work, predictions, action, cmd)
             first, last = box_start[b], box_start[b + 1]
-            geometry = borrow(geometries[b])
             physics.step_world(
-                geometry, poses[b], cmd, forces[b], boxes[first:last], pending[first:last],
+                geometries[b], poses[b], cmd, forces[b], boxes[first:last], pending[first:last],
                 need_force[b],
             )  # fmt: skip
             clock[b] += 1
@@ -254,9 +253,8 @@ def evaluate(
     cmds[:, :, :] = 0.0
     for b in range(b_count):
         first, last = box_start[b], box_start[b + 1]
-        geometry = borrow(geometries[b])
         physics.step_world(
-            geometry, poses[b], cmds[b], forces[b], boxes[first:last], pending[first:last],
+            geometries[b], poses[b], cmds[b], forces[b], boxes[first:last], pending[first:last],
             need_force[b],
         )  # fmt: skip
         clock[b] += 1
