@@ -86,7 +86,11 @@ def save_figure(
         options["dpi"] = dpi
     if tight:
         # Several formats share one box; matplotlib finds it by drawing the figure once more.
-        options["bbox_inches"] = "tight" if len(formats) == 1 else _tight_box(fig, dpi)
+        # (Without a dpi the box is left to savefig: its resolution is matplotlib's setting.)
+        if len(formats) > 1 and dpi is not None:
+            options["bbox_inches"] = _tight_box(fig, dpi)
+        else:
+            options["bbox_inches"] = "tight"
         options["pad_inches"] = PAD
     rendered = []
     for fmt in formats:
@@ -99,13 +103,12 @@ def save_figure(
     return [target for target, _ in rendered]
 
 
-def _tight_box(fig: Drawable, dpi: float | None) -> Any:
+def _tight_box(fig: Drawable, dpi: float) -> Any:
     # The box savefig(bbox_inches="tight") crops to, found once for every format: savefig finds
     # it for each by drawing the whole figure once more (a third of a picture's time). Found as
     # savefig finds it, at the rasters' resolution, so the raster is the same to the byte.
     saved = fig.dpi
-    if dpi is not None:
-        fig.set_dpi(dpi)
+    fig.set_dpi(dpi)
     try:
         fig.draw_without_rendering()
         box = fig.get_tightbbox()

@@ -138,8 +138,9 @@ def kernel(
     interpreted and the compiled kernel agree. ``@kernel(inline=True)`` compiles a small helper
     into each kernel that calls it: a call that passes arrays costs a reference count taken and
     dropped per array (atomic operations, each a few nanoseconds), more than a small helper's
-    own work. Division is numpy's by default (``error_model="numpy"``: x / 0 gives inf or nan
-    where the interpreted kernel raises, so a kernel keeps its divisors away from 0). With
+    own work. Division is numpy's by default (``error_model="numpy"``: x / 0 gives inf or nan,
+    an integer // or % by 0 gives 0, where the interpreted kernel raises; so a kernel keeps its
+    divisors away from 0). With
     Python's, every division is a path that may raise, which keeps numba from pruning the
     reference counts along it and the compiler from vectorising the loop around it.
     """
@@ -219,27 +220,37 @@ borrow: Callable[[T], T] = _borrow_intrinsic(_numba) if _numba is not None else 
 
 
 @functools.cache
-def _list_builder() -> Callable[[tuple[Any, ...]], Any] | None:
+def _list_kernels() -> tuple[Callable[[Any], Any], Callable[[Any, Any], None]] | None:
+    # A list started with its first item, and an item appended: compiled per item type only
+    # (a kernel taking the items as one tuple would be compiled again for every length).
     # Made at the first use: numba's typed lists take a tenth of a second to import.
     if _numba is None:
         return None
     from numba.typed import List
 
-    def build(items: tuple[Any, ...]) -> Any:
+    def start(item: Any) -> Any:
         out = List()
-        for item in items:
-            out.append(item)
+        out.append(item)
         return out
 
-    return _numba.njit(cache=_CACHE)(build)
+    def append(out: Any, item: Any) -> None:
+        out.append(item)
+
+    return _numba.njit(cache=_CACHE)(start), _numba.njit(cache=_CACHE)(append)
 
 
 def typed_list(items: Sequence[T]) -> Sequence[T]:
-    """numba's typed list of ``items`` (all of one type), as a kernel takes a list of named
-    tuples; without numba, a plain list. It is built by a compiled kernel, cached on disk like
-    the others: numba building one from Python compiles its list methods for the item type in
-    every process, about half a second a type, not cached."""
-    build = _list_builder()
-    if build is None:
+    """numba's typed list of ``items`` (at least one, all of one type), as a kernel takes a list
+    of named tuples; without numba, a plain list. It is built by compiled kernels, cached on
+    disk like the others: numba building one from Python compiles its list methods for the item
+    type in every process, about half a second a type, not cached."""
+    if not items:
+        raise ValueError("typed_list: no items (their type makes the list's)")
+    kernels = _list_kernels()
+    if kernels is None:
         return list(items)
-    return build(tuple(items))
+    start, append = kernels
+    out = start(items[0])
+    for item in items[1:]:
+        append(out, item)
+    return out

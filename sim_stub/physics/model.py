@@ -106,7 +106,8 @@ class Sensing(NamedTuple):
     columns: np.ndarray
     seed: int
     #: the farthest apart two body centres are when one robot's IR sees the other
-    #: (.sensing.ir_reach)
+    #: (.sensing.ir_reach of robot_radius, body_offset and ir_range: a Sensing that changes one
+    #: of them changes this too, or the IR misses bodies it should see)
     ir_reach: float
     #: from this many robots on, the IR finds the robots it may see in a cell grid (.grid)
     grid_robots: int = GRID_ROBOTS
@@ -178,7 +179,8 @@ def normal_quantile(p: float) -> float:
 def gaussian(seed: int, step: int, robot: int, channel: int) -> float:
     """A standard normal number for (seed, step, robot, channel), the same on every call: the
     normal quantile (:func:`normal_quantile`) of a uniform number hashed from the four, one of
-    the 2^32 midpoints (k + 1/2) / 2^32. Three quarters of the cost of the Box-Muller transform
-    and its logarithm and cosine (measured in the engine), and no libm call for most draws."""
+    the 2^32 midpoints (k + 1/2) / 2^32. A quarter to a third of the cost of the Box-Muller
+    transform with its logarithm and cosine (measured in the engine): most draws call no libm
+    function."""
     key = mix32(seed ^ mix32(step ^ mix32(robot * 64 + channel)))
     return normal_quantile((mix32(key ^ 0x9E3779B9) + 0.5) / 4294967296.0)
