@@ -21,6 +21,7 @@ the safety layer's doing. Whether a person should act on that depends on why it 
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
+from itertools import islice
 from typing import Final, NamedTuple
 
 from minimize_surprise.safety import (
@@ -78,7 +79,7 @@ _AT_THE_EDGE: Final = (
 def ground_at_start(reasons: Iterable[Iterable[str]]) -> float | None:
     """The share of robots whose safety layer applied the ground rule in one of their first
     :data:`START_STEPS` steps, from each robot's per-step reasons; None without robots."""
-    held = [REASON_GROUND in list(steps)[:START_STEPS] for steps in reasons]
+    held = [REASON_GROUND in islice(steps, START_STEPS) for steps in reasons]
     return sum(held) / len(held) if held else None
 
 

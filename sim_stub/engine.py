@@ -404,7 +404,7 @@ def evaluate_swarms(
     worlds = [swarm.world for swarm in swarms]
     # The worlds' arrays of one shape stacked (copied back below), the others listed.
     states = [world.kernel_state for world in worlds]
-    geometry, sensing, empty = _world_lists(swarms, steps, record)
+    geometry, sensing, empty = _world_lists(swarms)
     box_start = np.cumsum([0] + [len(state[3]) for state in states])
     arenas = Arenas(
         geometry=geometry,
@@ -460,7 +460,7 @@ def evaluate_swarms(
 _last_lists: list[tuple[tuple[int, ...], tuple[Any, ...]]] = []
 
 
-def _world_lists(swarms: Sequence[Swarm], steps: int, record: bool) -> tuple[Any, ...]:
+def _world_lists(swarms: Sequence[Swarm]) -> tuple[Any, ...]:
     # The kernel's per-world lists: geometries, sensings, and recordings that record nothing. A
     # world's constants are replaced when it is reset or restored, so the same objects mean the
     # same lists; held here, they stay alive and their ids unique.

@@ -22,7 +22,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Final
+from typing import Any, Final, NamedTuple
 
 import numpy as np
 
@@ -306,6 +306,16 @@ def _run_log(directory: RunDir) -> logging.Logger:
     return log
 
 
+class _Request(NamedTuple):
+    """One run's evaluation waiting for the others of its batch."""
+
+    swarm: Swarm
+    genome: np.ndarray
+    steps: int
+    record: bool
+    future: asyncio.Future[tuple[EvaluationRecord, float]]
+
+
 class SwarmBatcher:
     """Evaluates the swarms of ``runs`` runs of one event loop together: each run's evaluation
     waits until every run still going has asked for one, then all run in one compiled call
@@ -315,18 +325,18 @@ class SwarmBatcher:
 
     def __init__(self, runs: int) -> None:
         self.live = runs
-        self._pending: list[tuple[Swarm, np.ndarray, int, bool, asyncio.Future[Any]]] = []
+        self._pending: list[_Request] = []
 
     async def evaluate(
         self, swarm: Swarm, genome: np.ndarray, steps: int, record: bool
     ) -> tuple[EvaluationRecord, float]:
         """``swarm.evaluate(genome, steps, record=record)`` in a batch; with the seconds of the
         batch's call divided by its swarms."""
-        future: asyncio.Future[Any] = asyncio.get_running_loop().create_future()
-        self._pending.append((swarm, genome, steps, record, future))
+        future: asyncio.Future[tuple[EvaluationRecord, float]]
+        future = asyncio.get_running_loop().create_future()
+        self._pending.append(_Request(swarm, genome, steps, record, future))
         self._flush_if_complete()
-        result: tuple[EvaluationRecord, float] = await future
-        return result
+        return await future
 
     def run_ended(self) -> None:
         """One run is over (done, stopped or failed): stop waiting for it."""
@@ -337,23 +347,23 @@ class SwarmBatcher:
         if not self._pending or len(self._pending) < self.live:
             return
         pending, self._pending = self._pending, []
-        groups: dict[tuple[int, bool], list[Any]] = {}
-        for item in pending:
-            groups.setdefault((item[2], item[3]), []).append(item)
-        for (steps, record), items in groups.items():
+        groups: dict[tuple[int, bool], list[_Request]] = {}
+        for request in pending:
+            groups.setdefault((request.steps, request.record), []).append(request)
+        for (steps, record), requests in groups.items():
             began = time.monotonic()
             try:
                 results = evaluate_swarms(
-                    [item[0] for item in items], [item[1] for item in items], steps,
+                    [r.swarm for r in requests], [r.genome for r in requests], steps,
                     record=record,
                 )  # fmt: skip
             except Exception as exc:  # every run of the batch fails alike
-                for item in items:
-                    item[4].set_exception(exc)
+                for request in requests:
+                    request.future.set_exception(exc)
                 continue
-            share = (time.monotonic() - began) / len(items)
-            for item, result in zip(items, results, strict=True):
-                item[4].set_result((result, share))
+            share = (time.monotonic() - began) / len(requests)
+            for request, result in zip(requests, results, strict=True):
+                request.future.set_result((result, share))
 
 
 def run_batch(

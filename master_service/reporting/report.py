@@ -197,7 +197,7 @@ def _safety_metrics(
     notes: list[str] = []
     post_found = None
     if "post_evaluation_share" in metrics:
-        at_start = ground_at_start([t["safety"].tolist() for t in traces.values() if "safety" in t])
+        at_start = ground_at_start(t["safety"] for t in traces.values() if "safety" in t)
         post_found = dominance(metrics["post_evaluation_share"], counts, at_start=at_start)
         if post_found is not None:
             said = warnings if post_found.actionable else notes

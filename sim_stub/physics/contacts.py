@@ -86,7 +86,7 @@ def _separate(g: Geometry, pose: np.ndarray, cells: Cells | None) -> bool:
     # in the same order. Numba compiles one of each, the choices on ``cells is None`` away.
     n = pose.shape[0]
     moved = False
-    # One allocation for the six rows (each costs about as much as a robot's pushes).
+    # The six rows in one allocation.
     rows = np.empty((6, n))
     c, s, shift_x, shift_y, cx, cy = rows[0], rows[1], rows[2], rows[3], rows[4], rows[5]
     for i in range(n):

@@ -123,11 +123,11 @@ def _sense(
     # With cells: the grid's arrays, read once (numba counts a reference at every read from a
     # tuple). ``candidates``: the robots a robot's IR may see (every robot, or its neighbours in
     # the grid); ``near``: the body centres of those within its reach, in a row.
-    for i in range(n):
-        candidates[i] = i
     reach = sn.ir_reach + _REACH_SLACK
     if cells is None:
         side, cell, start, order = 0, None, None, None
+        for i in range(n):
+            candidates[i] = i
     else:
         side, cell, start, order = cells
         build(bodies[:, 0], bodies[:, 1], sn.wall_half, side, cell, start, order)
