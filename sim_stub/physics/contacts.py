@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 
-from minimize_surprise.jit import kernel
+from minimize_surprise.jit import borrow, kernel
 from sim_stub.physics.grid import Cells, build, gather, grid_side, new_cells
 from sim_stub.physics.model import Geometry
 
@@ -74,16 +74,47 @@ def _separate_robots(g: Geometry, pose: np.ndarray) -> bool:
     if n >= g.grid_robots:
         side = grid_side(g.wall_half, contact_reach(g), n)
         if side > 1:
-            return _separate(g, pose, new_cells(n, side))
-    return _separate(g, pose, None)
+            cells = new_cells(n, side)
+            touched = np.empty(n, dtype=np.bool_)
+            hot = np.empty(side * side, dtype=np.bool_)
+            return _separate(g, pose, cells, np.empty(n, dtype=np.int64), touched, hot)
+    none = np.empty(0, dtype=np.bool_)
+    return _separate(g, pose, None, np.empty(0, dtype=np.int64), none, none)
+
+
+@kernel(inline=True)
+def _heat(side: int, cell: np.ndarray, touched: np.ndarray, hot: np.ndarray) -> None:
+    # The cells of the touched robots and the cells around them are hot, no other.
+    hot[:] = False
+    for i in range(touched.shape[0]):
+        if touched[i]:
+            cx, cy = cell[i] % side, cell[i] // side
+            for gy in range(max(cy - 1, 0), min(cy + 2, side)):
+                for gx in range(max(cx - 1, 0), min(cx + 2, side)):
+                    hot[gy * side + gx] = True
+
+
+@kernel(inline=True)
+def _cold(cell: np.ndarray, hot: np.ndarray, i: int) -> bool:
+    # Whether robot i is in a cold cell.
+    return not hot[cell[i]]
 
 
 @kernel
-def _separate(g: Geometry, pose: np.ndarray, cells: Cells | None) -> bool:
+def _separate(
+    g: Geometry, pose: np.ndarray, cells: Cells | None, near: np.ndarray, touched: np.ndarray,
+    hot: np.ndarray,
+) -> bool:  # fmt: skip
     # Each pass computes every push from the same positions, then applies them all, as a
     # simultaneous relaxation. A robot's pushes are added in increasing index of the other
     # robot: every other robot, or (``cells`` given) its neighbours in the grid, the same pushes
     # in the same order. Numba compiles one of each, the choices on ``cells is None`` away.
+    #
+    # With cells, a pass after the first looks only at the robots near one that the last pass
+    # touched (docs/simulation.md, "Contacts"): ``touched`` (N) the robots in an overlap or
+    # pushed off a wall, ``hot`` (side * side) the cells next to (or holding) a touched robot
+    # where it is now. In a large swarm some pile-up somewhere takes every pass; without this,
+    # each pass would cost as much as the first.
     n = pose.shape[0]
     moved = False
     # The six rows in one allocation.
@@ -94,14 +125,15 @@ def _separate(g: Geometry, pose: np.ndarray, cells: Cells | None) -> bool:
         s[i] = math.sin(pose[i, 2])
     r2 = 2 * g.robot_radius
     reach = g.robot_radius + g.tb
-    # The grid's arrays, read once (numba counts a reference at every read from a tuple).
+    # The grid's arrays and the working arrays (``near``: a robot's candidates), arguments read
+    # once and borrowed (jit.borrow): each call of ``gather`` would otherwise count a reference
+    # on each of them, an atomic operation. Without cells they are empty and unused.
+    near, touched, hot = borrow(near), borrow(touched), borrow(hot)
     if cells is None:
         side, cell, start, order = 0, None, None, None
-        near = np.empty(0, dtype=np.int64)  # unused: every robot is a candidate
     else:
-        side, cell, start, order = cells
-        near = np.empty(n, dtype=np.int64)  # a robot's candidates
-    for _ in range(_ROBOT_PASSES):
+        side, cell, start, order = borrow(cells)
+    for p in range(_ROBOT_PASSES):
         shift_x[:] = 0.0
         shift_y[:] = 0.0
         for i in range(n):
@@ -109,7 +141,14 @@ def _separate(g: Geometry, pose: np.ndarray, cells: Cells | None) -> bool:
             cy[i] = pose[i, 1] + g.body_offset * s[i]
         if cells is not None:
             build(cx, cy, g.wall_half, side, cell, start, order)
+            if p == 0:
+                hot[:] = True
+            else:
+                _heat(side, cell, touched, hot)
+            touched[:] = False
         for i in range(n):
+            if cells is not None and _cold(cell, hot, i):
+                continue
             m = n if cells is None else gather(i, side, cell, start, order, near, True)
             for q in range(m):
                 j = q if cells is None else near[q]
@@ -126,9 +165,13 @@ def _separate(g: Geometry, pose: np.ndarray, cells: Cells | None) -> bool:
                     k = 0.5 * (r2 - d) / d
                     shift_x[i] += k * dx
                     shift_y[i] += k * dy
+                    if cells is not None:
+                        touched[i] = True
         if g.blade:
             # Robot i's blade against robot j's body; both give way by half.
             for i in range(n):
+                if cells is not None and _cold(cell, hot, i):
+                    continue
                 ax = pose[i, 0] + g.blade_x * c[i] - g.hw * s[i]
                 ay = pose[i, 1] + g.blade_x * s[i] + g.hw * c[i]
                 ux = 2 * g.hw * s[i]
@@ -152,6 +195,9 @@ def _separate(g: Geometry, pose: np.ndarray, cells: Cells | None) -> bool:
                         shift_y[j] += k * dy
                         shift_x[i] -= k * dx
                         shift_y[i] -= k * dy
+                        if cells is not None:
+                            touched[i] = True
+                            touched[j] = True
         any_shift = False
         for i in range(n):
             pose[i, 0] += shift_x[i]
@@ -161,6 +207,8 @@ def _separate(g: Geometry, pose: np.ndarray, cells: Cells | None) -> bool:
             pose[i, 1] += sy
             if shift_x[i] != 0.0 or shift_y[i] != 0.0 or sx != 0.0 or sy != 0.0:
                 any_shift = True
+                if cells is not None:
+                    touched[i] = True
         if not any_shift:
             return moved
         moved = True

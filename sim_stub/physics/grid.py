@@ -99,7 +99,7 @@ def build(
     start[0] = 0
 
 
-@kernel
+@kernel(inline=True)
 def gather(
     i: int, side: int, cell: np.ndarray, start: np.ndarray, order: np.ndarray, out: np.ndarray,
     ordered: bool,

@@ -12,7 +12,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from minimize_surprise.jit import kernel
+from minimize_surprise.jit import borrow, kernel
 from sim_stub.physics.grid import Cells, build, gather, grid_side, new_cells
 from sim_stub.physics.ir import ir_readings
 from sim_stub.physics.model import GROUND_POSITIONS, IR_POSITIONS, Sensing, gaussian
@@ -40,7 +40,7 @@ def ir_reach(robot_radius: float, body_offset: float, ir_range: float) -> float:
     return ir_range + robot_radius + far
 
 
-@kernel
+@kernel(inline=True)
 def _within(
     bodies: np.ndarray, i: int, candidates: np.ndarray, m: int, reach: float, out: np.ndarray
 ) -> int:
@@ -120,16 +120,18 @@ def _sense(
         cos_sin[i, 1] = s
         bodies[i, 0] = pose[i, 0] + sn.body_offset * c
         bodies[i, 1] = pose[i, 1] + sn.body_offset * s
-    # With cells: the grid's arrays, read once (numba counts a reference at every read from a
-    # tuple). ``candidates``: the robots a robot's IR may see (every robot, or its neighbours in
-    # the grid); ``near``: the body centres of those within its reach, in a row.
+    # With cells: the grid's arrays, read once and borrowed (jit.borrow; ``cells`` is an
+    # argument, held by the caller): each call of ``gather`` would otherwise count a reference
+    # on each of them, an atomic operation. ``candidates``: the robots a robot's IR may see
+    # (every robot, or its neighbours in the grid); ``near``: the body centres of those within
+    # its reach, in a row.
     reach = sn.ir_reach + _REACH_SLACK
     if cells is None:
         side, cell, start, order = 0, None, None, None
         for i in range(n):
             candidates[i] = i
     else:
-        side, cell, start, order = cells
+        side, cell, start, order = borrow(cells)
         build(bodies[:, 0], bodies[:, 1], sn.wall_half, side, cell, start, order)
     for i in range(n):
         x, y = pose[i, 0], pose[i, 1]

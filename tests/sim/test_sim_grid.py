@@ -116,6 +116,35 @@ def test_a_crowded_swarm_of_bladed_robots_among_boxes_is_the_same_with_the_grid(
     assert (run["force"] > 0).any()
 
 
+def test_a_robot_pushed_into_a_cell_beside_a_still_one_pushes_it_in_the_next_pass():
+    # Contacts' later passes look only near the robots the last pass touched. Here robot A is
+    # pushed by B across a cell border, into robot C two cells from A's old cell: C was
+    # touched by nothing, and only the cells around A's new place say that C is to be looked
+    # at in the second pass. Five columns of cells just wider than two body radii, the three
+    # robots on the middle row, a fourth far away (the grid is on from four robots here).
+    arena = World(world("paper", "basic", robots=4), seed=1)
+    g = arena.kernel_constants[0]
+    _, cmd, force, boxes, pending = arena.kernel_state
+    r2 = contact_reach(g)
+    g = g._replace(wall_half=2.5 * (r2 + 2e-6), grid_robots=4)
+    assert grid_side(g.wall_half, r2, 4) == 5
+    border = -g.wall_half + 2 * 2 * g.wall_half / 5  # between the second and third columns
+    a = border - 1e-4
+    centres = [(a - r2 + 2e-3, 0.0), (a, 0.0), (border + r2 + 5e-4, 0.0), (-a, 2 * r2)]
+    # Headings 0: a body centre is body_offset ahead of the wheel axis.
+    pose = np.array([(x - g.body_offset, y, 0.0) for x, y in centres])
+    stepped = {}
+    for grid, limit in ((True, 4), (False, NEVER)):
+        p = pose.copy()
+        cmd[:] = 0.0
+        physics.step_world(g._replace(grid_robots=limit), p, cmd, force, boxes, pending, False)
+        stepped[grid] = p
+    assert np.array_equal(stepped[True], stepped[False])
+    # B and A parted in the first pass, A and C in the second: C moved, the far robot did not.
+    assert stepped[False][2, 0] > pose[2, 0] + 1e-4
+    assert np.array_equal(stepped[False][3], pose[3])
+
+
 def test_the_grid_finds_every_point_in_range_in_increasing_index():
     rng = np.random.default_rng(5)
     half, reach = 1.0, 0.15
