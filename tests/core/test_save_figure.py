@@ -85,6 +85,41 @@ def test_tight_crops_to_the_drawing_as_bbox_inches_tight_does(tmp_path):
     assert float(page[2]) == pytest.approx(height / 120 * 72, abs=1)
 
 
+def test_a_constrained_figure_is_laid_out_once_for_every_format(tmp_path):
+    # Panels, titles and labels laid out by constrained layout (the run pictures): the raster
+    # is savefig's own to the byte, the vector picture has the same layout within a fraction of
+    # a point, and the figure keeps its layout engine.
+    require_module("matplotlib")
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    def panels():
+        fig = Figure(figsize=(6, 4), layout="constrained")
+        FigureCanvasAgg(fig)
+        for k, ax in enumerate(fig.subplots(2, 3, sharex=True, sharey=True).flat):
+            ax.plot([0, 1000], [0.5, 0.9 - 0.01 * k], label="this robot")
+            ax.set_title(f"robot-{k}")
+        fig.supxlabel("evaluation")
+        fig.suptitle("a run\neach robot's fitness")
+        fig.axes[0].legend()
+        return fig
+
+    direct = tmp_path / "direct.png"
+    panels().savefig(direct, dpi=120)
+    fig = panels()
+    engine = fig.get_layout_engine()
+    png, pdf = save_figure(fig, tmp_path / "both", dpi=120, tight=False)
+    assert png.read_bytes() == direct.read_bytes()
+    assert pdf.read_bytes().startswith(b"%PDF")
+    assert fig.get_layout_engine() is engine
+    laid_out = [ax.get_position().bounds for ax in fig.axes]
+    fig.savefig(tmp_path / "alone.pdf")  # the PDF's own layout
+    width, height = fig.get_size_inches()
+    for ours, own in zip(laid_out, (ax.get_position().bounds for ax in fig.axes), strict=True):
+        for a, b, size in zip(ours, own, (width, height, width, height), strict=True):
+            assert abs(a - b) * size < 0.01  # inches
+
+
 def test_suffix_false_writes_exactly_the_path_given(tmp_path):
     target = tmp_path / "world"  # no extension: written as given, in the format asked for
     assert save_figure(_figure(), target, formats=("png",), suffix=False) == [target]
