@@ -15,7 +15,7 @@ import numpy as np
 from minimize_surprise.jit import kernel
 from sim_stub.physics.model import IR_HEADINGS, IR_POSITIONS, Sensing, gaussian
 
-__all__ = ["IR_CONE", "IR_RAY", "ir_readings"]
+__all__ = ["IR_CONE", "IR_RAY", "ir_noise", "ir_readings"]
 
 #: ``Sensing.ir_model`` values.
 IR_CONE = 0
@@ -42,12 +42,13 @@ def _lookup(d: float, table_d: np.ndarray, table_v: np.ndarray) -> float:
 
 @kernel(inline=True)
 def ir_readings(
-    sn: Sensing, bodies: np.ndarray, n: int, me: int, x: float, y: float, c: float, s: float,
-    step: int, out: np.ndarray,
+    sn: Sensing, bodies: np.ndarray, n: int, x: float, y: float, c: float, s: float,
+    out: np.ndarray, row: int,
 ) -> None:  # fmt: skip
-    """Robot ``me``'s seven horizontal IR values into ``out[:7]``, the robot at (x, y) with
-    heading cosine and sine (c, s). ``bodies[:n]`` (N, 2): the centres of the other robots'
-    body circles it may see (its neighbours; the nearest is the same in any order)."""
+    """A robot's seven horizontal IR values before their noise (:func:`ir_noise`) into
+    ``out[row, :7]`` (a row and an index, not a view: a view counts references), the robot at
+    (x, y) with heading cosine and sine (c, s). ``bodies[:n]`` (N, 2): the centres of the other
+    robots' body circles it may see (its neighbours; the nearest is the same in any order)."""
     # The model's numbers into locals once: the sensors below then call helpers of plain
     # numbers, a call with the whole Sensing costing more than a sensor's arithmetic (measured).
     r, ir_range, walls, wall = sn.robot_radius, sn.ir_range, sn.walls_visible, sn.wall_half
@@ -64,19 +65,30 @@ def ir_readings(
         if sn.ir_model == IR_CONE:
             ca, sa = sn.ir_ca, sn.ir_sa
             best = _cone_nearest(bodies, n, sx, sy, cp, sp, r, reach2, ca, sa, walls, wall)
-            out[k] = 0.0 if best >= ir_range else sn.ir_c / (best * best + sn.ir_c)
+            out[row, k] = 0.0 if best >= ir_range else sn.ir_c / (best * best + sn.ir_c)
             continue
         best = _ray_nearest(
             bodies, n, sx, sy, cp, sp, r, reach2, sn.ir_robot_reflectance, walls, wall,
             sn.ir_wall_reflectance,
         )  # fmt: skip
         if best >= ir_range:
-            out[k] = 0.0
+            out[row, k] = 0.0
             continue
-        value = _lookup(best, table_d, table_v)
-        if value > 0.0 and sn.ir_noise > 0.0:
-            value += sn.ir_noise * value * gaussian(sn.seed, step, me, 32 + k)
-        out[k] = value
+        out[row, k] = _lookup(best, table_d, table_v)
+
+
+@kernel(inline=True)
+def ir_noise(sn: Sensing, step: int, out: np.ndarray) -> None:
+    """Every robot's IR noise at ``step`` on its values ``out[robot, :7]`` (:func:`ir_readings`):
+    the ray model's, in proportion to a value above 0, a draw per sensor."""
+    if sn.ir_model == IR_CONE or sn.ir_noise <= 0.0:
+        return
+    seed, noise = sn.seed, sn.ir_noise
+    for i in range(out.shape[0]):
+        for k in range(7):
+            value = out[i, k]
+            if value > 0.0:
+                out[i, k] = value + noise * value * gaussian(seed, step, i, 32 + k)
 
 
 @kernel(inline=True)

@@ -14,7 +14,7 @@ import numpy as np
 
 from minimize_surprise.jit import borrow, kernel
 from sim_stub.physics.grid import Cells, build, gather, grid_side, new_cells
-from sim_stub.physics.ir import ir_readings
+from sim_stub.physics.ir import ir_noise, ir_readings
 from sim_stub.physics.model import GROUND_POSITIONS, IR_POSITIONS, Sensing, gaussian
 
 __all__ = ["SenseWork", "ir_reach", "sense", "sense_work"]
@@ -139,7 +139,7 @@ def _sense(
         if sn.need_ir:
             m = n if cells is None else gather(i, side, cell, start, order, candidates, False)
             m = _within(bodies, i, candidates, m, reach, near)
-            ir_readings(sn, near, m, i, x, y, c, s, step, full[i, _IR0 : _IR0 + 7])
+            ir_readings(sn, near, m, x, y, c, s, full, i)
         if sn.need_ground:
             half = sn.arena_half
             for k in range(2):
@@ -147,10 +147,7 @@ def _sense(
                 gx = x + c * px - s * py
                 gy = y + s * px + c * py
                 on = abs(gx) <= half and abs(gy) <= half
-                value = sn.ground_carpet if on else sn.ground_outside
-                if value > 0.0 and sn.ground_noise > 0.0:
-                    value += sn.ground_noise * value * gaussian(sn.seed, step, i, 48 + k)
-                full[i, _GROUND0 + k] = value
+                full[i, _GROUND0 + k] = sn.ground_carpet if on else sn.ground_outside
         if sn.need_force:
             full[i, _FORCE] = force[i]
         if sn.need_light:
@@ -164,8 +161,30 @@ def _sense(
                     full[i, _LIGHT0 + k] = sn.light_centre * ratio**sn.light_exponent
                 else:
                     full[i, _LIGHT0 + k] = sn.light_uniform
-        for j in range(sn.columns.shape[0]):
-            value = full[i, sn.columns[j]]
-            if sn.noise > 0.0:
-                value += sn.noise * gaussian(sn.seed, step, i, j)
+    _noise(sn, step, full, out)
+
+
+@kernel(inline=True)
+def _noise(sn: Sensing, step: int, full: np.ndarray, out: np.ndarray) -> None:
+    # The readings' noise, in loops of their own after the readings: every draw is keyed by
+    # (seed, step, robot, channel), so when it is drawn changes no value. In the readings' loop
+    # the draws' branches kept numba from pruning about 16 reference counts per robot-step
+    # (calls, if on arrays without an owner), more than the draws cost; here no loop hands an
+    # array to anything.
+    if sn.need_ir:
+        ir_noise(sn, step, full)
+    seed, columns = sn.seed, sn.columns
+    if sn.need_ground and sn.ground_noise > 0.0:
+        scale = sn.ground_noise
+        for i in range(full.shape[0]):
+            for k in range(2):
+                value = full[i, _GROUND0 + k]
+                if value > 0.0:
+                    full[i, _GROUND0 + k] = value + scale * value * gaussian(seed, step, i, 48 + k)
+    noise = sn.noise
+    for i in range(full.shape[0]):
+        for j in range(columns.shape[0]):
+            value = full[i, columns[j]]
+            if noise > 0.0:
+                value += noise * gaussian(seed, step, i, j)
             out[i, j] = min(max(value, 0.0), 1.0)
