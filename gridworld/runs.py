@@ -48,8 +48,8 @@ from gridworld.kernels import (
     prefix_sums,
 )
 from gridworld.predictor import (
+    LANE_ALIGN,
     Sums,
-    count_unscored,
     make_predictor,
     predict_hidden,
     predict_outputs,
@@ -242,18 +242,53 @@ def _sense(
                 key[a] ^= flipped
 
 
+#: Lanes _score counts in one go: its byte counters hold up to 255.
+_SCORE_CHUNK = 255
+#: Times a 7-bit value, spreads bit k to bit 8 k (the copies shifted by 7 k never overlap) ...
+_SPREAD = np.uint64(0x0002040810204081)
+#: ... where this mask keeps it: a byte per bit, summed over lanes without carries.
+_BYTE_LOWS = np.uint64(0x0101010101010101)
+
+
+@kernel(inline=True)
+def _bytes_of(bits: np.uint64) -> np.uint64:
+    # Bits 0..6 of bits, one per byte (bit k to byte k).
+    return ((bits & np.uint64(0x7F)) * _SPREAD) & _BYTE_LOWS
+
+
 @kernel
 def _score(
-    popcount: np.ndarray, key: np.ndarray, pmask: np.ndarray, r: int, correct: np.ndarray
+    key: np.ndarray, pmask: np.ndarray, r: int, correct: np.ndarray, ones: np.ndarray
 ) -> None:
     """Adds to ``correct[rep]`` how many of the R sensor bits of run rep's agents (``key``) last
-    step's predictions (``pmask``) got right (``popcount``: :class:`WorldTables`'s)."""
+    step's predictions (``pmask``) got right, and to ``ones[rep, k]`` how many of them predicted
+    sensor k as 1. Bit k of every lane goes to byte k of a counter (two counters per sum, the
+    sensors 0-6 and 7-13: R is at most 14), so one pass of a few integer operations per lane,
+    which vectorises, counts every sensor at once."""
     reps = correct.shape[0]
     n = key.shape[0] // reps
+    seven = np.uint64(7)
     for rep in range(reps):
-        wrong = 0
-        for a in range(rep * n, rep * n + n):
-            wrong += popcount[np.uint64(key[a] ^ pmask[a])]
+        wrong = np.int64(0)
+        for start in range(rep * n, rep * n + n, _SCORE_CHUNK):
+            stop = min(start + _SCORE_CHUNK, rep * n + n)
+            wrong_low, wrong_high = np.uint64(0), np.uint64(0)
+            ones_low, ones_high = np.uint64(0), np.uint64(0)
+            for a in range(np.uint64(start), np.uint64(stop)):
+                m = np.uint64(pmask[a])
+                x = np.uint64(key[a]) ^ m
+                wrong_low += _bytes_of(x)
+                wrong_high += _bytes_of(x >> seven)
+                ones_low += _bytes_of(m)
+                ones_high += _bytes_of(m >> seven)
+            for k in range(7):
+                shift = np.uint64(8 * k)
+                wrong += np.int64((wrong_low >> shift) & np.uint64(255))
+                wrong += np.int64((wrong_high >> shift) & np.uint64(255))
+                if k < r:
+                    ones[rep, k] += np.int64((ones_low >> shift) & np.uint64(255))
+                if k + 7 < r:
+                    ones[rep, k + 7] += np.int64((ones_high >> shift) & np.uint64(255))
         correct[rep] += n * r - wrong
 
 
@@ -311,37 +346,18 @@ def _move(tables: WorldTables, agents: Agents, occupancy: Occupancy, t: int) -> 
 
 
 @kernel
-def _tally(
-    nets: GridNetworks,
-    agents: Agents,
-    pmask: np.ndarray,
-    ones: np.ndarray,
-    steps: int,
-    out: RunOutcome,
-) -> None:
-    """After the last step: each run's final poses and its scored predictions per sensor (the
-    first step's fixed one, then those made before the last step; ``ones`` (reps, O) counts
-    every prediction of 1 made, ``pmask`` holds the last step's, never scored)."""
-    outputs, fixed = nets.outputs, nets.fixed
+def _tally(agents: Agents, ones: np.ndarray, out: RunOutcome) -> None:
+    """After the last step: each run's final poses and its scored predictions per sensor
+    (``ones`` (reps, R), counted by :func:`_score`)."""
     cell, head = agents.cell, agents.head
     predsum, final = out.predsum, out.final
-    reps, n, r, o = final.shape[0], final.shape[1], fixed.shape[0], outputs.shape[0]
-    count_unscored(outputs, pmask, ones)
-    learned = np.zeros(r, dtype=np.bool_)
-    for q in range(o):
-        learned[outputs[q]] = True
-    counts = np.zeros((reps, r), dtype=np.int64)
+    reps, n, r = final.shape[0], final.shape[1], ones.shape[1]
     for rep in range(reps):
-        for q in range(o):
-            counts[rep, outputs[q]] = ones[rep, q]
         for a in range(n):
             final[rep, a, 0] = cell[rep * n + a]
             final[rep, a, 1] = head[rep * n + a]
         for k in range(r):
-            if learned[k]:
-                predsum[rep, k] = counts[rep, k] + fixed[k] * n
-            else:
-                predsum[rep, k] = fixed[k] * n * steps
+            predsum[rep, k] = ones[rep, k]
 
 
 @kernel
@@ -365,7 +381,6 @@ def simulate_genome(
     bit rows and columns of the occupancy; without, cell by cell.
     """
     tables = torus.tables
-    popcount = tables.popcount
     correct, trace, trace_rep = out.correct, out.trace, out.trace_rep
     reps, n, r = starts.shape[0], starts.shape[1], torus.nb.shape[2]
     lanes = reps * n
@@ -375,21 +390,23 @@ def simulate_genome(
     outputs = predictor.outputs.shape[0]
     # per lane: the sensor bits read this step; the predictor's inputs (those bits with this
     # step's a0 above them), its hidden state (rows beyond H_p stay 0: see gridworld.predictor)
-    # and the bits of its prediction to be scored at the next step; per run and output: how
-    # many of its predictions said 1
+    # and the bits of its prediction to be scored at the next step, the predictor's lanes
+    # padded (gridworld.predictor.LANE_ALIGN); per run and sensor: how many scored
+    # predictions said 1
+    padded = -(-lanes // LANE_ALIGN) * LANE_ALIGN
     key = np.zeros(lanes, dtype=np.int64)
-    pkey = np.zeros(lanes, dtype=np.int32)
-    hidden = np.zeros((predictor.out.shape[1], lanes), dtype=np.float32)
-    pmask = np.full(lanes, predictor.first, dtype=np.int64)
-    ones = np.zeros((reps, outputs), dtype=np.int64)
+    pkey = np.zeros(padded, dtype=np.int32)
+    hidden = np.zeros((predictor.out.shape[1], padded), dtype=np.float32)
+    pmask = np.full(padded, predictor.first, dtype=np.uint32)
+    ones = np.zeros((reps, r), dtype=np.int64)
     base = np.zeros(lanes, dtype=np.int64)
     flips = np.zeros(n * r, dtype=np.uint8)
     sums = Sums(
-        np.zeros(lanes, dtype=np.uint32),
-        np.empty(lanes, dtype=np.float32),
-        np.empty(lanes, dtype=np.float32),
-        np.empty(lanes, dtype=np.float32),
-        np.empty(lanes, dtype=np.float32),
+        np.zeros(padded, dtype=np.uint32),
+        np.empty(padded, dtype=np.float32),
+        np.empty(padded, dtype=np.float32),
+        np.empty(padded, dtype=np.float32),
+        np.empty(padded, dtype=np.float32),
     )
     for rep in range(reps):
         correct[rep] = 0
@@ -397,13 +414,13 @@ def simulate_genome(
         if trace_rep >= 0:
             _record(trace, t, agents, trace_rep)
         _sense(torus, noise, agents, occupancy, key, base, flips, t, steps)
-        _score(popcount, key, pmask, r, correct)
+        _score(key, pmask, r, correct, ones)
         _act(actor, agents, key, pkey)
         if outputs > 0:  # without outputs every prediction is fixed
             predict_hidden(predictor, pkey, hidden, sums)
-            predict_outputs(predictor, hidden, pmask, ones, sums)
+            predict_outputs(predictor, hidden, pmask, sums)
         _move(tables, agents, occupancy, t)
-    _tally(nets, agents, pmask, ones, steps, out)
+    _tally(agents, ones, out)
     if trace_rep >= 0:
         _record(trace, steps, agents, trace_rep)
 

@@ -9,6 +9,13 @@ import numpy as np
 import pytest
 
 from gridworld.kernels import actor_decision, prefix_sums, tanh_fast
+from gridworld.predictor import (
+    OUTPUT_MARGIN,
+    WIDE,
+    Predictor,
+    Sums,
+    predict_outputs,
+)
 from minimize_surprise.errors import GenomeError
 from minimize_surprise.gridnet import (
     GridGenomeLayout,
@@ -134,6 +141,34 @@ def test_prefix_sums_are_the_sums_in_input_order():
             for i in range(6):
                 total += nets.p_u[0, (k >> i) & 1, i] * nets.p_hidden[0, j, i]
             assert prefix[j, k] == total  # bit for bit
+
+
+def test_estimated_outputs_read_as_the_codes_sums_even_next_to_zero():
+    rng = np.random.default_rng(6)
+    lanes, o = 64, 14
+    out = rng.uniform(-1, 1, (o, WIDE)).astype(np.float32)
+    hidden = rng.uniform(-1, 1, (WIDE, lanes)).astype(np.float32)
+    hidden[:, 0] = 0.0  # every sum exactly 0: read as 1
+    hidden[:, 1] = 0.0
+    hidden[0, 1] = -1e-17  # output sums within 1e-10 below 0, where the code's tanh decides
+    hidden[:, 2] = 0.0
+    hidden[0, 2] = -1e-3
+    hidden[1, 2] = 1e-3 * out[0, 0] / out[0, 1]  # output 0 cancels up to float32 rounding
+    hidden[:, 3] = hidden[:, 4] * np.float32(1e-7)  # small, but far from zero for its weights
+    margin = (OUTPUT_MARGIN * np.abs(out).sum(axis=1) + np.float32(1e-9)).astype(np.float32)
+    empty = np.zeros(0, dtype=np.float32)
+    predictor = Predictor(empty, out, margin, np.arange(o), np.zeros((1, 1), np.float32),
+                          np.uint32(0), False, True)  # fmt: skip
+    sums = Sums(np.zeros(lanes, np.uint32), empty, empty, empty, empty)
+    pmask = np.zeros(lanes, dtype=np.uint32)
+    predict_outputs(predictor, hidden, pmask, sums)
+    for a in range(lanes):
+        for q in range(o):
+            z = np.float32(0.0)
+            for j in range(WIDE):
+                z = np.float32(z + hidden[j, a] * out[q, j])
+            assert (pmask[a] >> q) & 1 == (not c_negative(z)), (a, q, z)
+    assert pmask[0] == (1 << o) - 1
 
 
 def test_predictor_reference_keeps_fixed_sensors():
