@@ -39,6 +39,7 @@ class Drawable(Protocol):
     """What :func:`save_figure` needs of a figure: these methods of matplotlib's ``Figure``."""
 
     dpi: float
+    axes: Any
 
     def savefig(self, fname: Any, **kwargs: Any) -> Any: ...
 
@@ -99,8 +100,7 @@ def save_figure(
     engine = fig.get_layout_engine()
     once = False
     if engine is not None and not tight and len(formats) > 1 and dpi is not None:
-        _lay_out(fig, engine, dpi)
-        once = True
+        once = _lay_out(fig, engine, dpi)
     rendered = []
     try:
         for fmt in formats:
@@ -116,24 +116,34 @@ def save_figure(
     return [target for target, _ in rendered]
 
 
-def _lay_out(fig: Drawable, engine: Any, dpi: float) -> None:
+def _lay_out(fig: Drawable, engine: Any, dpi: float) -> bool:
     # The figure laid out by its engine (constrained layout) once for every format, at the
-    # rasters' resolution (the raster is the same to the byte; a PDF's own layout would place
-    # the axes within 0.005 inch of it), and the engine set aside until the files are rendered:
-    # with an engine, savefig lays the figure out and draws it twice per format (once to lay it
-    # out, once to render), which is a fifth of the run pictures' time.
+    # rasters' resolution (the raster is the same to the byte; in the run pictures a PDF's own
+    # layout places the axes within 0.005 inch of it), and the engine set aside until the files
+    # are rendered: with an engine, savefig lays the figure out and draws it twice per format
+    # (once to lay it out, once to render), which is a fifth of the run pictures' time. Whether
+    # the engine is set aside; where not, savefig lays the figure out as it always does.
+    if not fig.axes:
+        return False  # nothing to lay out (matplotlib's draw skips the engine then)
     saved = fig.dpi
     fig.set_dpi(dpi)
     try:
         engine.execute(fig)
+    except ValueError:
+        return False  # a layout the engine cannot make: matplotlib's draw ignores it, as here
     finally:
         fig.set_dpi(saved)
     # No engine at all (matplotlib's "none" keeps a placeholder, for which savefig still draws
-    # twice). Where matplotlib's settings put an engine back in its place (autolayout), the
-    # figure keeps its own, laid out as before.
-    fig.set_layout_engine(None)
+    # twice). Where matplotlib's settings put an engine in its place (autolayout), or refuse
+    # the change (a colorbar made for the other kind of engine), the figure keeps its own.
+    try:
+        fig.set_layout_engine(None)
+    except RuntimeError:
+        return False
     if fig.get_layout_engine() is not None:
         fig.set_layout_engine(engine)
+        return False
+    return True
 
 
 def _tight_box(fig: Drawable, dpi: float) -> Any:

@@ -111,10 +111,10 @@ def _separate(
     # in the same order. Numba compiles one of each, the choices on ``cells is None`` away.
     #
     # With cells, a pass after the first looks only at the robots near one that the last pass
-    # touched (docs/simulation.md, "Contacts"): ``touched`` (N) the robots in an overlap or
-    # pushed off a wall, ``hot`` (side * side) the cells next to (or holding) a touched robot
-    # where it is now. In a large swarm some pile-up somewhere takes every pass; without this,
-    # each pass would cost as much as the first.
+    # touched (docs/simulation.md, "Large swarms"): ``touched`` (N) the robots in an overlap,
+    # pushed, or pushed off a wall, ``hot`` (side * side) the cells next to (or holding) a
+    # touched robot where it is now. In a large swarm some pile-up somewhere takes every
+    # pass; without this, each pass would cost as much as the first.
     n = pose.shape[0]
     moved = False
     # The six rows in one allocation.

@@ -120,6 +120,33 @@ def test_a_constrained_figure_is_laid_out_once_for_every_format(tmp_path):
             assert abs(a - b) * size < 0.01  # inches
 
 
+def test_a_layout_the_engine_cannot_make_or_set_aside_saves_as_savefig_does(tmp_path):
+    require_module("matplotlib")
+    import matplotlib
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    # Axes from two grids: compressed layout cannot lay them out, and matplotlib's draw goes on
+    # without it; so does save_figure.
+    fig = Figure(layout="compressed")
+    FigureCanvasAgg(fig)
+    fig.subplots(1, 2)
+    fig.add_subplot(fig.add_gridspec(2, 2)[1, 1])
+    png, pdf = save_figure(fig, tmp_path / "grids", tight=False)
+    assert png.read_bytes().startswith(PNG_MAGIC) and pdf.read_bytes().startswith(b"%PDF")
+    # matplotlib's settings ask for tight layout, whose colorbars do not fit the figure's
+    # constrained one: the figure keeps its engine and is saved.
+    with matplotlib.rc_context({"figure.autolayout": True}):
+        fig = Figure(layout="constrained")
+        FigureCanvasAgg(fig)
+        ax = fig.subplots()
+        fig.colorbar(ax.imshow([[0, 1], [1, 0]]))
+        engine = fig.get_layout_engine()
+        png, pdf = save_figure(fig, tmp_path / "colorbar", tight=False)
+        assert fig.get_layout_engine() is engine
+    assert png.read_bytes().startswith(PNG_MAGIC) and pdf.read_bytes().startswith(b"%PDF")
+
+
 def test_suffix_false_writes_exactly_the_path_given(tmp_path):
     target = tmp_path / "world"  # no extension: written as given, in the format asked for
     assert save_figure(_figure(), target, formats=("png",), suffix=False) == [target]
