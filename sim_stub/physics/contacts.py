@@ -78,8 +78,8 @@ def _separate_robots(g: Geometry, pose: np.ndarray) -> bool:
             touched = np.empty(n, dtype=np.bool_)
             hot = np.empty(side * side, dtype=np.bool_)
             return _separate(g, pose, cells, np.empty(n, dtype=np.int64), touched, hot)
-    none = np.empty(0, dtype=np.bool_)
-    return _separate(g, pose, None, np.empty(0, dtype=np.int64), none, none)
+    # No grid, no working arrays (an allocation per call would cost the small swarms).
+    return _separate(g, pose, None, None, None, None)
 
 
 @kernel(inline=True)
@@ -127,7 +127,8 @@ def _separate(
     reach = g.robot_radius + g.tb
     # The grid's arrays and the working arrays (``near``: a robot's candidates), arguments read
     # once and borrowed (jit.borrow): each call of ``gather`` would otherwise count a reference
-    # on each of them, an atomic operation. Without cells they are empty and unused.
+    # on each of them, an atomic operation. Without cells they are None (numba compiles that
+    # case apart, and no line below reads them in it).
     near, touched, hot = borrow(near), borrow(touched), borrow(hot)
     if cells is None:
         side, cell, start, order = 0, None, None, None
