@@ -56,7 +56,6 @@ class WorldTables(NamedTuple):
     col_of: np.ndarray
     row_bits: np.ndarray
     col_bits: np.ndarray
-    popcount: np.ndarray
 
 
 class Torus(NamedTuple):
@@ -244,9 +243,9 @@ def world_tables(nb: np.ndarray, width: int, bits_ok: bool) -> WorldTables:
     ``sense_line[2 c + p]`` names the three lines an agent there reads and ``sense_shift`` the
     shift that brings its window to bits 0..4; per cell, ``row_of``/``col_of`` name its row and
     column and ``row_bits``/``col_bits`` the bits it sets in them (0 unless ``bits_ok``: sides of
-    at most 32, so the doubled lines fit 64 bits). ``popcount[v]`` counts the bits of v < 2^R.
+    at most 32, so the doubled lines fit 64 bits).
     """
-    cells, r = nb.shape[0], nb.shape[2]
+    cells = nb.shape[0]
     height = cells // width
     sense_line = np.empty((cells * 2, 3), dtype=np.uint32)
     sense_shift = np.empty(cells * 2, dtype=np.uint64)
@@ -272,12 +271,7 @@ def world_tables(nb: np.ndarray, width: int, bits_ok: bool) -> WorldTables:
             col_bits[c] = (one << np.uint64(y)) | (one << np.uint64(y + height))
         for d in range(4):
             front_of[c * 4 + d] = nb[c, d, 0]
-    popcount = np.zeros(1 << r, dtype=np.uint8)
-    for v in range(1, 1 << r):
-        popcount[v] = popcount[v >> 1] + (v & 1)
-    return WorldTables(
-        front_of, sense_line, sense_shift, row_of, col_of, row_bits, col_bits, popcount
-    )
+    return WorldTables(front_of, sense_line, sense_shift, row_of, col_of, row_bits, col_bits)
 
 
 def build_torus(nb: np.ndarray, window: np.ndarray, width: int) -> Torus:

@@ -12,8 +12,9 @@ themselves, only when they draw), so the core package stays free of it.
 
 from __future__ import annotations
 
+import contextlib
 import io
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, Final, Protocol
 
@@ -125,14 +126,11 @@ def _lay_out(fig: Drawable, engine: Any, dpi: float) -> bool:
     # the engine is set aside; where not, savefig lays the figure out as it always does.
     if not fig.axes:
         return False  # nothing to lay out (matplotlib's draw skips the engine then)
-    saved = fig.dpi
-    fig.set_dpi(dpi)
     try:
-        engine.execute(fig)
+        with _at_dpi(fig, dpi):
+            engine.execute(fig)
     except ValueError:
         return False  # a layout the engine cannot make: matplotlib's draw ignores it, as here
-    finally:
-        fig.set_dpi(saved)
     # No engine at all (matplotlib's "none" keeps a placeholder, for which savefig still draws
     # twice). Where matplotlib's settings put an engine in its place (autolayout), or refuse
     # the change (a colorbar made for the other kind of engine), the figure keeps its own.
@@ -150,11 +148,18 @@ def _tight_box(fig: Drawable, dpi: float) -> Any:
     # The box savefig(bbox_inches="tight") crops to, found once for every format: savefig finds
     # it for each by drawing the whole figure once more (a third of a picture's time). Found as
     # savefig finds it, at the rasters' resolution, so the raster is the same to the byte.
+    with _at_dpi(fig, dpi):
+        fig.draw_without_rendering()
+        box = fig.get_tightbbox()
+    return box.padded(PAD)
+
+
+@contextlib.contextmanager
+def _at_dpi(fig: Drawable, dpi: float) -> Iterator[None]:
+    # The figure at the rasters' resolution for a while (as savefig sets it while it draws).
     saved = fig.dpi
     fig.set_dpi(dpi)
     try:
-        fig.draw_without_rendering()
-        box = fig.get_tightbbox()
+        yield
     finally:
         fig.set_dpi(saved)
-    return box.padded(PAD)

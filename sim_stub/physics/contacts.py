@@ -11,7 +11,7 @@ import math
 import numpy as np
 
 from minimize_surprise.jit import borrow, kernel
-from sim_stub.physics.grid import Cells, build, gather, grid_side, new_cells
+from sim_stub.physics.grid import Cells, build, gather, grid_side, mark_around, new_cells
 from sim_stub.physics.model import Geometry
 
 # Overlaps shallower than this (metres) are left alone: resolving them exactly would take many
@@ -83,18 +83,6 @@ def _separate_robots(g: Geometry, pose: np.ndarray) -> bool:
 
 
 @kernel(inline=True)
-def _heat(side: int, cell: np.ndarray, touched: np.ndarray, hot: np.ndarray) -> None:
-    # The cells of the touched robots and the cells around them are hot, no other.
-    hot[:] = False
-    for i in range(touched.shape[0]):
-        if touched[i]:
-            cx, cy = cell[i] % side, cell[i] // side
-            for gy in range(max(cy - 1, 0), min(cy + 2, side)):
-                for gx in range(max(cx - 1, 0), min(cx + 2, side)):
-                    hot[gy * side + gx] = True
-
-
-@kernel(inline=True)
 def _cold(cell: np.ndarray, hot: np.ndarray, i: int) -> bool:
     # Whether robot i is in a cold cell.
     return not hot[cell[i]]
@@ -145,7 +133,7 @@ def _separate(
             if p == 0:
                 hot[:] = True
             else:
-                _heat(side, cell, touched, hot)
+                mark_around(side, cell, touched, hot)
             touched[:] = False
         for i in range(n):
             if cells is not None and _cold(cell, hot, i):

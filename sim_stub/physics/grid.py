@@ -24,7 +24,7 @@ import numpy as np
 
 from minimize_surprise.jit import kernel
 
-__all__ = ["GRID_ROBOTS", "Cells", "build", "gather", "grid_side", "new_cells"]
+__all__ = ["GRID_ROBOTS", "Cells", "build", "gather", "grid_side", "mark_around", "new_cells"]
 
 #: From this many robots on, contacts and sensing find neighbours in the grid. Measured at the
 #: basic scenario's density (``benchmarks/scale.py``, docs/simulation.md): below about 25 robots
@@ -100,6 +100,26 @@ def build(
 
 
 @kernel(inline=True)
+def _around(side: int, c: int) -> tuple[int, int, int, int]:
+    # The 3 x 3 cells around cell c, within the grid: columns x0..x1-1, rows y0..y1-1.
+    cx, cy = c % side, c // side
+    return max(cx - 1, 0), min(cx + 2, side), max(cy - 1, 0), min(cy + 2, side)
+
+
+@kernel(inline=True)
+def mark_around(side: int, cell: np.ndarray, chosen: np.ndarray, out: np.ndarray) -> None:
+    """``out`` (side * side) True at every cell of the 3 x 3 around a ``chosen`` point's cell
+    (``cell`` each point's), False elsewhere: the cells whose points may meet a chosen one."""
+    out[:] = False
+    for i in range(chosen.shape[0]):
+        if chosen[i]:
+            x0, x1, y0, y1 = _around(side, cell[i])
+            for gy in range(y0, y1):
+                for gx in range(x0, x1):
+                    out[gy * side + gx] = True
+
+
+@kernel(inline=True)
 def gather(
     i: int, side: int, cell: np.ndarray, start: np.ndarray, order: np.ndarray, out: np.ndarray,
     ordered: bool,
@@ -107,11 +127,10 @@ def gather(
     """Point ``i``'s candidate neighbours (itself included) into ``out``: every point in the
     3 x 3 cells around its own; returns their number. With ``ordered``, in increasing
     index."""
-    c = cell[i]
-    cx, cy = c % side, c // side
+    x0, x1, y0, y1 = _around(side, cell[i])
     m = 0
-    for gy in range(max(cy - 1, 0), min(cy + 2, side)):
-        for gx in range(max(cx - 1, 0), min(cx + 2, side)):
+    for gy in range(y0, y1):
+        for gx in range(x0, x1):
             d = gy * side + gx
             for p in range(start[d], start[d + 1]):
                 out[m] = order[p]
