@@ -420,6 +420,15 @@ async def _renew(
             refused = _sbatch_error(exc)
         failed = [name for name, job in cluster.workers.items() if not job.job_id]
         if failed:
+            from distributed.core import Status
+
+            for name in failed:
+                # Never started, so never ended either: dask-jobqueue's Job.close leaves a job's
+                # status as it is, and closing the cluster checks that every job it made and
+                # that is still referenced (here, from the error's traceback, until Python's
+                # collector frees it) has ended. Without this the study's close failed, now and
+                # then, after a study whose sbatch had refused a job.
+                cluster.workers[name].status = Status.failed
             await cluster.scale_down(failed)
     return _jobs_of(cluster), refused
 

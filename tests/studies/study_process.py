@@ -48,15 +48,18 @@ def surprise_study(*args: str) -> list[str]:
 
 
 class Study:
-    """``surprise-study run`` in a process of its own, its output in ``folder``."""
+    """``surprise-study run`` in a process of its own, its output in ``folder``; ``env``: more
+    variables of its environment."""
 
-    def __init__(self, command: list[str], folder: Path, name: str) -> None:
+    def __init__(
+        self, command: list[str], folder: Path, name: str, env: dict[str, str] | None = None
+    ) -> None:
         self.stdout = folder / f"{name}.out"
         self.stderr = folder / f"{name}.err"
         with open(self.stdout, "wb") as out, open(self.stderr, "wb") as err:
             self.process = subprocess.Popen(
                 command, stdout=out, stderr=err, stdin=subprocess.DEVNULL,
-                env={**os.environ, "PYTHONUNBUFFERED": "1"},
+                env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})},
             )  # fmt: skip
 
     def wait(self) -> int:
