@@ -14,23 +14,22 @@ code's exp-based tanh.
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
 from minimize_surprise.gridnet import c_activation, c_negative
-from minimize_surprise.jit import JIT, kernel
+from minimize_surprise.jit import kernel
 from minimize_surprise.rng import mix32
 
 __all__ = [
     "PREFIX_BITS",
+    "TANH_FAST_CONSTANTS",
     "Noise",
     "Torus",
     "WorldTables",
     "actor_decision",
     "build_torus",
-    "mul_add",
     "noise_bits",
     "prefix_sums",
     "tanh_fast",
@@ -91,6 +90,10 @@ _B4 = np.float32(1.18534705686654e-04)
 _B2 = np.float32(2.26843463243900e-03)
 _B0 = np.float32(4.89352518554385e-03)
 
+#: :func:`tanh_fast`'s constants for code that writes it out (:mod:`gridworld.simd`): the clamp,
+#: the numerator's coefficients from the highest power down, the denominator's.
+TANH_FAST_CONSTANTS = (_CLAMP, (_A13, _A11, _A9, _A7, _A5, _A3, _A1), (_B6, _B4, _B2, _B0))
+
 
 @kernel
 def tanh_fast(x: np.float32) -> np.float32:
@@ -110,39 +113,6 @@ def tanh_fast(x: np.float32) -> np.float32:
     q = x2 * q + _B2
     q = x2 * q + _B0
     return p / q
-
-
-def _mul_add_py(x: np.float32, y: np.float32, z: np.float32) -> np.float32:
-    return x * y + z
-
-
-def _mul_add_intrinsic() -> Any:
-    from llvmlite import ir  # type: ignore[import-untyped]
-    from numba import types
-    from numba.extending import intrinsic
-
-    @intrinsic
-    def mul_add(typingctx: Any, x: Any, y: Any, z: Any) -> Any:
-        if not all(t == types.float32 for t in (x, y, z)):
-            return None
-
-        def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
-            f32 = ir.FloatType()
-            fnty = ir.FunctionType(f32, [f32, f32, f32])
-            return builder.call(builder.module.declare_intrinsic("llvm.fmuladd", [f32], fnty), args)
-
-        return types.float32(x, y, z), codegen
-
-    return mul_add
-
-
-#: ``mul_add(x, y, z)`` in a kernel: x * y + z in float32, fused into one rounding where the
-#: machine has an FMA instruction and as two roundings where it has not (LLVM's fmuladd), so
-#: only for sums whose last bit does not matter (:func:`gridworld.predictor.predict_outputs`
-#: reads a sum's sign with a margin for either rounding). Without numba: x * y + z.
-mul_add: Callable[[np.float32, np.float32, np.float32], np.float32] = (
-    _mul_add_intrinsic() if JIT else _mul_add_py
-)
 
 
 @kernel

@@ -26,10 +26,10 @@ run, step, agent and sensor; the same flips for every genome given the same ``no
 noisy values go into both networks and the fitness; moves are blocked by true occupancy only.
 
 :func:`simulate_genome` runs a genome's runs side by side as a loop of named steps, each over all
-agents of all runs: ``_sense`` (with the noise), ``_score``, ``_act``, ``predict_hidden``,
-``predict_outputs``, ``_move``; they share the agents' poses and decisions (:class:`Agents`),
-the runs' occupancy (:class:`Occupancy`), the genome's networks (:class:`Actor`,
-:class:`gridworld.predictor.Predictor`) and working space (:class:`gridworld.predictor.Sums`).
+agents of all runs: ``_sense`` (with the noise), ``_score``, ``_act``,
+:func:`gridworld.predictor.predict`, ``_move``; they share the agents' poses and decisions
+(:class:`Agents`), the runs' occupancy (:class:`Occupancy`) and the genome's networks
+(:class:`Actor`, :class:`gridworld.predictor.Predictor`).
 """
 
 from __future__ import annotations
@@ -47,13 +47,8 @@ from gridworld.kernels import (
     noise_bits,
     prefix_sums,
 )
-from gridworld.predictor import (
-    LANE_ALIGN,
-    Sums,
-    make_predictor,
-    predict_hidden,
-    predict_outputs,
-)
+from gridworld.predictor import LANE_ALIGN, make_predictor, predict
+from gridworld.simd import UNITS
 from minimize_surprise.gridnet import GridNetworks
 from minimize_surprise.jit import kernel
 
@@ -376,7 +371,7 @@ def simulate_genome(
     """Genome ``g`` of ``nets`` on every start configuration of ``starts`` ((reps, N, 2): cell,
     heading), the runs side by side so the networks work on reps x N agents at once; results
     into ``out`` (:class:`RunOutcome`). ``memo`` caches the actor's decisions by input bits (-1:
-    not yet known); ``table`` ((H_p, 2^(R + 1)) float32) is room for the predictor's input sums
+    not yet known); ``table`` ((2^(R + 1), 16) float32) is room for the predictor's input sums
     (:func:`gridworld.predictor.make_predictor`). With a ``torus.window`` the sensors are read from
     bit rows and columns of the occupancy; without, cell by cell.
     """
@@ -389,25 +384,18 @@ def simulate_genome(
     predictor = make_predictor(nets, g, exact, table)
     outputs = predictor.outputs.shape[0]
     # per lane: the sensor bits read this step; the predictor's inputs (those bits with this
-    # step's a0 above them), its hidden state (rows beyond H_p stay 0: see gridworld.predictor)
+    # step's a0 above them), its hidden state (a row, units beyond H_p 0: gridworld.predictor)
     # and the bits of its prediction to be scored at the next step, the predictor's lanes
     # padded (gridworld.predictor.LANE_ALIGN); per run and sensor: how many scored
     # predictions said 1
     padded = -(-lanes // LANE_ALIGN) * LANE_ALIGN
     key = np.zeros(lanes, dtype=np.int64)
     pkey = np.zeros(padded, dtype=np.int32)
-    hidden = np.zeros((predictor.out.shape[1], padded), dtype=np.float32)
+    hidden = np.zeros((padded, UNITS), dtype=np.float32)
     pmask = np.full(padded, predictor.first, dtype=np.uint32)
     ones = np.zeros((reps, r), dtype=np.int64)
     base = np.zeros(lanes, dtype=np.int64)
     flips = np.zeros(n * r, dtype=np.uint8)
-    sums = Sums(
-        np.zeros(padded, dtype=np.uint32),
-        np.empty(padded, dtype=np.float32),
-        np.empty(padded, dtype=np.float32),
-        np.empty(padded, dtype=np.float32),
-        np.empty(padded, dtype=np.float32),
-    )
     for rep in range(reps):
         correct[rep] = 0
     for t in range(steps):
@@ -417,8 +405,7 @@ def simulate_genome(
         _score(key, pmask, r, correct, ones)
         _act(actor, agents, key, pkey)
         if outputs > 0:  # without outputs every prediction is fixed
-            predict_hidden(predictor, pkey, hidden, sums)
-            predict_outputs(predictor, hidden, pmask, sums)
+            predict(predictor, pkey, hidden, pmask)
         _move(tables, agents, occupancy, t)
     _tally(agents, ones, out)
     if trace_rep >= 0:
@@ -466,7 +453,7 @@ def evaluate_batch(
     reps, n = starts.shape[0], starts.shape[1]
     r = nb.shape[2]
     memo = np.empty(1 << (r + 1), dtype=np.int8)
-    table = np.empty((nets.p_hidden.shape[1], 1 << (r + 1)), dtype=np.float32)
+    table = np.empty((1 << (r + 1), UNITS), dtype=np.float32)
     correct = np.empty(reps, dtype=np.int64)
     predsum = np.empty((reps, r), dtype=np.float64)
     for g in range(genomes):

@@ -4,29 +4,35 @@ plain-loop reference of the authors' propagation."""
 from __future__ import annotations
 
 import math
+from functools import partial
 
 import numpy as np
 import pytest
 
+from gridworld import simd
 from gridworld.kernels import actor_decision, prefix_sums, tanh_fast
 from gridworld.predictor import (
+    LANE_ALIGN,
     OUTPUT_MARGIN,
-    WIDE,
     Predictor,
-    Sums,
+    input_sums,
+    predict,
     predict_outputs,
 )
+from gridworld.simd import GROUP, TERMS, UNITS, step_lanes
 from minimize_surprise.errors import GenomeError
 from minimize_surprise.gridnet import (
     GridGenomeLayout,
     GridNetSpec,
     activation,
     actor_reference,
+    c_activation,
     c_negative,
     grid_networks,
     predefined_names,
     predictor_reference,
 )
+from minimize_surprise.jit import kernel
 
 
 def test_sizes_of_the_codes_networks():
@@ -143,32 +149,127 @@ def test_prefix_sums_are_the_sums_in_input_order():
             assert prefix[j, k] == total  # bit for bit
 
 
+def _predictor(out, sensors=14, table=None, self_loop=None, exact=False):
+    # A Predictor for output weights out ((O, H)), output q predicting sensor 2 q mod sensors.
+    o, hp = out.shape
+    outputs = (2 * np.arange(o)) % sensors
+    weights = np.zeros((UNITS, UNITS), np.float32)
+    margin = np.full(UNITS, -1.0, np.float32)
+    for q in range(o):
+        weights[:hp, outputs[q]] = out[q]
+        margin[outputs[q]] = OUTPUT_MARGIN * np.abs(out[q]).sum(dtype=np.float32) + np.float32(1e-9)
+    keep = np.uint32(sum(1 << int(k) for k in outputs))
+    table = np.zeros((1, UNITS), np.float32) if table is None else table
+    self_loop = np.zeros(UNITS, np.float32) if self_loop is None else self_loop
+    return Predictor(table, self_loop, weights, margin, keep, np.uint32(1 << 13), out, outputs,
+                     exact)  # fmt: skip
+
+
+def _codes_bits(predictor, hidden, lane):
+    # The lane's predictions from the code's sums: terms in order from 0, the code's sign.
+    bits = int(predictor.first)
+    for q, k in enumerate(predictor.outputs):
+        z = np.float32(0.0)
+        for j in range(predictor.out.shape[1]):
+            z = np.float32(z + hidden[lane, j] * predictor.out[q, j])
+        bits = (bits & ~(1 << int(k))) | (0 if c_negative(z) else 1 << int(k))
+    return bits
+
+
 def test_estimated_outputs_read_as_the_codes_sums_even_next_to_zero():
     rng = np.random.default_rng(6)
-    lanes, o = 64, 14
-    out = rng.uniform(-1, 1, (o, WIDE)).astype(np.float32)
-    hidden = rng.uniform(-1, 1, (WIDE, lanes)).astype(np.float32)
-    hidden[:, 0] = 0.0  # every sum exactly 0: read as 1
-    hidden[:, 1] = 0.0
-    hidden[0, 1] = -1e-17  # output sums within 1e-10 below 0, where the code's tanh decides
-    hidden[:, 2] = 0.0
-    hidden[0, 2] = -1e-3
-    hidden[1, 2] = 1e-3 * out[0, 0] / out[0, 1]  # output 0 cancels up to float32 rounding
-    hidden[:, 3] = hidden[:, 4] * np.float32(1e-7)  # small, but far from zero for its weights
-    margin = (OUTPUT_MARGIN * np.abs(out).sum(axis=1) + np.float32(1e-9)).astype(np.float32)
-    empty = np.zeros(0, dtype=np.float32)
-    predictor = Predictor(empty, out, margin, np.arange(o), np.zeros((1, 1), np.float32),
-                          np.uint32(0), False, True)  # fmt: skip
-    sums = Sums(np.zeros(lanes, np.uint32), empty, empty, empty, empty)
+    lanes, o = 64, 7
+    out = rng.uniform(-1, 1, (o, TERMS)).astype(np.float32)
+    hidden = np.zeros((lanes, UNITS), np.float32)
+    hidden[:, :TERMS] = rng.uniform(-1, 1, (lanes, TERMS))
+    hidden[0] = 0.0  # every sum exactly 0: read as 1
+    hidden[1] = 0.0
+    hidden[1, 0] = -1e-17  # output sums within 1e-10 below 0, where the code's tanh decides
+    hidden[2] = 0.0
+    hidden[2, 0] = -1e-3
+    hidden[2, 1] = 1e-3 * out[0, 0] / out[0, 1]  # output 0 cancels up to float32 rounding
+    hidden[3] = hidden[4] * np.float32(1e-7)  # small, but far from zero for its weights
+    for a in range(5, lanes):  # an output that cancels: its estimate's sign is a coin's toss
+        q = a % o
+        hidden[a, : TERMS - 1] *= np.float32(0.05)
+        partial = np.dot(hidden[a, : TERMS - 1], out[q, : TERMS - 1])
+        hidden[a, TERMS - 1] = -partial / out[q, TERMS - 1]
+    assert np.abs(hidden).max() <= 1.0
+    predictor = _predictor(out)
     pmask = np.zeros(lanes, dtype=np.uint32)
-    predict_outputs(predictor, hidden, pmask, sums)
+    predict_outputs(predictor, hidden, pmask)
     for a in range(lanes):
-        for q in range(o):
-            z = np.float32(0.0)
-            for j in range(WIDE):
-                z = np.float32(z + hidden[j, a] * out[q, j])
-            assert (pmask[a] >> q) & 1 == (not c_negative(z)), (a, q, z)
-    assert pmask[0] == (1 << o) - 1
+        assert pmask[a] == _codes_bits(predictor, hidden, a), a
+    assert pmask[0] == int(predictor.keep) | 1 << 13
+
+
+@pytest.mark.parametrize("hp", [14, 6])
+def test_the_vector_step_is_the_scalar_units_bit_for_bit(hp):
+    rng = np.random.default_rng(hp)
+    lanes = 3 * LANE_ALIGN
+    table = np.zeros((1 << 6, UNITS), np.float32)
+    table[:, :hp] = rng.normal(0, 2, (1 << 6, hp))
+    table[5, :hp] = 40.0  # beyond the tanh's clamp
+    self_loop = np.zeros(UNITS, np.float32)
+    self_loop[:hp] = rng.uniform(-1, 1, hp)
+    out = rng.uniform(-1, 1, (5, hp)).astype(np.float32)
+    hidden = np.zeros((lanes, UNITS), np.float32)
+    hidden[:, :hp] = rng.uniform(-1, 1, (lanes, hp))
+    pkey = rng.integers(0, 1 << 6, lanes).astype(np.int32)
+    for exact in (False, True):
+        predictor = _predictor(out, table=table, self_loop=self_loop, exact=exact)
+        states, pmask = hidden.copy(), np.zeros(lanes, np.uint32)
+        for _ in range(3):  # the self-loops read the states the step before wrote
+            before = states.copy()
+            predict(predictor, pkey, states, pmask)
+            unit = c_activation if exact else tanh_fast
+            for a in range(lanes):
+                for j in range(UNITS):
+                    x = np.float32(table[pkey[a], j] + np.float32(before[a, j] * self_loop[j]))
+                    assert states[a, j].tobytes() == np.float32(unit(x)).tobytes(), (a, j)
+                assert pmask[a] == _codes_bits(predictor, states, a), a
+
+
+@kernel
+def _step_group(table, pkey, hidden, self_loop, weights, margin, pmask, keep, first):
+    # step_lanes is a compiled intrinsic: only a kernel can call it
+    return step_lanes(table, pkey, hidden, 0, self_loop, weights, margin, pmask, keep, first)
+
+
+def test_the_plain_python_lanes_read_as_the_vector_code():
+    # without numba the group's step is plain Python; its sums are the code's
+    rng = np.random.default_rng(2)
+    table = rng.normal(0, 1, (16, UNITS)).astype(np.float32)
+    table[:, TERMS:] = 0.0
+    self_loop = rng.uniform(-1, 1, UNITS).astype(np.float32)
+    weights = rng.uniform(-1, 1, (UNITS, UNITS)).astype(np.float32)
+    weights[TERMS:] = 0.0
+    margin = np.full(UNITS, 1e-5, np.float32)
+    pkey = rng.integers(0, 16, GROUP).astype(np.int32)
+    hidden = rng.uniform(-1, 1, (GROUP, UNITS)).astype(np.float32)
+    results = []
+    keep, first = np.uint32(0x3FF), np.uint32(1 << 12)
+    for step in (_step_group, partial(simd._step_lanes_py, a=0)):
+        states, pmask = hidden.copy(), np.zeros(GROUP, np.uint32)
+        unsure = step(table, pkey, states, self_loop=self_loop, weights=weights, margin=margin,
+                      pmask=pmask, keep=keep, first=first)  # fmt: skip
+        results.append((states, pmask, unsure))
+    (h0, p0, u0), (h1, p1, u1) = results
+    assert h0.tobytes() == h1.tobytes()
+    sure = [lane for lane in range(GROUP) if not (u0 | u1) >> lane & 1]
+    assert sure and np.array_equal(p0[sure], p1[sure])
+    assert all(int(p) & ~0x3FF == 1 << 12 for p in p0)  # only the kept sensors over the first
+
+
+def test_input_sums_by_pattern_are_the_sums_by_unit():
+    spec = GridNetSpec(14)
+    nets = grid_networks(GridGenomeLayout(spec), np.random.default_rng(4).uniform(-1, 1, (2, 616)))
+    by_unit = np.zeros((spec.predictor_hidden, 1 << 8), dtype=np.float32)
+    prefix_sums(nets.p_u, nets.p_hidden, 1, 8, by_unit)
+    by_pattern = np.full((1 << 8, UNITS), np.nan, dtype=np.float32)
+    input_sums(nets.p_u, nets.p_hidden, 1, 8, by_pattern)
+    assert by_pattern[:, : spec.predictor_hidden].tobytes() == by_unit.T.copy().tobytes()
+    assert not by_pattern[:, spec.predictor_hidden :].any()
 
 
 def test_predictor_reference_keeps_fixed_sensors():
