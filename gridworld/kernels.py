@@ -2,14 +2,14 @@
 
 :mod:`gridworld.runs` runs whole generations with them. The named structures here
 (:class:`Torus`, :class:`WorldTables`, :class:`Noise`) are what the kernels take. Both networks
-take their hidden units' input sums from a per-genome table of the sums over the first inputs for
-every pattern of their bits (:func:`prefix_sums`; the actor over its first 11 inputs, continued
-over the remaining ones in order, the predictor over all of them): the authors' float32
-operations, so their sums bit for bit, at a fraction of the work. The actor's decision
-(:func:`actor_decision`) is computed with a fast tanh and again with the code's tanh only when an
-output lies too near zero for the fast one to decide its sign. The predictor's hidden units use
-:func:`tanh_fast` (a rational approximation good to float32 rounding) unless ``exact`` asks for the
-code's exp-based tanh.
+take their hidden units' input sums from a per-genome table of the sums over all inputs for every
+pattern of their bits (:func:`prefix_sums`; the predictor's by pattern,
+:func:`gridworld.predictor.input_sums`): the authors' float32 operations, so their sums bit for
+bit, at a fraction of the work. The actor's decision (:func:`actor_decision`) is computed with a
+fast tanh and again with the code's tanh only when an output lies too near zero for the fast one
+to decide its sign; :func:`actor_decisions` computes it for every input at once. The predictor's
+hidden units use :func:`tanh_fast` (a rational approximation good to float32 rounding) unless
+``exact`` asks for the code's exp-based tanh.
 """
 
 from __future__ import annotations
@@ -23,21 +23,18 @@ from minimize_surprise.jit import kernel
 from minimize_surprise.rng import mix32
 
 __all__ = [
-    "PREFIX_BITS",
     "TANH_FAST_CONSTANTS",
     "Noise",
     "Torus",
     "WorldTables",
     "actor_decision",
+    "actor_decisions",
     "build_torus",
     "noise_bits",
     "prefix_sums",
     "tanh_fast",
     "world_tables",
 ]
-
-#: Inputs whose input-layer sums are tabled for every pattern of their bits, per genome.
-PREFIX_BITS = 11
 
 
 # The kernels' arguments as named structures (numba takes named tuples whole). A kernel reads
@@ -193,6 +190,54 @@ def actor_decision(
     a0 = 0 if c_negative(z0) else 1
     left = 1 if c_negative(z1) else 0
     return a0 + 2 * left
+
+
+@kernel
+def actor_decisions(
+    a_u: np.ndarray,
+    a_hidden: np.ndarray,
+    a_out: np.ndarray,
+    g: int,
+    sums: np.ndarray,
+    z: np.ndarray,
+    memo: np.ndarray,
+) -> None:
+    """Genome ``g``'s decision (as :func:`actor_decision` returns it) for every pattern of its
+    input bits into ``memo`` ((2^I,) int8), computed for all patterns at once: a loop over the
+    patterns per hidden unit, which vectorises (``sums``: (H_a, 2^I) and ``z``: (2, 2^I)
+    float32, room).
+
+    The same arithmetic as :func:`actor_decision` pattern by pattern: the input sums over all
+    inputs (:func:`prefix_sums`, the same additions as its table continued input by input), the
+    outputs' sums with :func:`tanh_fast` in unit order, and a pattern with an output within its
+    margin of zero handed to :func:`actor_decision` itself; so every decision is its decision.
+    """
+    inputs, ha = a_u.shape[2], a_hidden.shape[1]
+    patterns = 1 << inputs
+    prefix_sums(a_u, a_hidden, g, inputs, sums)
+    z0, z1 = z[0], z[1]
+    for k in range(patterns):
+        z0[k] = 0.0
+        z1[k] = 0.0
+    m0 = np.float32(0.0)
+    m1 = np.float32(0.0)
+    for j in range(ha):
+        row = sums[j]
+        w0, w1 = a_out[g, 0, j], a_out[g, 1, j]
+        m0 += abs(w0)
+        m1 += abs(w1)
+        for k in range(patterns):
+            h = tanh_fast(row[k])
+            z0[k] += h * w0
+            z1[k] += h * w1
+    near0 = SIGN_MARGIN * m0 + 1e-9
+    near1 = SIGN_MARGIN * m1 + 1e-9
+    scratch = np.empty(ha, dtype=np.float32)
+    for k in range(patterns):
+        if abs(z0[k]) <= near0 or abs(z1[k]) <= near1:
+            memo[k] = actor_decision(a_u, a_hidden, a_out, g, k, inputs, sums, inputs, scratch)
+        else:
+            memo[k] = (1 if z0[k] >= 0.0 else 0) + (2 if z1[k] < 0.0 else 0)
 
 
 @kernel

@@ -9,17 +9,18 @@ has moved into it during this step (so conflicts go to the lower index and nobod
 being vacated), a turn always succeeds; (3) all agents take their new poses.
 
 Sensing is synchronous, so the networks of all agents of a step are computed together (the
-predictor vectorised across agents, :mod:`gridworld.predictor`); only the moves are resolved one
+predictor in vectors across agents, :mod:`gridworld.predictor`); only the moves are resolved one
 agent after the other. Both networks take their hidden units' input sums from a per-genome table
-of the sums over the first inputs for every pattern of their bits (:func:`prefix_sums`; the
-actor's continued over its remaining inputs in order, the predictor's over all of them): the
-code's float32 operations, so its sums bit for bit, at a fraction of the work. The actor has no
-state: its decision is a function of the R + 1 input bits, computed the first time a genome meets an
-input and looked up afterwards; it is computed with a fast tanh and computed again with the code's
-tanh only when an output lies too near zero for the fast one to decide its sign, so the decision is
-the code's. The predictor's hidden units use :func:`tanh_fast` (a rational approximation good to
-float32 rounding) unless ``exact`` asks for the code's exp-based tanh: trajectories never depend on
-it, only the rare prediction whose output lies within float32 rounding of zero can.
+of the sums over all inputs for every pattern of their bits
+(:func:`gridworld.kernels.prefix_sums`): the code's float32 operations, so its sums bit for bit,
+at a fraction of the work. The actor has no state: its decision is a function of the R + 1 input
+bits, computed for every input before a genome's runs and looked up in them
+(:func:`gridworld.kernels.actor_decisions`); it is computed with a fast tanh and computed again
+with the code's tanh only when an output lies too near zero for the fast one to decide its sign,
+so the decision is the code's. The predictor's hidden units use
+:func:`gridworld.kernels.tanh_fast` (a rational approximation good to float32 rounding) unless
+``exact`` asks for the code's exp-based tanh: trajectories never depend on it, only the rare
+prediction whose output lies within float32 rounding of zero can.
 
 Sensor noise flips each sensor value an agent reads with probability ``noise`` (independent per
 run, step, agent and sensor; the same flips for every genome given the same ``noise_key``). The
@@ -28,8 +29,8 @@ noisy values go into both networks and the fitness; moves are blocked by true oc
 :func:`simulate_genome` runs a genome's runs side by side as a loop of named steps, each over all
 agents of all runs: ``_sense`` (with the noise), ``_score``, ``_act``,
 :func:`gridworld.predictor.predict`, ``_move``; they share the agents' poses and decisions
-(:class:`Agents`), the runs' occupancy (:class:`Occupancy`) and the genome's networks
-(:class:`Actor`, :class:`gridworld.predictor.Predictor`).
+(:class:`Agents`), the runs' occupancy (:class:`Occupancy`) and the genome's networks (its
+actor's decisions, :class:`gridworld.predictor.Predictor`).
 """
 
 from __future__ import annotations
@@ -38,21 +39,13 @@ from typing import NamedTuple
 
 import numpy as np
 
-from gridworld.kernels import (
-    PREFIX_BITS,
-    Noise,
-    Torus,
-    WorldTables,
-    actor_decision,
-    noise_bits,
-    prefix_sums,
-)
+from gridworld.kernels import Noise, Torus, WorldTables, actor_decisions, noise_bits
 from gridworld.predictor import LANE_ALIGN, make_predictor, predict
 from gridworld.simd import UNITS
 from minimize_surprise.gridnet import GridNetworks
 from minimize_surprise.jit import kernel
 
-__all__ = ["BatchOutcome", "RunOutcome", "evaluate_batch", "simulate_genome"]
+__all__ = ["BatchOutcome", "Room", "RunOutcome", "evaluate_batch", "new_room", "simulate_genome"]
 
 
 class RunOutcome(NamedTuple):
@@ -104,20 +97,29 @@ class Occupancy(NamedTuple):
     lines: np.ndarray
 
 
-class Actor(NamedTuple):
-    """Genome ``g``'s actor as the decision step takes it: the batch's ``u``, ``hidden``, ``out``
-    (:class:`GridNetworks` ``a_*``), ``prefix`` (H_a, 2^bits) its input-layer sums over the
-    first ``bits`` inputs (:func:`prefix_sums`), ``memo`` its decisions by input bits (-1: not
-    yet known), ``scratch`` (H_a) room for one decision."""
+class Room(NamedTuple):
+    """Working space a batch reuses from genome to genome (fresh arrays of a few megabytes per
+    genome would be faulted in again each time): ``memo`` (2^I,) int8 the actor's decisions by
+    input bits, ``sums`` (H_a, 2^I) and ``z`` (2, 2^I) room to compute them
+    (:func:`gridworld.kernels.actor_decisions`), ``table`` (2^I, 16) the predictor's input sums
+    (:func:`gridworld.predictor.make_predictor`)."""
 
-    u: np.ndarray
-    hidden: np.ndarray
-    out: np.ndarray
-    g: int
-    prefix: np.ndarray
-    bits: int
     memo: np.ndarray
-    scratch: np.ndarray
+    sums: np.ndarray
+    z: np.ndarray
+    table: np.ndarray
+
+
+@kernel
+def new_room(nets: GridNetworks, sensors: int) -> Room:
+    """A :class:`Room` for genomes of ``nets`` with ``sensors`` sensors."""
+    patterns = 1 << (sensors + 1)
+    return Room(
+        np.empty(patterns, dtype=np.int8),
+        np.empty((nets.a_hidden.shape[1], patterns), dtype=np.float32),
+        np.empty((2, patterns), dtype=np.float32),
+        np.empty((patterns, UNITS), dtype=np.float32),
+    )
 
 
 # The steps of a run (simulate_genome's loop, each called once per time step) take structures
@@ -125,17 +127,6 @@ class Actor(NamedTuple):
 # compiled call costs about a nanosecond for each array of its arguments it does not use (passed
 # the batch-wide GridNetworks and one structure of every lane array, the steps made a generation
 # without a predictor 8% slower). The structures are made once per genome.
-
-
-@kernel
-def _actor(nets: GridNetworks, g: int, memo: np.ndarray) -> Actor:
-    """Genome g's :class:`Actor`, its decisions kept in ``memo``."""
-    a_u, a_hidden = nets.a_u, nets.a_hidden
-    bits = min(PREFIX_BITS, a_u.shape[2])
-    prefix = np.empty((a_hidden.shape[1], 1 << bits), dtype=np.float32)
-    prefix_sums(a_u, a_hidden, g, bits, prefix)
-    scratch = np.zeros(a_hidden.shape[1], dtype=np.float32)
-    return Actor(a_u, a_hidden, nets.a_out, g, prefix, bits, memo, scratch)
 
 
 @kernel
@@ -288,20 +279,13 @@ def _score(
 
 
 @kernel
-def _act(actor: Actor, agents: Agents, key: np.ndarray, pkey: np.ndarray) -> None:
-    """The actor's decisions for every lane's sensor bits (``key``) and last a0, into
-    ``agents.a0`` and ``agents.left``, and the predictor's inputs (``pkey``: ``key`` with the
-    new a0 above it): computed once per genome and input, looked up afterwards."""
-    a_u, a_hidden, a_out, g, prefix, bits, memo, scratch = actor
+def _act(memo: np.ndarray, agents: Agents, key: np.ndarray, pkey: np.ndarray, r: int) -> None:
+    """The actor's decisions (``memo``, by input bits) for every lane's sensor bits (``key``) and
+    last a0, into ``agents.a0`` and ``agents.left``, and the predictor's inputs (``pkey``: ``key``
+    with the new a0 above it)."""
     a0, left = agents.a0, agents.left
-    r = a_u.shape[2] - 1
-    inputs = r + 1
     for a in range(key.shape[0]):
-        full = np.uint64(key[a] | (a0[a] << r))
-        m = memo[full]
-        if m < 0:
-            m = actor_decision(a_u, a_hidden, a_out, g, full, inputs, prefix, bits, scratch)
-            memo[full] = m
+        m = memo[np.uint64(key[a] | (a0[a] << r))]
         a0[a] = m & 1
         left[a] = m >> 1
         pkey[a] = np.int32(key[a] | ((m & 1) << r))
@@ -362,26 +346,25 @@ def simulate_genome(
     steps: int,
     nets: GridNetworks,
     g: int,
-    memo: np.ndarray,
-    table: np.ndarray,
+    room: Room,
     noise: Noise,
     exact: bool,
     out: RunOutcome,
 ) -> None:
     """Genome ``g`` of ``nets`` on every start configuration of ``starts`` ((reps, N, 2): cell,
     heading), the runs side by side so the networks work on reps x N agents at once; results
-    into ``out`` (:class:`RunOutcome`). ``memo`` caches the actor's decisions by input bits (-1:
-    not yet known); ``table`` ((2^(R + 1), 16) float32) is room for the predictor's input sums
-    (:func:`gridworld.predictor.make_predictor`). With a ``torus.window`` the sensors are read from
-    bit rows and columns of the occupancy; without, cell by cell.
+    into ``out`` (:class:`RunOutcome`), in working space ``room`` (:func:`new_room`): the actor's
+    decisions for every input are computed first, then looked up. With a ``torus.window`` the
+    sensors are read from bit rows and columns of the occupancy; without, cell by cell.
     """
     tables = torus.tables
     correct, trace, trace_rep = out.correct, out.trace, out.trace_rep
     reps, n, r = starts.shape[0], starts.shape[1], torus.nb.shape[2]
     lanes = reps * n
     agents, occupancy = _place_agents(torus, starts)
-    actor = _actor(nets, g, memo)
-    predictor = make_predictor(nets, g, exact, table)
+    memo = room.memo
+    actor_decisions(nets.a_u, nets.a_hidden, nets.a_out, g, room.sums, room.z, memo)
+    predictor = make_predictor(nets, g, exact, room.table)
     outputs = predictor.outputs.shape[0]
     # per lane: the sensor bits read this step; the predictor's inputs (those bits with this
     # step's a0 above them), its hidden state (a row, units beyond H_p 0: gridworld.predictor)
@@ -403,7 +386,7 @@ def simulate_genome(
             _record(trace, t, agents, trace_rep)
         _sense(torus, noise, agents, occupancy, key, base, flips, t, steps)
         _score(key, pmask, r, correct, ones)
-        _act(actor, agents, key, pkey)
+        _act(memo, agents, key, pkey, r)
         if outputs > 0:  # without outputs every prediction is fixed
             predict(predictor, pkey, hidden, pmask)
         _move(tables, agents, occupancy, t)
@@ -452,15 +435,13 @@ def evaluate_batch(
     genomes = nets.a_u.shape[0]
     reps, n = starts.shape[0], starts.shape[1]
     r = nb.shape[2]
-    memo = np.empty(1 << (r + 1), dtype=np.int8)
-    table = np.empty((1 << (r + 1), UNITS), dtype=np.float32)
+    room = new_room(nets, r)
     correct = np.empty(reps, dtype=np.int64)
     predsum = np.empty((reps, r), dtype=np.float64)
     for g in range(genomes):
-        memo[:] = -1
         trace_rep = trace_run - g * reps if g * reps <= trace_run < (g + 1) * reps else -1
         run = RunOutcome(correct, predsum, final[g], trace, trace_rep)
-        simulate_genome(torus, starts, steps, nets, g, memo, table, noise, exact, run)
+        simulate_genome(torus, starts, steps, nets, g, room, noise, exact, run)
         for rep in range(reps):
             fitness[g, rep] = correct[rep] / (steps * n * r)
             for k in range(r):

@@ -10,7 +10,12 @@ import numpy as np
 import pytest
 
 from gridworld import simd
-from gridworld.kernels import actor_decision, prefix_sums, tanh_fast
+from gridworld.kernels import (
+    actor_decision,
+    actor_decisions,
+    prefix_sums,
+    tanh_fast,
+)
 from gridworld.predictor import (
     LANE_ALIGN,
     OUTPUT_MARGIN,
@@ -133,6 +138,35 @@ def test_actor_kernel_matches_the_reference_on_every_input(sensors, bits):
             m = actor_decision(nets.a_u, nets.a_hidden, nets.a_out, g, int(key), sensors + 1,
                                prefix, bits, scratch)  # fmt: skip
             assert (m & 1, 1 if m >> 1 else -1) == (a0, turn), (g, key)
+
+
+@pytest.mark.parametrize("sensors", [14, 6, 8])
+def test_actor_decisions_for_every_input_at_once_are_the_decisions_one_by_one(sensors):
+    spec = GridNetSpec(sensors)
+    layout = GridGenomeLayout(spec)
+    rng = np.random.default_rng(sensors + 1)
+    genomes = rng.uniform(-1, 1, (2, layout.size))
+    w = layout.unpack(genomes[1])  # outputs near zero, as above
+    w["actor.hidden"][1::2] = w["actor.hidden"][0::2] * (1 + 1e-6)
+    w["actor.output"][:, 1::2] = -w["actor.output"][:, 0::2]
+    nets = grid_networks(layout, genomes)
+    patterns = 1 << (sensors + 1)
+    bits = min(11, sensors + 1)  # the lookups continue over the remaining inputs
+    memo = np.full(patterns, -1, dtype=np.int8)
+    sums = np.empty((spec.actor_hidden, patterns), dtype=np.float32)
+    z = np.empty((2, patterns), dtype=np.float32)
+    scratch = np.zeros(spec.actor_hidden, dtype=np.float32)
+    for g in range(2):
+        prefix = np.zeros((spec.actor_hidden, 1 << bits), dtype=np.float32)
+        prefix_sums(nets.a_u, nets.a_hidden, g, bits, prefix)
+        actor_decisions(nets.a_u, nets.a_hidden, nets.a_out, g, sums, z, memo)
+        one_by_one = [
+            actor_decision(
+                nets.a_u, nets.a_hidden, nets.a_out, g, key, sensors + 1, prefix, bits, scratch
+            )
+            for key in range(patterns)
+        ]
+        assert memo.tolist() == one_by_one, g
 
 
 def test_prefix_sums_are_the_sums_in_input_order():
