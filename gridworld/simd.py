@@ -4,22 +4,25 @@ A lane (one agent of one run) keeps its predictor's hidden units as one row of 1
 (units beyond H_p stay 0), and the input sums come from a table with one such row per input
 pattern. One step of :data:`GROUP` lanes is written here in LLVM's vector instructions, as a
 numba intrinsic, because numba's loops do not vectorise across a lane's units (LLVM unrolls the
-loop over the units first). For each lane of the group:
+loop over the units first). A group of 16 lanes:
 
-1. the input sums (one row load) plus the self-loops times the last state, then the rational tanh
-   of :func:`gridworld.kernels.tanh_fast`, operation for operation, so the states are the same to
-   the bit as computed one unit at a time;
-2. every output's sum at once: for each unit j, its state broadcast times the j-th row of the
-   output weights (``weights[j, k]``: unit j to sensor k), in fused multiply-adds over two
-   accumulators; that estimate lies within :data:`gridworld.predictor.OUTPUT_MARGIN` of the
-   code's sum, so its sign is the code's where it is farther from zero than ``margin[k]``;
+1. per lane, the input sums (one row load) plus the self-loops times the last state, then the
+   rational tanh of :func:`gridworld.kernels.tanh_fast`, operation for operation, so the states
+   are the same to the bit as computed one unit at a time;
+2. the 16 lanes' states transposed (16 rows of units into 16 vectors of lanes, four rounds of
+   shuffles), then each sensor's output sum on all 16 lanes at once: unit j's vector times the
+   weight ``weights[j, k]`` (unit j to sensor k), fused multiply-adds in two partial sums (even
+   and odd units: half the chain of dependent operations). That estimate lies within
+   :data:`gridworld.predictor.OUTPUT_MARGIN` of the code's sum, so its sign is the code's where
+   it is farther from zero than ``margin[k]``;
 3. the prediction bits: sensor k is 1 where its estimate is 0 or more, only the sensors in
    ``keep``, over the fixed ones in ``first``.
 
 The lanes whose estimate lay within a margin come back as set bits of the result (bit l: lane
-a + l); :mod:`gridworld.predictor` then computes their sums the code's way. The lanes of a group
-are written one after the other in the instruction stream so that the processor overlaps their
-long chains (the tanh, the sums): one lane at a time ran 1.8 times slower.
+a + l); :mod:`gridworld.predictor` then computes their sums the code's way. Measured per lane
+(2026-11-27, one step of 1,008 lanes): step 1 alone 2.6 ns; the outputs lane by lane (each
+state broadcast unit by unit times a row of weights) cost 4 ns more, transposed 2.6 ns more
+(3 ns with one sum per sensor instead of two).
 
 Without numba, :func:`step_lanes` and :func:`read_lanes` are plain Python of the same meaning
 (their estimate is the code's sum itself).
@@ -40,7 +43,7 @@ __all__ = ["GROUP", "UNITS", "read_lanes", "step_lanes"]
 #: Floats in a lane's row: hidden units (and sensors) a vector holds.
 UNITS = 16
 #: Lanes one call steps; the predictor's lanes are padded to a multiple of it.
-GROUP = 8
+GROUP = 16
 #: Hidden units the output sums take: the most any predictor has (14 sensors' full pair);
 #: the rows' units 14 and 15 are always 0.
 TERMS = 14
@@ -104,6 +107,8 @@ def _intrinsics() -> tuple[Any, Any]:
     i32 = ir.IntType(32)
     i64 = ir.IntType(64)
     vec = ir.VectorType(f32, UNITS)
+    ivec = ir.VectorType(i32, UNITS)
+    lanes_i32 = ir.VectorType(i32, UNITS)
 
     def splat(value: Any) -> Any:
         return ir.Constant(vec, [ir.Constant(f32, float(np.float32(value)))] * UNITS)
@@ -129,15 +134,29 @@ def _intrinsics() -> tuple[Any, Any]:
         data = context.make_array(array_type)(context, b, array).data
         return b.bitcast(b.gep(data, [b.mul(index, ir.Constant(i64, UNITS))]), vec.as_pointer())
 
+    def transpose(b: Any, rows: list[Any]) -> list[Any]:
+        # 16 rows of 16 into 16 columns: four rounds, each swapping one bit of the row index
+        # with the same bit of the column index (two-source shuffles, one instruction each)
+        for m in range(4):
+            bit = 1 << m
+            lo_mask = [j if j & bit == 0 else UNITS + (j ^ bit) for j in range(UNITS)]
+            hi_mask = [j | bit if j & bit == 0 else UNITS + j for j in range(UNITS)]
+            swapped = list(rows)
+            for lo in range(UNITS):
+                if lo & bit == 0:
+                    pair = rows[lo], rows[lo | bit]
+                    swapped[lo] = b.shuffle_vector(*pair, ir.Constant(ivec, lo_mask))
+                    swapped[lo | bit] = b.shuffle_vector(*pair, ir.Constant(ivec, hi_mask))
+            rows = swapped
+        return rows
+
     def outputs(context: Any, b: Any, states: list[Any], at: Any, sig: Any, args: Any) -> Any:
-        # steps 2 and 3 for the lanes' states; args end in weights, margin, pmask, keep, first
+        # steps 2 and 3 for the group's states; args end in weights, margin, pmask, keep, first
         wt, mt, pt = sig.args[-5:-2]
         weights, margin, pmask, keep, first = args[-5:]
-        w = [
-            b.load(row(context, b, wt, weights, ir.Constant(i64, j)), align=4) for j in range(TERMS)
-        ]
+        units = transpose(b, states)  # units[j][lane]: unit j's state on each lane
+        wdata = context.make_array(wt)(context, b, weights).data
         mdata = context.make_array(mt)(context, b, margin).data
-        m = b.load(b.bitcast(mdata, vec.as_pointer()), align=4)
         pdata = context.make_array(pt)(context, b, pmask).data
         fma = cgutils.get_or_insert_function(
             b.module, ir.FunctionType(vec, [vec, vec, vec]), "llvm.fmuladd.v16f32"
@@ -145,26 +164,41 @@ def _intrinsics() -> tuple[Any, Any]:
         fabs = cgutils.get_or_insert_function(
             b.module, ir.FunctionType(vec, [vec]), "llvm.fabs.v16f32"
         )
-        zero = splat(0.0)
-        unsure = ir.Constant(i64, 0)
-        for lane, h in enumerate(states):
-            sums: list[Any] = [None, None]
-            for j in range(TERMS):
-                hj = b.shuffle_vector(
-                    h, ir.Constant(vec, None), ir.Constant(ir.VectorType(i32, UNITS), [j] * UNITS)
-                )
-                s = j % 2
-                sums[s] = b.fmul(hj, w[j]) if sums[s] is None else b.call(fma, [hj, w[j], sums[s]])
-            o = b.fadd(sums[0], sums[1])
-            near = b.fcmp_ordered("<=", b.call(fabs, [o]), m)
-            bits = b.zext(b.bitcast(b.fcmp_ordered(">=", o, zero), ir.IntType(UNITS)), i32)
-            bits = b.or_(b.and_(bits, keep), first)
-            b.store(bits, b.gep(pdata, [b.add(at, ir.Constant(i64, lane))]))
-            flag = b.icmp_unsigned(
-                "!=", b.bitcast(near, ir.IntType(UNITS)), ir.Constant(ir.IntType(UNITS), 0)
+
+        def broadcast(data: Any, index: int) -> Any:
+            value = b.load(b.gep(data, [ir.Constant(i64, index)]))
+            return b.shuffle_vector(
+                b.insert_element(ir.Constant(vec, None), value, ir.Constant(i32, 0)),
+                ir.Constant(vec, None),
+                ir.Constant(ivec, [0] * UNITS),
             )
-            unsure = b.or_(unsure, b.shl(b.zext(flag, i64), ir.Constant(i64, lane)))
-        return unsure
+
+        zero = splat(0.0)
+        nobit = ir.Constant(lanes_i32, [0] * UNITS)
+        bits = b.shuffle_vector(
+            b.insert_element(ir.Constant(lanes_i32, None), first, ir.Constant(i32, 0)),
+            ir.Constant(lanes_i32, None),
+            ir.Constant(ivec, [0] * UNITS),
+        )
+        near: Any = None
+        for k in range(TERMS):  # sensor k's sum on every lane
+            # two partial sums (even and odd units): the chains of dependent operations halve
+            part = [b.fmul(units[j], broadcast(wdata, j * UNITS + k)) for j in (0, 1)]
+            for j in range(2, TERMS):
+                part[j % 2] = b.call(fma, [units[j], broadcast(wdata, j * UNITS + k), part[j % 2]])
+            o = b.fadd(part[0], part[1])
+            yes = ir.Constant(lanes_i32, [1 << k] * UNITS)
+            bits = b.or_(bits, b.select(b.fcmp_ordered(">=", o, zero), yes, nobit))
+            close = b.fcmp_ordered("<=", b.call(fabs, [o]), broadcast(mdata, k))
+            near = close if near is None else b.or_(near, close)
+        keep_all = b.shuffle_vector(
+            b.insert_element(ir.Constant(lanes_i32, None), b.or_(keep, first), ir.Constant(i32, 0)),
+            ir.Constant(lanes_i32, None),
+            ir.Constant(ivec, [0] * UNITS),
+        )
+        target = b.bitcast(b.gep(pdata, [at]), lanes_i32.as_pointer())
+        b.store(b.and_(bits, keep_all), target, align=4)
+        return b.zext(b.bitcast(near, ir.IntType(UNITS)), i64)
 
     def arrays_ok(*arrays: Any) -> bool:
         return all(
