@@ -23,7 +23,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from gridworld.simd import GROUP, TERMS, UNITS, read_lanes, step_lanes
+from gridworld.simd import GROUP, TERMS, UNITS, read_lanes, row_add, step_lanes
 from minimize_surprise.gridnet import GridNetworks, c_activation, c_negative
 from minimize_surprise.jit import kernel
 
@@ -71,6 +71,10 @@ class Predictor(NamedTuple):
     exact: bool
 
 
+#: Inputs whose sums :func:`input_sums` builds level by level; the rest continue each row.
+LOW_INPUTS = 10
+
+
 @kernel
 def input_sums(u: np.ndarray, w: np.ndarray, g: int, bits: int, out: np.ndarray) -> None:
     """Input-layer sums of genome ``g`` over its first ``bits`` inputs for every pattern of their
@@ -78,23 +82,36 @@ def input_sums(u: np.ndarray, w: np.ndarray, g: int, bits: int, out: np.ndarray)
     w[g, j, 1] + ... for hidden unit j, in float32 and in input order as the code adds them
     (``u``: (G, 2, I), ``w``: (G, H, I), ``out``: (2^bits, :data:`UNITS`); units from H on are 0).
 
-    Built one input at a time, each level from the one before, as
-    :func:`gridworld.kernels.prefix_sums` does by unit: the same operations, so the same sums.
+    The sums over the first :data:`LOW_INPUTS` inputs are built one input at a time, each level
+    from the one before, as :func:`gridworld.kernels.prefix_sums` does by unit; every row then
+    adds the remaining inputs' terms in order, one vector addition each
+    (:func:`gridworld.simd.row_add`): the same operations, so the same sums, and each row of the
+    (2 MB) table is written once instead of at every level. The blocks of rows that share the
+    remaining inputs' bits are done from the last to the first, so the first block's sums are
+    read before they are overwritten.
     """
     hp = w.shape[1]
-    t0 = np.zeros(UNITS, dtype=np.float32)
-    t1 = np.zeros(UNITS, dtype=np.float32)
+    terms = np.zeros((2 * max(bits, 1), UNITS), dtype=np.float32)  # input i, bit v: row 2 i + v
+    for i in range(bits):
+        for j in range(hp):
+            terms[2 * i, j] = u[g, 0, i] * w[g, j, i]
+            terms[2 * i + 1, j] = u[g, 1, i] * w[g, j, i]
+    low = min(bits, LOW_INPUTS)
     for j in range(UNITS):
         out[0, j] = 0.0
-    for i in range(bits):
+    for i in range(low):
         half = 1 << i
-        for j in range(hp):
-            t0[j] = u[g, 0, i] * w[g, j, i]
-            t1[j] = u[g, 1, i] * w[g, j, i]
         for k in range(half):
             for j in range(UNITS):
-                out[k + half, j] = out[k, j] + t1[j]
-                out[k, j] = out[k, j] + t0[j]
+                out[k + half, j] = out[k, j] + terms[2 * i + 1, j]
+                out[k, j] = out[k, j] + terms[2 * i, j]
+    block = 1 << low
+    for high in range((1 << (bits - low)) - 1, 0 if bits == low else -1, -1):
+        start = high * block
+        for k in range(block):
+            row_add(out, start + k, k, terms, 2 * low + (high & 1))
+            for i in range(low + 1, bits):
+                row_add(out, start + k, start + k, terms, 2 * i + ((high >> (i - low)) & 1))
 
 
 @kernel

@@ -295,13 +295,14 @@ def test_the_plain_python_lanes_read_as_the_vector_code():
     assert all(int(p) & ~0x3FF == 1 << 12 for p in p0)  # only the kept sensors over the first
 
 
-def test_input_sums_by_pattern_are_the_sums_by_unit():
+@pytest.mark.parametrize("bits", [8, 15])  # levels only; levels, then rows continued
+def test_input_sums_by_pattern_are_the_sums_by_unit(bits):
     spec = GridNetSpec(14)
     nets = grid_networks(GridGenomeLayout(spec), np.random.default_rng(4).uniform(-1, 1, (2, 616)))
-    by_unit = np.zeros((spec.predictor_hidden, 1 << 8), dtype=np.float32)
-    prefix_sums(nets.p_u, nets.p_hidden, 1, 8, by_unit)
-    by_pattern = np.full((1 << 8, UNITS), np.nan, dtype=np.float32)
-    input_sums(nets.p_u, nets.p_hidden, 1, 8, by_pattern)
+    by_unit = np.zeros((spec.predictor_hidden, 1 << bits), dtype=np.float32)
+    prefix_sums(nets.p_u, nets.p_hidden, 1, bits, by_unit)
+    by_pattern = np.full((1 << bits, UNITS), np.nan, dtype=np.float32)
+    input_sums(nets.p_u, nets.p_hidden, 1, bits, by_pattern)
     assert by_pattern[:, : spec.predictor_hidden].tobytes() == by_unit.T.copy().tobytes()
     assert not by_pattern[:, spec.predictor_hidden :].any()
 
