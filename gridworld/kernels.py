@@ -46,8 +46,7 @@ class WorldTables(NamedTuple):
     """The torus's lookup tables, the same for every genome and run (:func:`world_tables`)."""
 
     front_of: np.ndarray
-    sense_line: np.ndarray
-    sense_shift: np.ndarray
+    sense: np.ndarray
     row_of: np.ndarray
     col_of: np.ndarray
     row_bits: np.ndarray
@@ -248,6 +247,12 @@ def noise_bits(key: int, counter: int) -> int:
     return mix32(key ^ low ^ (high * 0x85EBCA6B))
 
 
+@kernel(inline=True)
+def _pack(first: int, second: int, third: int, shift: int) -> np.uint64:
+    # three line numbers and a shift in 16 bits each (one load instead of four)
+    return np.uint64(first | (second << 16) | (third << 32) | (shift << 48))
+
+
 @kernel
 def world_tables(nb: np.ndarray, width: int, bits_ok: bool) -> WorldTables:
     """The torus's lookup tables, the same for every genome and run (:class:`WorldTables`).
@@ -255,15 +260,14 @@ def world_tables(nb: np.ndarray, width: int, bits_ok: bool) -> WorldTables:
     ``front_of[4 c + d]`` is the cell in front of cell c facing d. A run's occupancy is kept as
     bit lines: the rows (by y) then the columns (by x), each doubled (bits 0..W-1 repeated above)
     so a window of 5 that wraps around is one shift. Per cell c and heading parity p,
-    ``sense_line[2 c + p]`` names the three lines an agent there reads and ``sense_shift`` the
-    shift that brings its window to bits 0..4; per cell, ``row_of``/``col_of`` name its row and
-    column and ``row_bits``/``col_bits`` the bits it sets in them (0 unless ``bits_ok``: sides of
-    at most 32, so the doubled lines fit 64 bits).
+    ``sense[2 c + p]`` holds in 16 bits each the three lines an agent there reads (bits 0, 16,
+    32) and the shift that brings its window to bits 0..4 (bit 48); per cell, ``row_of`` and
+    ``col_of`` name its row and column and ``row_bits``/``col_bits`` the bits it sets in them (0
+    unless ``bits_ok``: sides of at most 32, so the doubled lines fit 64 bits).
     """
     cells = nb.shape[0]
     height = cells // width
-    sense_line = np.empty((cells * 2, 3), dtype=np.uint32)
-    sense_shift = np.empty(cells * 2, dtype=np.uint64)
+    sense = np.empty(cells * 2, dtype=np.uint64)
     row_of = np.empty(cells, dtype=np.uint32)
     col_of = np.empty(cells, dtype=np.uint32)
     row_bits = np.zeros(cells, dtype=np.uint64)
@@ -274,19 +278,15 @@ def world_tables(nb: np.ndarray, width: int, bits_ok: bool) -> WorldTables:
         x, y = c % width, c // width
         ym, yp = (y + height - 1) % height, (y + 1) % height
         xm, xp = (x + width - 1) % width, (x + 1) % width
-        sense_line[2 * c, 0], sense_line[2 * c, 1], sense_line[2 * c, 2] = ym, y, yp
-        sense_shift[2 * c] = (x + width - 2) % width
-        sense_line[2 * c + 1, 0] = height + xm
-        sense_line[2 * c + 1, 1] = height + x
-        sense_line[2 * c + 1, 2] = height + xp
-        sense_shift[2 * c + 1] = (y + height - 2) % height
+        sense[2 * c] = _pack(ym, y, yp, (x + width - 2) % width)
+        sense[2 * c + 1] = _pack(height + xm, height + x, height + xp, (y + height - 2) % height)
         row_of[c], col_of[c] = y, height + x
         if bits_ok:
             row_bits[c] = (one << np.uint64(x)) | (one << np.uint64(x + width))
             col_bits[c] = (one << np.uint64(y)) | (one << np.uint64(y + height))
         for d in range(4):
             front_of[c * 4 + d] = nb[c, d, 0]
-    return WorldTables(front_of, sense_line, sense_shift, row_of, col_of, row_bits, col_bits)
+    return WorldTables(front_of, sense, row_of, col_of, row_bits, col_bits)
 
 
 def build_torus(nb: np.ndarray, window: np.ndarray, width: int) -> Torus:

@@ -187,13 +187,15 @@ def _sense(
     windows of the run's bit lines per agent with a ``torus.window``, else sensor by sensor
     (``base``: room per lane); then the noise's flips (``flips``: room for one run's)."""
     nb, window, tables = torus.nb, torus.window, torus.tables
-    sense_line, sense_shift = tables.sense_line, tables.sense_shift
+    sense = tables.sense
     noise_threshold, noise_key = noise
     cell, head = agents.cell, agents.head
     event, lines = occupancy
     reps, r = event.shape[0], nb.shape[2]
     n = key.shape[0] // reps
     five = np.uint64(31)
+    low16 = np.uint64(0xFFFF)
+    sixteen, sixteen2, sixteen3 = np.uint64(16), np.uint64(32), np.uint64(48)
     for rep in range(reps):
         lo, hi = rep * n, rep * n + n
         if window.shape[0] > 0:
@@ -201,10 +203,11 @@ def _sense(
             for a in range(np.uint64(lo), np.uint64(hi)):
                 d = head[a]
                 i = np.uint32(2) * cell[a] + (d & np.uint32(1))
-                s0 = sense_shift[i]
-                w0 = (lines_r[sense_line[i, 0]] >> s0) & five
-                w1 = (lines_r[sense_line[i, 1]] >> s0) & five
-                w2 = (lines_r[sense_line[i, 2]] >> s0) & five
+                packed = sense[i]
+                s0 = packed >> sixteen3
+                w0 = (lines_r[packed & low16] >> s0) & five
+                w1 = (lines_r[(packed >> sixteen) & low16] >> s0) & five
+                w2 = (lines_r[(packed >> sixteen2) & low16] >> s0) & five
                 key[a] = window[d, 0, w0] | window[d, 1, w1] | window[d, 2, w2]
         else:
             event_r = event[rep]
