@@ -316,7 +316,11 @@ def _move(tables: WorldTables, agents: Agents, occupancy: Occupancy, t: int) -> 
             head[a] = (h + a0[a] * (3 - 2 * left[a])) & 3
             front = front_of[c * np.uint32(4) + h]
             e = event_r[front]
-            if (a0[a] == 0) & (e < now) & (e & 1 == 0):
+            # one branch, not three (LLVM makes a branch of each comparison in an &, and a move
+            # is as likely as not): an agent goes when its a0 is 0 (a move) and the front
+            # cell's last event is older than this step (the sign of e - now) and a leaving
+            stay = a0[a] | (e & 1) | ((((e - now) >> 63) & 1) ^ 1)
+            if stay == 0:
                 event_r[front] = now + 1
                 event_r[c] = now
                 cell[a] = front
