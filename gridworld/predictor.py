@@ -163,7 +163,7 @@ def _settle(
     # terms added in order from 0, the code's tanh deciding right below 0.
     out, outputs = predictor.out, predictor.outputs
     for lane in range(a, a + GROUP):
-        if (unsure >> (lane - a)) & 1 == 0:
+        if not (unsure >> (lane - a)) & 1:
             continue
         bits = pmask[lane]
         for q in range(out.shape[0]):

@@ -288,7 +288,8 @@ def _act(memo: np.ndarray, agents: Agents, key: np.ndarray, pkey: np.ndarray, r:
     with the new a0 above it)."""
     a0, left = agents.a0, agents.left
     for a in range(key.shape[0]):
-        m = memo[np.uint64(key[a] | (a0[a] << r))]
+        # as int64: interpreted, an int8 shifted by r overflows
+        m = np.int64(memo[np.uint64(key[a] | (a0[a] << r))])
         a0[a] = m & 1
         left[a] = m >> 1
         pkey[a] = np.int32(key[a] | ((m & 1) << r))

@@ -104,7 +104,7 @@ def _row_add_py(out: np.ndarray, dst: int, src: int, terms: np.ndarray, i: int) 
 
 
 def _intrinsics() -> tuple[Any, Any, Any]:
-    # The two intrinsics, built only where numba is (its import is deferred like the kernels').
+    # The intrinsics, built only where numba is (its import is deferred like the kernels').
     from llvmlite import ir  # type: ignore[import-untyped]
     from numba import types
     from numba.core import cgutils
@@ -115,7 +115,6 @@ def _intrinsics() -> tuple[Any, Any, Any]:
     i64 = ir.IntType(64)
     vec = ir.VectorType(f32, UNITS)
     ivec = ir.VectorType(i32, UNITS)
-    lanes_i32 = ir.VectorType(i32, UNITS)
 
     def splat(value: Any) -> Any:
         return ir.Constant(vec, [ir.Constant(f32, float(np.float32(value)))] * UNITS)
@@ -182,10 +181,10 @@ def _intrinsics() -> tuple[Any, Any, Any]:
             )
 
         zero = splat(0.0)
-        nobit = ir.Constant(lanes_i32, [0] * UNITS)
+        nobit = ir.Constant(ivec, [0] * UNITS)
         bits = b.shuffle_vector(
-            b.insert_element(ir.Constant(lanes_i32, None), first, ir.Constant(i32, 0)),
-            ir.Constant(lanes_i32, None),
+            b.insert_element(ir.Constant(ivec, None), first, ir.Constant(i32, 0)),
+            ir.Constant(ivec, None),
             ir.Constant(ivec, [0] * UNITS),
         )
         near: Any = None
@@ -195,16 +194,16 @@ def _intrinsics() -> tuple[Any, Any, Any]:
             for j in range(2, TERMS):
                 part[j % 2] = b.call(fma, [units[j], broadcast(wdata, j * UNITS + k), part[j % 2]])
             o = b.fadd(part[0], part[1])
-            yes = ir.Constant(lanes_i32, [1 << k] * UNITS)
+            yes = ir.Constant(ivec, [1 << k] * UNITS)
             bits = b.or_(bits, b.select(b.fcmp_ordered(">=", o, zero), yes, nobit))
             close = b.fcmp_ordered("<=", b.call(fabs, [o]), broadcast(mdata, k))
             near = close if near is None else b.or_(near, close)
         keep_all = b.shuffle_vector(
-            b.insert_element(ir.Constant(lanes_i32, None), b.or_(keep, first), ir.Constant(i32, 0)),
-            ir.Constant(lanes_i32, None),
+            b.insert_element(ir.Constant(ivec, None), b.or_(keep, first), ir.Constant(i32, 0)),
+            ir.Constant(ivec, None),
             ir.Constant(ivec, [0] * UNITS),
         )
-        target = b.bitcast(b.gep(pdata, [at]), lanes_i32.as_pointer())
+        target = b.bitcast(b.gep(pdata, [at]), ivec.as_pointer())
         b.store(b.and_(bits, keep_all), target, align=4)
         return b.zext(b.bitcast(near, ir.IntType(UNITS)), i64)
 

@@ -4,6 +4,10 @@ reference of the authors' simulation."""
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 from grid_helpers import forced_genome, reference_run
@@ -186,3 +190,31 @@ def test_bad_starts_are_refused():
         ev.evaluate(genome, np.array([[[16, 0]]]))
     with pytest.raises(ValueError, match="heading"):
         Poses.from_rows([[0, 0, 1, 1]])
+
+
+INTERPRETED = """
+import numpy as np
+from gridworld.evaluate import GridEvaluator
+from gridworld.world import Torus, draw_starts
+from minimize_surprise.gridnet import GridGenomeLayout, GridNetSpec
+rows = []
+for predefined in (None, "line-partial"):
+    spec = GridNetSpec(14, predefined)
+    rng = np.random.default_rng(1)
+    torus = Torus(7, 6)
+    starts = draw_starts(rng, torus, 10, 2)
+    genomes = rng.uniform(-1, 1, (2, GridGenomeLayout(spec).size))
+    out = GridEvaluator(torus, spec, 4).evaluate(genomes, starts)
+    rows += [out.fitness.ravel(), out.predictions.ravel(), out.final.ravel()]
+print(np.concatenate(rows).tobytes().hex())
+"""
+
+
+def test_interpreted_kernels_give_the_compiled_results():
+    # without numba (SURPRISE_NO_JIT) every kernel runs as Python, the vector code as plain loops
+    runs = []
+    for no_jit in ("0", "1"):
+        env = {**os.environ, "SURPRISE_NO_JIT": no_jit}
+        command = [sys.executable, "-c", INTERPRETED]
+        runs.append(subprocess.run(command, check=True, capture_output=True, text=True, env=env))
+    assert runs[0].stdout == runs[1].stdout
