@@ -236,7 +236,8 @@ def actor_decisions(
         if abs(z0[k]) <= near0 or abs(z1[k]) <= near1:
             memo[k] = actor_decision(a_u, a_hidden, a_out, g, k, inputs, sums, inputs, scratch)
         else:
-            memo[k] = (1 if z0[k] >= 0.0 else 0) + (2 if z1[k] < 0.0 else 0)
+            # a0 is 0 only for a negative sum (a NaN reads as not negative, as in c_negative)
+            memo[k] = (0 if z0[k] < 0.0 else 1) + (2 if z1[k] < 0.0 else 0)
 
 
 @kernel

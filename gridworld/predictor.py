@@ -56,7 +56,8 @@ class Predictor(NamedTuple):
     sensor k at [j, k], 0 for a sensor without an output; ``margin`` (:data:`UNITS`): how near
     zero sensor k's estimated sum is summed again (-1 for a sensor without an output); ``keep``:
     the predicted sensors as bits; ``first``: the fixed predictions as bits (those of the first
-    step); ``out`` (O, H_p) and ``outputs`` (O): the output weights and each output's sensor, for
+    step; never a predicted sensor's: ``keep & first`` is 0, which the prediction bits rely on);
+    ``out`` (O, H_p) and ``outputs`` (O): the output weights and each output's sensor, for
     the code's sums; ``exact``: the code's tanh in the hidden units.
     """
 
@@ -105,9 +106,11 @@ def input_sums(u: np.ndarray, w: np.ndarray, g: int, bits: int, out: np.ndarray)
             for j in range(UNITS):
                 out[k + half, j] = out[k, j] + terms[2 * i + 1, j]
                 out[k, j] = out[k, j] + terms[2 * i, j]
+    if bits == low:  # no inputs left to continue the rows with
+        return
     block = 1 << low
-    for high in range((1 << (bits - low)) - 1, 0 if bits == low else -1, -1):
-        start = high * block
+    for high in range((1 << (bits - low)) - 1, -1, -1):
+        start = high * block  # bit i - low of high is input i's
         for k in range(block):
             row_add(out, start + k, k, terms, 2 * low + (high & 1))
             for i in range(low + 1, bits):
@@ -119,7 +122,7 @@ def make_predictor(nets: GridNetworks, g: int, exact: bool, table: np.ndarray) -
     """Genome g's :class:`Predictor`, its input sums built into ``table`` ((2^I, :data:`UNITS`),
     made once per batch: 2 MB for 14 sensors, which a fresh allocation per genome would fault in
     again). Refuses a predictor of more than :data:`gridworld.simd.TERMS` hidden units or
-    :data:`UNITS` sensors (no sensor model has one)."""
+    sensors (no sensor model has one)."""
     p_u, p_hidden, p_out, fixed, outputs = (
         nets.p_u,
         nets.p_hidden,
@@ -128,8 +131,10 @@ def make_predictor(nets: GridNetworks, g: int, exact: bool, table: np.ndarray) -
         nets.outputs,
     )
     inputs, hp, o = p_u.shape[2], p_hidden.shape[1], p_out.shape[1]
-    if hp > TERMS or fixed.shape[0] > UNITS:
+    if hp > TERMS or fixed.shape[0] > TERMS:
         raise ValueError("the predictor has more hidden units or sensors than its vectors hold")
+    if table.shape[0] != 1 << inputs or table.shape[1] != UNITS:
+        raise ValueError("the predictor's table must have a row of 16 per input pattern")
     input_sums(p_u, p_hidden, g, inputs, table)
     first = np.int64(0)
     for k in range(fixed.shape[0]):
@@ -176,6 +181,15 @@ def _settle(
 
 
 @kernel
+def _check_lanes(lanes: int, hidden: np.ndarray, pmask: np.ndarray) -> None:
+    # The vector code reads and writes whole groups of rows unchecked: the shapes are checked here
+    if lanes % GROUP != 0 or hidden.shape[0] < lanes or hidden.shape[1] != UNITS:
+        raise ValueError("the hidden states must be (lanes, 16), lanes a multiple of 16")
+    if pmask.shape[0] < lanes:
+        raise ValueError("the predictions need a bit mask per lane")
+
+
+@kernel
 def predict_outputs(predictor: Predictor, hidden: np.ndarray, pmask: np.ndarray) -> None:
     """The predictions of every lane (``pmask``, bit k: sensor k, over the fixed ones) from its
     hidden states (``hidden``: (lanes, :data:`UNITS`), lanes a multiple of :data:`LANE_ALIGN`)."""
@@ -185,6 +199,7 @@ def predict_outputs(predictor: Predictor, hidden: np.ndarray, pmask: np.ndarray)
         predictor.keep,
         predictor.first,
     )
+    _check_lanes(hidden.shape[0], hidden, pmask)
     for a in range(0, hidden.shape[0], GROUP):
         unsure = read_lanes(hidden, a, weights, margin, pmask, keep, first)
         if unsure != 0:  # a sum too near zero for its estimate's sign: the code's sums decide
@@ -197,6 +212,7 @@ def predict(predictor: Predictor, pkey: np.ndarray, hidden: np.ndarray, pmask: n
     :data:`UNITS`)) from inputs ``pkey``, then the next step's predictions into ``pmask``
     (:func:`predict_outputs`)."""
     table, self_loop, weights, margin, keep, first = predictor[:6]
+    _check_lanes(pkey.shape[0], hidden, pmask)
     if predictor.exact:
         for lane in range(pkey.shape[0]):
             sums = table[pkey[lane]]

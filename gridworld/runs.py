@@ -11,8 +11,9 @@ being vacated), a turn always succeeds; (3) all agents take their new poses.
 Sensing is synchronous, so the networks of all agents of a step are computed together (the
 predictor in vectors across agents, :mod:`gridworld.predictor`); only the moves are resolved one
 agent after the other. Both networks take their hidden units' input sums from a per-genome table
-of the sums over all inputs for every pattern of their bits
-(:func:`gridworld.kernels.prefix_sums`): the code's float32 operations, so its sums bit for bit,
+of the sums over all inputs for every pattern of their bits (the actor's by unit,
+:func:`gridworld.kernels.prefix_sums`; the predictor's by pattern,
+:func:`gridworld.predictor.input_sums`): the code's float32 operations, so its sums bit for bit,
 at a fraction of the work. The actor has no state: its decision is a function of the R + 1 input
 bits, computed for every input before a genome's runs and looked up in them
 (:func:`gridworld.kernels.actor_decisions`); it is computed with a fast tanh and computed again
@@ -319,7 +320,8 @@ def _move(tables: WorldTables, agents: Agents, occupancy: Occupancy, t: int) -> 
             e = event_r[front]
             # one branch, not three (LLVM makes a branch of each comparison in an &, and a move
             # is as likely as not): an agent goes when its a0 is 0 (a move) and the front
-            # cell's last event is older than this step (the sign of e - now) and a leaving
+            # cell's last event is older than this step (the sign of e - now) and a leaving (e
+            # even)
             stay = a0[a] | (e & 1) | ((((e - now) >> 63) & 1) ^ 1)
             if stay == 0:
                 event_r[front] = now + 1

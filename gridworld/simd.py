@@ -13,8 +13,9 @@ loop over the units first). A group of 16 lanes:
    shuffles), then each sensor's output sum on all 16 lanes at once: unit j's vector times the
    weight ``weights[j, k]`` (unit j to sensor k), fused multiply-adds in two partial sums (even
    and odd units: half the chain of dependent operations). That estimate lies within
-   :data:`gridworld.predictor.OUTPUT_MARGIN` of the code's sum, so its sign is the code's where
-   it is farther from zero than ``margin[k]``;
+   ``margin[k]`` (:data:`gridworld.predictor.OUTPUT_MARGIN` times the output's absolute weights)
+   of the code's sum, so its sign is the code's where it is farther from zero than that (a NaN
+   estimate counts as near, and the code's rule decides it);
 3. the prediction bits: sensor k is 1 where its estimate is 0 or more, only the sensors in
    ``keep``, over the fixed ones in ``first``.
 
@@ -47,8 +48,8 @@ GROUP = 16
 #: States whose tanh is written out step by step together (their chains interleave: 4 measured
 #: 2 % faster than 1 or 8).
 WAVE = 4
-#: Hidden units the output sums take: the most any predictor has (14 sensors' full pair);
-#: the rows' units 14 and 15 are always 0.
+#: Hidden units the output sums take, and sensors they predict: the most any predictor has (the
+#: full network pair of the 14-sensor model has 14 of each); a row's units 14 and 15 stay 0.
 TERMS = 14
 
 
@@ -68,12 +69,12 @@ def _outputs_py(
     unsure = 0
     for lane in range(GROUP):
         bits = 0
-        for k in range(UNITS):
+        for k in range(TERMS):
             z = np.float32(0.0)
             for j in range(TERMS):
                 z = np.float32(z + hidden[a + lane, j] * weights[j, k])
             bits |= (1 << k) if z >= 0.0 else 0
-            if abs(z) <= margin[k]:
+            if not abs(z) > margin[k]:
                 unsure |= 1 << lane
         pmask[a + lane] = np.uint32((bits & keep) | first)
     return unsure
@@ -196,7 +197,7 @@ def _intrinsics() -> tuple[Any, Any, Any]:
             o = b.fadd(part[0], part[1])
             yes = ir.Constant(ivec, [1 << k] * UNITS)
             bits = b.or_(bits, b.select(b.fcmp_ordered(">=", o, zero), yes, nobit))
-            close = b.fcmp_ordered("<=", b.call(fabs, [o]), broadcast(mdata, k))
+            close = b.fcmp_unordered("<=", b.call(fabs, [o]), broadcast(mdata, k))
             near = close if near is None else b.or_(near, close)
         keep_all = b.shuffle_vector(
             b.insert_element(ir.Constant(ivec, None), b.or_(keep, first), ir.Constant(i32, 0)),
@@ -238,7 +239,7 @@ def _intrinsics() -> tuple[Any, Any, Any]:
                 where = row(context, b, hidden_t, args[2], la)
                 pre.append(b.fadd(sums, b.fmul(b.load(where, align=4), s)))
                 rows.append(where)
-            states = [h for at in range(0, GROUP, WAVE) for h in tanh(b, pre[at : at + WAVE])]
+            states = [h for w in range(0, GROUP, WAVE) for h in tanh(b, pre[w : w + WAVE])]
             for h, where in zip(states, rows, strict=True):
                 b.store(h, where, align=4)
             return outputs(context, b, states, at, sig, args)

@@ -149,14 +149,17 @@ def test_actor_decisions_for_every_input_at_once_are_the_decisions_one_by_one(se
     w = layout.unpack(genomes[1])  # outputs near zero, as above
     w["actor.hidden"][1::2] = w["actor.hidden"][0::2] * (1 + 1e-6)
     w["actor.output"][:, 1::2] = -w["actor.output"][:, 0::2]
+    genomes = np.vstack([genomes, genomes[:1]])
     nets = grid_networks(layout, genomes)
+    nets.a_out[2, :, 0] = np.inf  # a float32 overflow: sums of inf and -inf are NaN
+    nets.a_out[2, :, 1] = -np.inf
     patterns = 1 << (sensors + 1)
     bits = min(11, sensors + 1)  # the lookups continue over the remaining inputs
     memo = np.full(patterns, -1, dtype=np.int8)
     sums = np.empty((spec.actor_hidden, patterns), dtype=np.float32)
     z = np.empty((2, patterns), dtype=np.float32)
     scratch = np.zeros(spec.actor_hidden, dtype=np.float32)
-    for g in range(2):
+    for g in range(3):
         prefix = np.zeros((spec.actor_hidden, 1 << bits), dtype=np.float32)
         prefix_sums(nets.a_u, nets.a_hidden, g, bits, prefix)
         actor_decisions(nets.a_u, nets.a_hidden, nets.a_out, g, sums, z, memo)
@@ -229,12 +232,24 @@ def test_estimated_outputs_read_as_the_codes_sums_even_next_to_zero():
         partial = np.dot(hidden[a, : TERMS - 1], out[q, : TERMS - 1])
         hidden[a, TERMS - 1] = -partial / out[q, TERMS - 1]
     assert np.abs(hidden).max() <= 1.0
+    hidden[lanes - 1, 3] = np.nan  # NaN sums: the code's rule reads them as not negative
     predictor = _predictor(out)
     pmask = np.zeros(lanes, dtype=np.uint32)
     predict_outputs(predictor, hidden, pmask)
     for a in range(lanes):
         assert pmask[a] == _codes_bits(predictor, hidden, a), a
     assert pmask[0] == int(predictor.keep) | 1 << 13
+
+
+def test_the_vector_code_refuses_lanes_of_the_wrong_shape():
+    predictor = _predictor(np.ones((3, TERMS), np.float32))
+    with pytest.raises(ValueError, match="multiple of 16"):
+        predict_outputs(predictor, np.zeros((20, UNITS), np.float32), np.zeros(20, np.uint32))
+    with pytest.raises(ValueError, match="multiple of 16"):
+        predict_outputs(predictor, np.zeros((16, 14), np.float32), np.zeros(16, np.uint32))
+    with pytest.raises(ValueError, match="bit mask per lane"):
+        predict(predictor, np.zeros(16, np.int32), np.zeros((16, UNITS), np.float32),
+                np.zeros(8, np.uint32))  # fmt: skip
 
 
 @pytest.mark.parametrize("hp", [14, 6])
