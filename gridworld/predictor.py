@@ -57,8 +57,7 @@ class Predictor(NamedTuple):
     zero sensor k's estimated sum is summed again (-1 for a sensor without an output); ``keep``:
     the predicted sensors as bits; ``first``: the fixed predictions as bits (those of the first
     step; never a predicted sensor's: ``keep & first`` is 0, which the prediction bits rely on);
-    ``out`` (O, H_p) and ``outputs`` (O): the output weights and each output's sensor, for
-    the code's sums; ``exact``: the code's tanh in the hidden units.
+    ``exact``: the code's tanh in the hidden units.
     """
 
     table: np.ndarray
@@ -67,8 +66,6 @@ class Predictor(NamedTuple):
     margin: np.ndarray
     keep: np.uint32
     first: np.uint32
-    out: np.ndarray
-    outputs: np.ndarray
     exact: bool
 
 
@@ -142,22 +139,18 @@ def make_predictor(nets: GridNetworks, g: int, exact: bool, table: np.ndarray) -
     keep = np.int64(0)
     weights = np.zeros((UNITS, UNITS), dtype=np.float32)
     margin = np.full(UNITS, -1.0, dtype=np.float32)
-    out = np.empty((o, hp), dtype=np.float32)
     for q in range(o):
         k = outputs[q]
         keep |= np.int64(1) << k
         total = np.float32(0.0)
         for j in range(hp):
-            out[q, j] = p_out[g, q, j]
             weights[j, k] = p_out[g, q, j]
             total += abs(p_out[g, q, j])
         margin[k] = OUTPUT_MARGIN * total + np.float32(1e-9)
     self_loop = np.zeros(UNITS, dtype=np.float32)
     for j in range(hp):
         self_loop[j] = nets.p_self[g, j]
-    return Predictor(
-        table, self_loop, weights, margin, np.uint32(keep), np.uint32(first), out, outputs, exact
-    )
+    return Predictor(table, self_loop, weights, margin, np.uint32(keep), np.uint32(first), exact)
 
 
 @kernel
@@ -165,18 +158,21 @@ def _settle(
     predictor: Predictor, hidden: np.ndarray, a: int, unsure: int, pmask: np.ndarray
 ) -> None:
     # The predictions of the group's lanes flagged in `unsure` from the code's output sums: the
-    # terms added in order from 0, the code's tanh deciding right below 0.
-    out, outputs = predictor.out, predictor.outputs
+    # terms added in order from 0, the code's tanh deciding right below 0. Summed over all
+    # TERMS units: those beyond H_p are 0 with weights 0, and adding +0 changes no sign reading
+    # (an exact -0 becomes +0, and both read as not negative).
+    weights, keep = predictor.weights, predictor.keep
     for lane in range(a, a + GROUP):
         if not (unsure >> (lane - a)) & 1:
             continue
         bits = pmask[lane]
-        for q in range(out.shape[0]):
-            z = np.float32(0.0)
-            for j in range(out.shape[1]):
-                z = z + hidden[lane, j] * out[q, j]
-            bit = np.uint32(1) << np.uint32(outputs[q])
-            bits = (bits & ~bit) | (np.uint32(0) if c_negative(z) else bit)
+        for k in range(TERMS):
+            bit = np.uint32(1) << np.uint32(k)
+            if keep & bit:
+                z = np.float32(0.0)
+                for j in range(TERMS):
+                    z = z + hidden[lane, j] * weights[j, k]
+                bits = (bits & ~bit) | (np.uint32(0) if c_negative(z) else bit)
         pmask[lane] = bits
 
 

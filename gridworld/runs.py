@@ -248,13 +248,13 @@ def _bytes_of(bits: np.uint64) -> np.uint64:
 
 @kernel
 def _score(
-    key: np.ndarray, pmask: np.ndarray, r: int, correct: np.ndarray, ones: np.ndarray
+    key: np.ndarray, pmask: np.ndarray, r: int, correct: np.ndarray, predsum: np.ndarray
 ) -> None:
     """Adds to ``correct[rep]`` how many of the R sensor bits of run rep's agents (``key``) last
-    step's predictions (``pmask``) got right, and to ``ones[rep, k]`` how many of them predicted
-    sensor k as 1. Bit k of every lane goes to byte k of a counter (two counters per sum, the
-    sensors 0-6 and 7-13: R is at most 14), so one pass of a few integer operations per lane,
-    which vectorises, counts every sensor at once."""
+    step's predictions (``pmask``) got right, and to ``predsum[rep, k]`` (float64, exact for
+    such counts) how many of them predicted sensor k as 1. Bit k of every lane goes to byte k
+    of a counter (two counters per sum, the sensors 0-6 and 7-13: R is at most 14), so one pass
+    of a few integer operations per lane, which vectorises, counts every sensor at once."""
     reps = correct.shape[0]
     n = key.shape[0] // reps
     seven = np.uint64(7)
@@ -276,9 +276,9 @@ def _score(
                 wrong += np.int64((wrong_low >> shift) & np.uint64(255))
                 wrong += np.int64((wrong_high >> shift) & np.uint64(255))
                 if k < r:
-                    ones[rep, k] += np.int64((ones_low >> shift) & np.uint64(255))
+                    predsum[rep, k] += np.float64((ones_low >> shift) & np.uint64(255))
                 if k + 7 < r:
-                    ones[rep, k + 7] += np.int64((ones_high >> shift) & np.uint64(255))
+                    predsum[rep, k + 7] += np.float64((ones_high >> shift) & np.uint64(255))
         correct[rep] += n * r - wrong
 
 
@@ -335,18 +335,15 @@ def _move(tables: WorldTables, agents: Agents, occupancy: Occupancy, t: int) -> 
 
 
 @kernel
-def _tally(agents: Agents, ones: np.ndarray, out: RunOutcome) -> None:
-    """After the last step: each run's final poses and its scored predictions per sensor
-    (``ones`` (reps, R), counted by :func:`_score`)."""
+def _tally(agents: Agents, out: RunOutcome) -> None:
+    """After the last step: each run's final poses."""
     cell, head = agents.cell, agents.head
-    predsum, final = out.predsum, out.final
-    reps, n, r = final.shape[0], final.shape[1], ones.shape[1]
+    final = out.final
+    reps, n = final.shape[0], final.shape[1]
     for rep in range(reps):
         for a in range(n):
             final[rep, a, 0] = cell[rep * n + a]
             final[rep, a, 1] = head[rep * n + a]
-        for k in range(r):
-            predsum[rep, k] = ones[rep, k]
 
 
 @kernel
@@ -368,39 +365,36 @@ def simulate_genome(
     sensors are read from bit rows and columns of the occupancy; without, cell by cell.
     """
     tables = torus.tables
-    correct, trace, trace_rep = out.correct, out.trace, out.trace_rep
+    correct, predsum, trace, trace_rep = out.correct, out.predsum, out.trace, out.trace_rep
     reps, n, r = starts.shape[0], starts.shape[1], torus.nb.shape[2]
     lanes = reps * n
     agents, occupancy = _place_agents(torus, starts)
     memo = room.memo
     actor_decisions(nets.a_u, nets.a_hidden, nets.a_out, g, room.sums, room.z, memo)
     predictor = make_predictor(nets, g, exact, room.table)
-    outputs = predictor.outputs.shape[0]
     # per lane: the sensor bits read this step; the predictor's inputs (those bits with this
     # step's a0 above them), its hidden state (a row, units beyond H_p 0: gridworld.predictor)
     # and the bits of its prediction to be scored at the next step, the predictor's lanes
-    # padded (gridworld.predictor.LANE_ALIGN); per run and sensor: how many scored
-    # predictions said 1
+    # padded (gridworld.predictor.LANE_ALIGN)
     padded = -(-lanes // LANE_ALIGN) * LANE_ALIGN
     key = np.zeros(lanes, dtype=np.int64)
     pkey = np.zeros(padded, dtype=np.int32)
     hidden = np.zeros((padded, UNITS), dtype=np.float32)
     pmask = np.full(padded, predictor.first, dtype=np.uint32)
-    ones = np.zeros((reps, r), dtype=np.int64)
     base = np.zeros(lanes, dtype=np.int64)
     flips = np.zeros(n * r, dtype=np.uint8)
-    for rep in range(reps):
-        correct[rep] = 0
+    correct[:] = 0
+    predsum[:] = 0.0  # per run and sensor: how many scored predictions said 1
     for t in range(steps):
         if trace_rep >= 0:
             _record(trace, t, agents, trace_rep)
         _sense(torus, noise, agents, occupancy, key, base, flips, t, steps)
-        _score(key, pmask, r, correct, ones)
+        _score(key, pmask, r, correct, predsum)
         _act(memo, agents, key, pkey, r)
-        if outputs > 0:  # without outputs every prediction is fixed
+        if predictor.keep != 0:  # without outputs every prediction is fixed
             predict(predictor, pkey, hidden, pmask)
         _move(tables, agents, occupancy, t)
-    _tally(agents, ones, out)
+    _tally(agents, out)
     if trace_rep >= 0:
         _record(trace, steps, agents, trace_rep)
 

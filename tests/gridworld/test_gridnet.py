@@ -186,10 +186,15 @@ def test_prefix_sums_are_the_sums_in_input_order():
             assert prefix[j, k] == total  # bit for bit
 
 
-def _predictor(out, sensors=14, table=None, self_loop=None, exact=False):
-    # A Predictor for output weights out ((O, H)), output q predicting sensor 2 q mod sensors.
+def _sensors_of(outputs):
+    # The tests' predictors: output q predicts sensor 2 q (of 14).
+    return (2 * np.arange(outputs)) % 14
+
+
+def _predictor(out, table=None, self_loop=None, exact=False):
+    # A Predictor for output weights out ((O, H)), fixed prediction 1 for sensor 13.
     o, hp = out.shape
-    outputs = (2 * np.arange(o)) % sensors
+    outputs = _sensors_of(o)
     weights = np.zeros((UNITS, UNITS), np.float32)
     margin = np.full(UNITS, -1.0, np.float32)
     for q in range(o):
@@ -198,17 +203,16 @@ def _predictor(out, sensors=14, table=None, self_loop=None, exact=False):
     keep = np.uint32(sum(1 << int(k) for k in outputs))
     table = np.zeros((1, UNITS), np.float32) if table is None else table
     self_loop = np.zeros(UNITS, np.float32) if self_loop is None else self_loop
-    return Predictor(table, self_loop, weights, margin, keep, np.uint32(1 << 13), out, outputs,
-                     exact)  # fmt: skip
+    return Predictor(table, self_loop, weights, margin, keep, np.uint32(1 << 13), exact)
 
 
-def _codes_bits(predictor, hidden, lane):
+def _codes_bits(out, hidden, lane):
     # The lane's predictions from the code's sums: terms in order from 0, the code's sign.
-    bits = int(predictor.first)
-    for q, k in enumerate(predictor.outputs):
+    bits = 1 << 13
+    for q, k in enumerate(_sensors_of(out.shape[0])):
         z = np.float32(0.0)
-        for j in range(predictor.out.shape[1]):
-            z = np.float32(z + hidden[lane, j] * predictor.out[q, j])
+        for j in range(out.shape[1]):
+            z = np.float32(z + hidden[lane, j] * out[q, j])
         bits = (bits & ~(1 << int(k))) | (0 if c_negative(z) else 1 << int(k))
     return bits
 
@@ -237,7 +241,7 @@ def test_estimated_outputs_read_as_the_codes_sums_even_next_to_zero():
     pmask = np.zeros(lanes, dtype=np.uint32)
     predict_outputs(predictor, hidden, pmask)
     for a in range(lanes):
-        assert pmask[a] == _codes_bits(predictor, hidden, a), a
+        assert pmask[a] == _codes_bits(out, hidden, a), a
     assert pmask[0] == int(predictor.keep) | 1 << 13
 
 
@@ -276,7 +280,7 @@ def test_the_vector_step_is_the_scalar_units_bit_for_bit(hp):
                 for j in range(UNITS):
                     x = np.float32(table[pkey[a], j] + np.float32(before[a, j] * self_loop[j]))
                     assert states[a, j].tobytes() == np.float32(unit(x)).tobytes(), (a, j)
-                assert pmask[a] == _codes_bits(predictor, states, a), a
+                assert pmask[a] == _codes_bits(out, states, a), a
 
 
 @kernel
