@@ -1,8 +1,8 @@
 """The agent's real-time control loop: period accuracy and work per step.
 
 Runs one evaluation through :class:`robot_agent.runner.EvaluationRunner` (network, safety layer,
-watchdog) on a :class:`~drivers.clock.MonotonicClock` against a simulated robot (``sim_stub`` in
-real-time mode, one robot in the basic arena; a constant fake body if ``sim_stub`` is missing),
+watchdog) on a :class:`~drivers.clock.MonotonicClock` against a simulated robot (``simulator`` in
+real-time mode, one robot in the basic arena; a constant fake body if ``simulator`` is missing),
 for ``--seconds`` of wall time. Prints one figure a line as ``name: value unit``:
 
 - ``period_error``: |interval between consecutive step starts - period|;
@@ -74,7 +74,7 @@ class TimedBody(Body):
 
 
 class ConstantBody(Body):
-    """Fallback when sim_stub is not available: constant readings, motors ignored."""
+    """Fallback when simulator is not available: constant readings, motors ignored."""
 
     @property
     def sensors(self) -> tuple[str, ...]:
@@ -112,15 +112,15 @@ async def measure(seconds: float, body_kind: str) -> None:
     source = "constant fake body"
     if body_kind == "sim":
         try:
-            from sim_stub.body import SimSwarm
-            from sim_stub.scenarios import scenario_config
-            from sim_stub.world import World
+            from simulator.body import SimSwarm
+            from simulator.scenarios import scenario_config
+            from simulator.world import World
         except ImportError:
-            print("# sim_stub is not available; using the constant fake body")
+            print("# simulator is not available; using the constant fake body")
         else:
             swarm = SimSwarm(World(scenario_config("basic", {"robots": 1}), 0), realtime=True)
             inner = swarm.body(0, SENSORS)
-            source = "sim_stub (real time)"
+            source = "simulator (real time)"
     body = TimedBody(inner)
     clock = TimedClock(MonotonicClock())
     watchdog = Watchdog(body.stop)
@@ -176,7 +176,7 @@ def main() -> None:
         "--body",
         choices=["sim", "fake"],
         default="sim",
-        help="sim_stub's simulated robot (default) or a constant fake body",
+        help="simulator's simulated robot (default) or a constant fake body",
     )
     args = parser.parse_args()
     asyncio.run(measure(args.seconds, args.body))

@@ -44,7 +44,7 @@ from master_service.experiments.simulation_setup import (  # noqa: E402
 from minimize_surprise.evolution import OnePlusOne  # noqa: E402
 from minimize_surprise.fitness import swarm_fitness  # noqa: E402
 from minimize_surprise.network import GenomeLayout, spec_from_config  # noqa: E402
-from sim_stub.engine import Swarm, evaluate_swarms  # noqa: E402
+from simulator.engine import Swarm, evaluate_swarms  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from sim import enki_python, measure_enki, pin_to_one_core  # noqa: E402

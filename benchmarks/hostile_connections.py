@@ -185,7 +185,7 @@ async def _master_main(queue: Any, stop: Any, kind: str, max_pending: int | None
 
 def _robots_process(port: int, count: int) -> None:
     async def main() -> None:
-        from sim_stub.scripted_robots import ScriptedRobot
+        from standins.scripted_robots import ScriptedRobot
 
         robots = [ScriptedRobot(f"r{i}", SECRET, port, index=i, delay=0.01) for i in range(count)]
         await asyncio.gather(*(r.connect() for r in robots))
@@ -297,7 +297,7 @@ def _rejoin_process(queue: Any, port: int, attempts: int, address: str) -> None:
 
 
 async def _rejoin(queue: Any, port: int, attempts: int, address: str) -> None:
-    from sim_stub.scripted_robots import ScriptedRobot
+    from standins.scripted_robots import ScriptedRobot
 
     if "local_address" in inspect.signature(ScriptedRobot).parameters:
         robot = ScriptedRobot("r0", SECRET, port, local_address=address)

@@ -28,7 +28,7 @@ from master_service import Master, MasterConfig
 from master_service.config import DEFAULT_MAX_PENDING_CONNECTIONS
 from master_service.rundir import RunDir, format_row
 from minimize_surprise.config import EvolutionConfig, ExperimentConfig
-from sim_stub.scripted_robots import ScriptedRobot
+from standins.scripted_robots import ScriptedRobot
 
 SECRET = b"benchmark-secret"
 #: Rounds per swarm size: enough for a stable median, few enough for 1,000 robots to stay quick.

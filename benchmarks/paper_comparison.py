@@ -25,7 +25,7 @@ from pathlib import Path
 from master_service.experiments.baseline import run_baseline
 from master_service.experiments.engine_run import FastRun
 from master_service.experiments.simulation_setup import simulation_experiment
-from sim_stub import metrics as sim_metrics
+from simulator import metrics as sim_metrics
 
 
 def compare(

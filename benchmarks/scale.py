@@ -7,7 +7,7 @@ arena's density: 10 robots on a 1 m carpet, the carpet's side grown by sqrt(N / 
 - ``world``: our world alone, stepped inside one compiled loop (every robot's command set, the
   world stepped, every robot's sensors read), random commands up to full speed held for 10
   steps, as ``benchmarks/sim.py`` drives it;
-- ``engine``: the whole control step of an evaluation (``sim_stub.engine.evaluate``: sensors,
+- ``engine``: the whole control step of an evaluation (``simulator.engine.evaluate``: sensors,
   every robot's network pair and surprise score, its safety layer, the world's step) with one
   random genome;
 - ``enki``: Enki's bare world (Debian's ``python3-enki2``, run by the system python) stepping as
@@ -21,7 +21,7 @@ cost grows faster, a tenth of them). Prints ``name: value unit`` lines: the cost
 in ns at each size, Enki's over ours at each size, and ours at 1000 robots over ours at 10.
 
 Targets (issue 25): ours at 1000 robots at most 1.5 times ours at 10 (contacts and IR sensing
-find their neighbours in a cell grid above ``sim_stub.physics.GRID_ROBOTS`` robots instead of
+find their neighbours in a cell grid above ``simulator.physics.GRID_ROBOTS`` robots instead of
 looking at every pair), and ahead of Enki at every size.
 
 Run: ``python benchmarks/scale.py [--sizes 10 100 1000] [--robot-steps 1000000] [--repeats 3]
@@ -52,10 +52,10 @@ from master_service.experiments.simulation_setup import (  # noqa: E402
 )
 from minimize_surprise.config import ExperimentConfig  # noqa: E402
 from minimize_surprise.network import GenomeLayout, spec_from_config  # noqa: E402
-from sim_stub import physics  # noqa: E402
-from sim_stub.engine import Swarm  # noqa: E402
-from sim_stub.physics import Geometry, Sensing  # noqa: E402
-from sim_stub.world import World  # noqa: E402
+from simulator import physics  # noqa: E402
+from simulator.engine import Swarm  # noqa: E402
+from simulator.physics import Geometry, Sensing  # noqa: E402
+from simulator.world import World  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from sim import enki_python, enki_runs, pin_to_one_core  # noqa: E402

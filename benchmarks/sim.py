@@ -42,8 +42,8 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from sim_stub.scenarios import WorldConfig, scenario_config  # noqa: E402
-from sim_stub.world import World  # noqa: E402
+from simulator.scenarios import WorldConfig, scenario_config  # noqa: E402
+from simulator.world import World  # noqa: E402
 
 
 def pin_to_one_core() -> None:

@@ -1,7 +1,7 @@
 """The ``Clock`` seam: the control loop sleeps to absolute deadlines on an injected clock.
 
 The real clock is :class:`MonotonicClock`; the simulator provides a lockstep clock whose time is the
-shared world's time (see ``sim_stub``), so simulated runs go as fast as the CPU allows and repeat
+shared world's time (see ``simulator``), so simulated runs go as fast as the CPU allows and repeat
 exactly for a seed.
 """
 

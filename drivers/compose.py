@@ -144,7 +144,7 @@ def build_body(config: BodyConfig, *, smbus_factory: SMBusFactory | None = None)
     """The body described by ``config`` (nothing is opened until ``open()``/``async with``).
 
     ``smbus_factory(bus_number)`` opens an I2C bus; the default is ``smbus2.SMBus``, and tests pass
-    ``sim_stub.fake_i2c`` buses. Parts are reported in canonical order: the Thymio's IR and ground
+    ``standins.fake_i2c`` buses. Parts are reported in canonical order: the Thymio's IR and ground
     sensors, ``force``, ``light.0``, ``light.1`` (light sensors in the order of ``config.light``).
     """
     buses = I2CBuses(smbus_factory)

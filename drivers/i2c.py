@@ -30,7 +30,7 @@ TRANSACTION_TIMEOUT = 0.2
 
 
 class SMBusLike(Protocol):
-    """The subset of ``smbus2.SMBus`` the drivers use (``sim_stub.fake_i2c`` emulates it)."""
+    """The subset of ``smbus2.SMBus`` the drivers use (``standins.fake_i2c`` emulates it)."""
 
     def read_byte_data(self, i2c_addr: int, register: int) -> int: ...
     def write_byte_data(self, i2c_addr: int, register: int, value: int) -> None: ...

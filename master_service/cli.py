@@ -222,7 +222,7 @@ def _pause_option(parser: argparse.ArgumentParser) -> None:
 
 def _experiment_options(parser: argparse.ArgumentParser) -> None:
     from minimize_surprise.settings import SETTINGS
-    from sim_stub.scenarios import SCENARIOS
+    from simulator.scenarios import SCENARIOS
 
     parser.add_argument(
         "--scenario", choices=SCENARIOS, help="arena and robots (default: basic, or the file's)"
@@ -445,7 +445,7 @@ def _simulate(
     """Run (or resume) a simulated experiment with its progress display; on SIGINT or SIGTERM
     stop at the next commit and say in one line where the run stands and how to go on."""
     from master_service.experiments.simulate import summary_text
-    from master_service.reporting.reality_gap import gap_lines
+    from reporting.reality_gap import gap_lines
 
     display = ProgressDisplay(level=logging.DEBUG if verbose else logging.INFO)
     if display.live and not verbose:
@@ -537,8 +537,8 @@ def _replay(args: argparse.Namespace) -> int:
         code = _serve(master, args)
         if code == 0:
             # The gap is what a replay is for: reported at once, as a simulated one is.
-            from master_service.reporting.reality_gap import gap_lines
-            from master_service.reporting.report import write_report
+            from reporting.reality_gap import gap_lines
+            from reporting.report import write_report
 
             for line in gap_lines(write_report(out).get("reality_gap")):
                 print(line)

@@ -25,14 +25,14 @@ __all__ = [
 
 def report_command(args: argparse.Namespace) -> int:
     """``surprise-master report``."""
-    from master_service.reporting.reality_gap import gap_lines
-    from master_service.reporting.report import (
+    from reporting.reality_gap import gap_lines
+    from reporting.report import (
         baseline_text,
         behaviour_line,
         safety_lines,
         write_report,
     )
-    from master_service.reporting.robot_stats import robot_lines
+    from reporting.robot_stats import robot_lines
 
     metrics = write_report(
         args.dir,
@@ -88,7 +88,7 @@ def check_command(args: argparse.Namespace) -> int:
 def continue_command(args: argparse.Namespace) -> int:
     """``surprise-master continue``."""
     from master_service.pause import request_continue
-    from master_service.reporting.status import running_master
+    from reporting.status import running_master
 
     run = RunDir(args.dir)
     if running_master(run) is None:
@@ -104,7 +104,7 @@ def continue_command(args: argparse.Namespace) -> int:
 
 def status_command(args: argparse.Namespace) -> int:
     """``surprise-master status``."""
-    from master_service.reporting.status import status_text
+    from reporting.status import status_text
 
     print(status_text(args.dir))
     return 0
@@ -112,14 +112,14 @@ def status_command(args: argparse.Namespace) -> int:
 
 def watch_command(args: argparse.Namespace) -> int:
     """``surprise-master watch``."""
-    from master_service.reporting.watch import run_watch  # rich and aiomqtt only for this command
+    from reporting.watch import run_watch  # rich and aiomqtt only for this command
 
     return run_watch(args.broker, prefix=args.prefix, once=args.once)
 
 
 def dashboard_command(args: argparse.Namespace) -> int:
     """``surprise-master dashboard``."""
-    from master_service.reporting.dashboard import run_dashboard  # bokeh only for this command
+    from reporting.dashboard import run_dashboard  # bokeh only for this command
 
     return run_dashboard(
         args.dir, args.host, args.port, open_browser=args.open, broker=args.broker,

@@ -5,7 +5,7 @@ one and the phase ``post-evaluation``, so the one evolution loop runs it as it r
 post-evaluation (traces, ``post_evaluation.json``, resume after a stop), on whatever evaluates
 it: simulated robots, Aseba Playground's or real ones. ``replay.json`` names where the genome came
 from, so that ``report`` puts the replay beside that run's own post-evaluation: the reality gap
-(:mod:`master_service.reporting.reality_gap`).
+(:mod:`reporting.reality_gap`).
 """
 
 from __future__ import annotations

@@ -146,7 +146,7 @@ class ExperimentConfig(Strict, frozen=True):
     :func:`decode_experiment` takes every timing and genome value it leaves out from it.
     ``predefined`` maps sensor names to fixed predictions in [0, 1] (paper Sec. IV-F).
     ``simulation`` and ``safety`` hold overrides of the simulated world's parameters and of the
-    simulated robots' safety layer; ``sim_stub`` decodes them, real robots ignore them (their
+    simulated robots' safety layer; ``simulator`` decodes them, real robots ignore them (their
     safety layer is in each robot's own configuration).
     """
 

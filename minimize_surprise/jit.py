@@ -50,7 +50,7 @@ except ImportError:  # pragma: no cover - depends on the installation
 JIT: bool = _numba is not None
 
 #: The packages whose modules may define kernels (those importing this module).
-_PACKAGES = ("minimize_surprise", "sim_stub", "gridworld", "robot_agent", "master_service")
+_PACKAGES = ("minimize_surprise", "simulator", "gridworld", "robot_agent", "master_service")
 #: A module defines or calls kernels when it holds this.
 _MARK = b"from minimize_surprise.jit import"
 #: Cache directories of other fingerprints untouched this long are removed (seconds).

@@ -4,7 +4,7 @@
 robots. An experiment names its setting (default ``lab``); every field below that the experiment
 file leaves out is taken from it, so ``surprise-master sim --setting paper`` runs the paper's
 experiment and a lab's real-robot run keeps the real robots' numbers. The world and the safety
-layer of a setting are the simulator's business (``sim_stub.settings``).
+layer of a setting are the simulator's business (``simulator.settings``).
 """
 
 from __future__ import annotations

@@ -35,7 +35,7 @@ import msgspec
 
 from minimize_surprise.errors import ConfigError
 from minimize_surprise.figures import save_figure
-from sim_stub import metrics as sim_metrics
+from simulator import metrics as sim_metrics
 from studies import tables
 from studies.runner import STUDY_FILE, TASKS_FILE
 from studies.spec import load_study

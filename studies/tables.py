@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from sim_stub.metrics import classify_manipulation
+from simulator.metrics import classify_manipulation
 from studies.stats import bonferroni, fisher, kruskal_wallis, mann_whitney
 
 __all__ = [
@@ -43,7 +43,7 @@ PAIRWISE_VALUES = 6
 
 def behaviour_class(behaviour: dict[str, Any] | None) -> str | None:
     """A run's behaviour class: with boxes the paper's object-manipulation class (``pushing``,
-    ``reverse driving`` or ``circling``, sim_stub.metrics.classify_manipulation), else
+    ``reverse driving`` or ``circling``, simulator.metrics.classify_manipulation), else
     ``motion/grouping``; None without behaviour."""
     if not behaviour:
         return None

@@ -13,7 +13,7 @@ from needs import require_binary
 async def dbus_address() -> AsyncIterator[str]:
     """The address of a private ``dbus-daemon`` that runs for the duration of one test."""
     require_binary("dbus-daemon")
-    from sim_stub.fake_medulla import private_bus
+    from standins.fake_medulla import private_bus
 
     async with private_bus() as address:
         yield address
@@ -23,6 +23,6 @@ async def dbus_address() -> AsyncIterator[str]:
 def compiled_kernels() -> None:
     """Compile the numba kernels once, before any test runs: a fresh clone compiles them on first
     use (seconds each), which would otherwise land inside some test's real-time timeout."""
-    from sim_stub.warmup import warm_up
+    from simulator.warmup import warm_up
 
     warm_up()

@@ -16,7 +16,7 @@ REPO = Path(__file__).resolve().parents[1]
 PACKAGES = (
     "minimize_surprise",
     "drivers",
-    "sim_stub",
+    "simulator",
     "robot_agent",
     "master_service",
     "telemetry",

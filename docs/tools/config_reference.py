@@ -49,8 +49,8 @@ from minimize_surprise.safety import SafetyConfig
 from minimize_surprise.sensors import ALL_SENSORS
 from minimize_surprise.settings import SETTINGS
 from robot_agent.config import AgentConfig
-from sim_stub.scenarios import SCENARIOS, WorldConfig, scenario_config
-from sim_stub.settings import safety_config, world_overrides
+from simulator.scenarios import SCENARIOS, WorldConfig, scenario_config
+from simulator.settings import safety_config, world_overrides
 from studies.spec import Study
 from telemetry.config import TelemetryConfig
 
@@ -466,7 +466,7 @@ def documents() -> list[Document]:
             root=WorldConfig,
             prefix="simulation.",
             intro=(
-                "`sim_stub.scenarios.WorldConfig`: the simulated world, under `simulation:` in an "
+                "`simulator.scenarios.WorldConfig`: the simulated world, under `simulation:` in an "
                 "experiment file (real robots ignore it). Lengths in metres, angles in degrees, "
                 "times in seconds, sensor values normalised to [0, 1]; the origin is the carpet's "
                 "centre. The defaults below are the structure's own; the experiment's `scenario` "

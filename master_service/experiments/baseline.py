@@ -2,7 +2,7 @@
 comparison for evolved pairs, Sec. V-B).
 
 Each random pair (a genome drawn as evolution draws its initial genome) runs on every robot of a
-freshly reset arena for the post-evaluation length, on the engine (``sim_stub.engine``: the same
+freshly reset arena for the post-evaluation length, on the engine (``simulator.engine``: the same
 network, safety and scoring kernels the agents run, shown equal to them in the tests). Its
 ``fitness`` is the swarm fitness over the first ``evaluation_steps`` steps, which is what an
 evolved genome's fitness measures; the behaviour metrics cover the whole run, like the
@@ -26,8 +26,8 @@ from minimize_surprise.config import ExperimentConfig
 from minimize_surprise.evolution import random_genome
 from minimize_surprise.fitness import surprise_fitness, swarm_fitness
 from minimize_surprise.network import GenomeLayout, spec_from_config
-from sim_stub import metrics as sim_metrics
-from sim_stub.engine import EvaluationRecord, Swarm
+from simulator import metrics as sim_metrics
+from simulator.engine import EvaluationRecord, Swarm
 
 __all__ = ["BASELINE_FILE", "load_baseline", "run_baseline"]
 

@@ -5,7 +5,7 @@
 run directory with its configuration snapshot, exactly-once rows and checkpoints, best genome and
 post-evaluation traces, resume), the same arena reset before the post-evaluation, then
 simulation.json and the report. Its evaluator runs each evaluation on
-:class:`sim_stub.engine.Swarm`, which does what the agents do in lockstep, in one compiled loop.
+:class:`simulator.engine.Swarm`, which does what the agents do in lockstep, in one compiled loop.
 For the same experiment and seed it gives the rows and traces that ``--engine agents`` gives.
 
 Evaluation ids never leave the process here, so commits are grouped: the rows counted since the
@@ -41,8 +41,8 @@ from master_service.rundir import RunDir, RunState
 from minimize_surprise.config import ExperimentConfig
 from minimize_surprise.network import spec_from_config
 from minimize_surprise.wire import EvaluationStats, Result, Trace
-from sim_stub.engine import EvaluationRecord, Swarm, evaluate_swarms
-from sim_stub.world import box_frame_steps
+from simulator.engine import EvaluationRecord, Swarm, evaluate_swarms
+from simulator.world import box_frame_steps
 
 __all__ = ["COMMIT_INTERVAL", "EngineEvaluator", "FastRun", "SwarmBatcher", "run_batch"]
 
@@ -142,7 +142,7 @@ class FastRun:
         self, opened: _OpenRun, summary: RunSummary | None, plots: bool
     ) -> SimulatedRun | None:
         # After the loop: simulation.json and the report of a finished run.
-        from master_service.reporting.report import write_report  # matplotlib: only when reporting
+        from reporting.report import write_report  # matplotlib: only when reporting
 
         if summary is None:
             return None
@@ -319,7 +319,7 @@ class _Request(NamedTuple):
 class SwarmBatcher:
     """Evaluates the swarms of ``runs`` runs of one event loop together: each run's evaluation
     waits until every run still going has asked for one, then all run in one compiled call
-    (:func:`~sim_stub.engine.evaluate_swarms`), grouped by length and recording. A run that
+    (:func:`~simulator.engine.evaluate_swarms`), grouped by length and recording. A run that
     ends says so (:meth:`run_ended`) so the others no longer wait for it. Each swarm's results
     are those it has alone, to the last bit."""
 
@@ -373,7 +373,7 @@ def run_batch(
     (:class:`SwarmBatcher`): one process, one compiled call per evaluation of them all. Each
     run is what it is alone (its seed, evolution, checkpoints, run directory and results, to the
     last bit); its outcome, or the exception that stopped it, in order. The runs' swarms must be
-    compatible (:meth:`~sim_stub.engine.Swarm.check_batch`)."""
+    compatible (:meth:`~simulator.engine.Swarm.check_batch`)."""
     for fast, _ in runs[1:]:
         runs[0][0].swarm.check_batch(fast.swarm)
     batcher = SwarmBatcher(len(runs))

@@ -2,7 +2,7 @@
 
 The master and N real agents (:class:`robot_agent.agent.Agent`, the code that runs on a robot's Pi)
 run in one event loop and talk over loopback TCP exactly as in a lab; the agents drive simulated
-Thymios (:mod:`sim_stub`) that share one world. In lockstep (the default) the world advances one
+Thymios (:mod:`simulator`) that share one world. In lockstep (the default) the world advances one
 step once every robot has sent its command, so a run goes as fast as the CPU allows and repeats
 exactly for a seed; ``realtime`` paces the world at 10 Hz of wall-clock time instead.
 
@@ -44,11 +44,11 @@ from minimize_surprise.safety import SafetyState
 from robot_agent.agent import Agent
 from robot_agent.config import AgentConfig, LoopConfig
 from robot_agent.config import MasterConfig as AgentMasterConfig
-from sim_stub import metrics as sim_metrics
-from sim_stub.battery import SimBattery
-from sim_stub.body import SimSwarm
-from sim_stub.scenarios import SCENARIOS
-from sim_stub.world import World, box_frame_steps
+from simulator import metrics as sim_metrics
+from simulator.battery import SimBattery
+from simulator.body import SimSwarm
+from simulator.scenarios import SCENARIOS
+from simulator.world import World, box_frame_steps
 
 __all__ = [
     "SCENARIOS",
@@ -137,7 +137,7 @@ class SimulatedSwarm:
 
     def _snapshot(self) -> dict[str, Any]:
         # The master commits between rounds, while every robot is idle: a consistent state.
-        # Same shape as the engine's (sim_stub.engine.Swarm.snapshot).
+        # Same shape as the engine's (simulator.engine.Swarm.snapshot).
         return {
             "world": self.world.snapshot(),
             "safety": [agent.runner.safety_state.to_array().tolist() for agent in self._agents],
@@ -159,7 +159,7 @@ class SimulatedSwarm:
         run stops with its checkpoint current and the robots' motors stopped. ``replay`` (a new
         run only) post-evaluates that genome instead of evolving one.
         """
-        from master_service.reporting.report import write_report  # matplotlib: only when reporting
+        from reporting.report import write_report  # matplotlib: only when reporting
 
         run_dir = Path(run_dir)
         checkpoint = None
@@ -253,7 +253,7 @@ def summary_text(
 ) -> str:
     """What ``surprise-master sim`` prints at the end: where, how good, which behaviour, how much
     of it the safety layer drove."""
-    from master_service.reporting.report import safety_lines
+    from reporting.report import safety_lines
 
     best = metrics.get("best_fitness")
     lines = [

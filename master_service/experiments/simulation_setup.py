@@ -19,10 +19,10 @@ from master_service.evaluation import RunSummary
 from master_service.rundir import BOX_TRACK, SIMULATION_FILE, RunDirError, write_atomic
 from minimize_surprise.config import ExperimentConfig, decode_experiment, read_yaml
 from minimize_surprise.errors import ConfigError
-from sim_stub.engine import robot_ids
-from sim_stub.experiment import scenario_world, simulated_safety, world_config
-from sim_stub.scenarios import WorldConfig
-from sim_stub.world import TooManyRobotsError, World
+from simulator.engine import robot_ids
+from simulator.experiment import scenario_world, simulated_safety, world_config
+from simulator.scenarios import WorldConfig
+from simulator.world import TooManyRobotsError, World
 
 __all__ = [
     "ENGINES",
@@ -62,7 +62,7 @@ def simulation_experiment(
     """The experiment of a simulated run.
 
     Layers, each overriding the one before: the setting's defaults (``paper`` unless the file or
-    ``setting`` names another; see ``sim_stub.settings``), the scenario's robots and sensors, the
+    ``setting`` names another; see ``simulator.settings``), the scenario's robots and sensors, the
     experiment file ``config_file`` (or the experiment ``data`` given), then the arguments given
     (``arena``: the carpet's side in metres). A bad file or value raises :class:`ConfigError`
     naming the file and key.

@@ -24,7 +24,7 @@ from robot_agent.config import (
     make_ssl_context,
     read_secret,
 )
-from sim_stub.fake_medulla import StaticThymioModel, serve_fake_medulla
+from standins.fake_medulla import StaticThymioModel, serve_fake_medulla
 
 MINIMAL = """
 robot_id: thymio-01

@@ -10,7 +10,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from sim_stub.fake_medulla import StaticThymioModel, serve_fake_medulla
+from standins.fake_medulla import StaticThymioModel, serve_fake_medulla
 
 #: Modules the stop path must not import: each takes seconds to import on a slow Pi (numpy alone
 #: 1.7 s on an emulated one), and the agent's own side (the safety layer, the agent) brings them.

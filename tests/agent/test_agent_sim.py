@@ -10,9 +10,9 @@ import random
 import numpy as np
 from agent_fakes import SECRET, ScriptedMaster, agent_config, receive, spec
 
-import sim_stub.body as sim_body
-import sim_stub.scenarios as scenarios
-import sim_stub.world as world_module
+import simulator.body as sim_body
+import simulator.scenarios as scenarios
+import simulator.world as world_module
 from minimize_surprise.network import GenomeLayout
 from minimize_surprise.wire import Evaluate, Result, genome_to_bytes
 from robot_agent.agent import Agent

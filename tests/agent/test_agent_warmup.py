@@ -18,7 +18,7 @@ _SCRIPT = """
 import asyncio, json, random, sys
 sys.path.insert(0, {here!r})
 from agent_fakes import SECRET, agent_config
-import sim_stub.body as sim_body, sim_stub.scenarios as scenarios, sim_stub.world as world_module
+import simulator.body as sim_body, simulator.scenarios as scenarios, simulator.world as world_module
 from minimize_surprise.fitness import step_score
 from minimize_surprise.network import network_step
 from minimize_surprise.safety import safety_step

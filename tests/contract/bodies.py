@@ -23,11 +23,11 @@ from drivers.config import (
     MuxConfig,
     ThymioConfig,
 )
-from sim_stub.body import SimSwarm
-from sim_stub.fake_i2c import FakeADS1115, FakeI2C, FakeTCA9548A, FakeTSL45315
-from sim_stub.fake_medulla import StaticThymioModel, private_bus, serve_fake_medulla
-from sim_stub.scenarios import scenario_config
-from sim_stub.world import World
+from simulator.body import SimSwarm
+from standins.fake_i2c import FakeADS1115, FakeI2C, FakeTCA9548A, FakeTSL45315
+from standins.fake_medulla import StaticThymioModel, private_bus, serve_fake_medulla
+from simulator.scenarios import scenario_config
+from simulator.world import World
 
 #: The fake medulla answers in about a millisecond; this only bounds a broken test.
 CALL_TIMEOUT = 1.0

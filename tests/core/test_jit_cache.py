@@ -25,9 +25,9 @@ MODULE = "from minimize_surprise.jit import kernel\n\n\n@kernel\ndef f(x):\n    
 
 
 def package(root: Path) -> Path:
-    (root / "sim_stub").mkdir(parents=True)
-    (root / "sim_stub" / "k.py").write_text(MODULE.format(1))
-    (root / "sim_stub" / "plain.py").write_text("X = 1\n")
+    (root / "simulator").mkdir(parents=True)
+    (root / "simulator" / "k.py").write_text(MODULE.format(1))
+    (root / "simulator" / "plain.py").write_text("X = 1\n")
     return root
 
 
@@ -35,12 +35,12 @@ def test_the_fingerprint_changes_with_a_kernel_module_and_only_then(tmp_path):
     root = package(tmp_path)
     first = kernel_fingerprint(root)
     assert kernel_fingerprint(root) == first
-    (root / "sim_stub" / "plain.py").write_text("X = 2\n")  # no kernel in it
+    (root / "simulator" / "plain.py").write_text("X = 2\n")  # no kernel in it
     assert kernel_fingerprint(root) == first
-    (root / "sim_stub" / "k.py").write_text(MODULE.format(2))
+    (root / "simulator" / "k.py").write_text(MODULE.format(2))
     changed = kernel_fingerprint(root)
     assert changed != first
-    (root / "sim_stub" / "k2.py").write_text(MODULE.format(3))  # a new kernel module
+    (root / "simulator" / "k2.py").write_text(MODULE.format(3))  # a new kernel module
     assert kernel_fingerprint(root) not in (first, changed)
 
 

@@ -8,8 +8,8 @@ from typing import Any
 import pytest
 
 from drivers.config import ThymioConfig
-from sim_stub.fake_i2c import FakeI2C
-from sim_stub.fake_medulla import FakeMedulla, StaticThymioModel, serve_fake_medulla
+from standins.fake_i2c import FakeI2C
+from standins.fake_medulla import FakeMedulla, StaticThymioModel, serve_fake_medulla
 
 #: Generous for the fake, which answers in about a millisecond; hang tests use 0.05 s.
 TEST_TIMEOUT = 1.0

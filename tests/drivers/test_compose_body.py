@@ -14,8 +14,8 @@ from drivers.config import BodyConfig, ForceSensorConfig, LightSensorConfig, Mux
 from drivers.thymio import ThymioConfig
 from minimize_surprise.errors import HardwareError, HardwareTimeoutError
 from minimize_surprise.sensors import ALL_SENSORS
-from sim_stub.fake_i2c import FakeADS1115, FakeI2C, FakeTCA9548A, FakeTSL45315
-from sim_stub.fake_medulla import FakeMedulla, StaticThymioModel
+from standins.fake_i2c import FakeADS1115, FakeI2C, FakeTCA9548A, FakeTSL45315
+from standins.fake_medulla import FakeMedulla, StaticThymioModel
 
 ConfigFactory = Callable[..., ThymioConfig]
 

@@ -6,7 +6,7 @@ import errno
 
 import pytest
 
-from sim_stub.fake_i2c import FakeADS1115, FakeI2C, FakeTCA9548A, FakeTSL45315
+from standins.fake_i2c import FakeADS1115, FakeI2C, FakeTCA9548A, FakeTSL45315
 
 
 def test_unknown_address_nacks_with_remote_io_error(i2c: FakeI2C):

@@ -17,7 +17,7 @@ from dbus_fast.aio import MessageBus
 
 from drivers.thymio import ASEBA_INTERFACE, ASEBA_PATH, ASEBA_SERVICE, FAILSAFE_TICK
 from needs import pids, require_binary
-from sim_stub.fake_medulla import FakeMedulla, StaticThymioModel, serve_fake_medulla
+from standins.fake_medulla import FakeMedulla, StaticThymioModel, serve_fake_medulla
 
 
 @pytest.fixture
@@ -190,7 +190,7 @@ def test_a_private_bus_dies_with_a_killed_parent(tmp_path):
     require_binary("dbus-daemon")
     code = (
         "import asyncio\n"
-        "from sim_stub.fake_medulla import private_bus\n"
+        "from standins.fake_medulla import private_bus\n"
         "async def main():\n"
         "    async with private_bus() as address:\n"
         "        print(address, flush=True)\n"

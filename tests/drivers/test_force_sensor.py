@@ -8,7 +8,7 @@ from drivers.config import ForceSensorConfig, MuxConfig
 from drivers.force import MAX_POLLS, ForceSensor, config_word, to_signed16
 from drivers.i2c import I2CBuses, I2CDevice, swap16
 from minimize_surprise.errors import HardwareError
-from sim_stub.fake_i2c import FakeADS1115, FakeI2C, FakeTCA9548A
+from standins.fake_i2c import FakeADS1115, FakeI2C, FakeTCA9548A
 
 # Counts per volt at ±0.256 V: 32768 / 0.256.
 COUNTS_PER_VOLT = 128_000.0

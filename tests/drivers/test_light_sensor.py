@@ -12,7 +12,7 @@ from drivers.config import LightSensorConfig, MuxConfig
 from drivers.i2c import I2CBuses, I2CDevice
 from drivers.light import LightSensor
 from minimize_surprise.errors import HardwareError
-from sim_stub.fake_i2c import FakeI2C, FakeSMBus, FakeTCA9548A, FakeTSL45315
+from standins.fake_i2c import FakeI2C, FakeSMBus, FakeTCA9548A, FakeTSL45315
 
 
 def _sensor(i2c: FakeI2C, config: LightSensorConfig, name: str = "light.0", buses=None):

@@ -26,7 +26,7 @@ from drivers.thymio import (
     end_process,
 )
 from minimize_surprise.errors import HardwareError, HardwareTimeoutError, RobotUnreachableError
-from sim_stub.fake_medulla import FakeMedulla, StaticThymioModel, serve_fake_medulla, vm_of
+from standins.fake_medulla import FakeMedulla, StaticThymioModel, serve_fake_medulla, vm_of
 
 ConfigFactory = Callable[..., ThymioConfig]
 HANG_TIMEOUT = 0.05
@@ -279,7 +279,7 @@ async def test_close_never_raises_when_medulla_is_gone(
 
 
 async def test_close_never_raises_when_the_bus_is_gone(model: StaticThymioModel):
-    from sim_stub.fake_medulla import private_bus
+    from standins.fake_medulla import private_bus
 
     async with private_bus() as address, serve_fake_medulla(address, model):
         thymio = ThymioBase(ThymioConfig(bus=address, timeout=HANG_TIMEOUT))

@@ -12,7 +12,7 @@ import pytest
 from drivers.config import ThymioConfig
 from drivers.thymio import VBAT, ThymioBase
 from minimize_surprise.errors import HardwareTimeoutError
-from sim_stub.fake_medulla import FakeMedulla, StaticThymioModel
+from standins.fake_medulla import FakeMedulla, StaticThymioModel
 
 ConfigFactory = Callable[..., ThymioConfig]
 HANG_TIMEOUT = 0.05

@@ -1,7 +1,7 @@
 """The real Aseba stack for tests: Aseba Playground's simulated Thymios behind Debian's own
 ``asebamedulla``, each medulla on its own private D-Bus.
 
-The pieces are the product's, :mod:`sim_stub.playground` (``surprise-sim-robots --backend
+The pieces are the product's, :mod:`standins.playground` (``surprise-sim-robots --backend
 playground``), re-exported here under the names the tests use:
 
 - :class:`Playground` runs ``asebaplayground`` headless (``QT_QPA_PLATFORM=offscreen``) with one
@@ -30,7 +30,7 @@ import time
 from pathlib import Path
 
 from needs import missing
-from sim_stub.playground import (
+from standins.playground import (
     RESTART_DELAY,
     START_TIMEOUT,
     STOP_TIMEOUT,

@@ -28,7 +28,7 @@ from test_separate_processes import (
 
 from needs import pids, processes
 from robot_agent.config import load_agent_config
-from sim_stub.playground import PLAYGROUND_SPEED_SCALE
+from standins.playground import PLAYGROUND_SPEED_SCALE
 
 pytestmark = pytest.mark.slow
 
@@ -58,7 +58,7 @@ def test_a_lab_day_rehearsed_with_playground_robots(procs: Processes, tmp_path: 
     robots_dir = tmp_path / "robots"
     procs.start(
         "sim",
-        "sim_stub.serve",
+        "standins.serve",
         *("--backend", "playground", "--robots", str(ROBOTS), "--seed", "5"),
         *("--dir", str(robots_dir), "--master-port", str(port), "--secret-file", str(secret)),
         *("--reconnect-initial", "0.1", "--reconnect-max", "1.0"),

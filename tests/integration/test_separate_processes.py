@@ -258,7 +258,7 @@ def start_server(
     """Start ``surprise-sim-robots`` as process ``sim``; its robots.json once it serves."""
     procs.start(
         "sim",
-        "sim_stub.serve",
+        "standins.serve",
         *("--scenario", "basic", "--robots", str(robots), "--seed", "5"),
         *("--dir", str(robots_dir), "--master-port", str(port), "--secret-file", str(secret)),
         *extra,

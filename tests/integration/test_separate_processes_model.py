@@ -15,17 +15,17 @@ import pytest
 from drivers.config import SPEED_SCALE, ThymioConfig
 from drivers.thymio import ThymioBase
 from minimize_surprise.errors import HardwareError
-from sim_stub import serve
-from sim_stub.battery import SimBattery
-from sim_stub.body import SimSwarm
-from sim_stub.medulla_model import (
+from standins import serve
+from simulator.battery import SimBattery
+from simulator.body import SimSwarm
+from standins.medulla_model import (
     STEP_WAIT_TIMEOUT,
     SignallingWorld,
     SimThymio,
     serve_sim_thymio,
 )
-from sim_stub.scenarios import scenario_config
-from sim_stub.serve import servable_scenarios
+from simulator.scenarios import scenario_config
+from standins.serve import servable_scenarios
 
 #: A driver timeout longer than the medulla's bounded wait, so the bound is what a test sees.
 DRIVER_TIMEOUT = 2.0

@@ -23,7 +23,7 @@ from minimize_surprise.evolution import OnePlusOne
 from minimize_surprise.fitness import swarm_fitness
 from minimize_surprise.network import GenomeLayout, spec_from_config
 from minimize_surprise.wire import EvaluationStats
-from sim_stub.scripted_robots import ScriptedRobot, deterministic_fitness
+from standins.scripted_robots import ScriptedRobot, deterministic_fitness
 
 SECRET = b"test-secret"
 

@@ -16,7 +16,7 @@ from master_service.cli import main
 from master_service.experiments.simulate import SimulatedSwarm, simulation_experiment
 from master_service.pause import read_pause
 from master_service.rundir import PAUSE, RunDir
-from sim_stub.battery import SimBattery
+from simulator.battery import SimBattery
 
 pytestmark = pytest.mark.slow
 

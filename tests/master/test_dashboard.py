@@ -1,7 +1,7 @@
 """``surprise-master dashboard`` in a real headless browser (Debian's chromium through Selenium).
 
 The page's numbers are read from its DOM (Bokeh draws each model in a shadow root; every value
-stands in an element with a ``data-key``, see master_service/reporting/dashboard.py) and compared
+stands in an element with a ``data-key``, see reporting/dashboard.py) and compared
 with what ``evaluations.csv`` holds at that moment: while a simulated run (the agents engine, in
 real time, so that it runs while the browser looks) goes on, and after it finished.
 """

@@ -1,4 +1,4 @@
-"""The dashboard's reading of a run directory (master_service.reporting.dashboard_data) and the
+"""The dashboard's reading of a run directory (reporting.dashboard_data) and the
 HTML it makes of it, without Bokeh or a browser: files missing, half written, cut back on resume,
 columns the master adds later, a master that runs, pauses or died."""
 
@@ -13,8 +13,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from master_service.reporting.dashboard import robots_html, status_html
-from master_service.reporting.dashboard_data import (
+from reporting.dashboard import robots_html, status_html
+from reporting.dashboard_data import (
     MAX_TRACE_POINTS,
     STALE_AFTER,
     RunReader,

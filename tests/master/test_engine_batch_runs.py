@@ -14,7 +14,7 @@ from master_service.experiments import engine_run
 from master_service.experiments.engine_run import FastRun, run_batch
 from master_service.experiments.simulate import simulation_experiment
 from master_service.rundir import RunDir
-from sim_stub.engine import evaluate_swarms
+from simulator.engine import evaluate_swarms
 
 #: The wall clock's columns: a batch's time is shared among its runs.
 TIMING_COLUMNS = {"duration_s"}

@@ -14,7 +14,7 @@ import pytest
 from master_service.experiments.engine_run import FastRun
 from master_service.experiments.simulation_setup import simulation_experiment
 from minimize_surprise.files import PRIVATE_MODE, write_atomic
-from sim_stub.serve import SECRET_FILE, _secret_file
+from standins.serve import SECRET_FILE, _secret_file
 
 
 @pytest.fixture

@@ -22,7 +22,7 @@ from master_helpers import SECRET, master_config
 
 from master_service import Master
 from master_service.config import DEFAULT_HANDSHAKE_TIMEOUT, DEFAULT_MAX_PENDING_CONNECTIONS
-from sim_stub.scripted_robots import ScriptedRobot
+from standins.scripted_robots import ScriptedRobot
 
 #: Silent clients, as measured in issue 22: twice the master's handshake places.
 FLOOD_CLIENTS = 128

@@ -26,7 +26,7 @@ from minimize_surprise.wire import (
     encode,
 )
 from relay import Relay, tagged_message
-from sim_stub.scripted_robots import ScriptedRobot
+from standins.scripted_robots import ScriptedRobot
 
 
 @pytest.fixture

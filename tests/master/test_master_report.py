@@ -14,8 +14,8 @@ from master_helpers import SECRET, close, experiment, make_robots, master_config
 from master_service import Master, Progress
 from master_service.cli import main
 from master_service.progress import ProgressDisplay, describe
-from master_service.reporting.report import compute_metrics, write_report
-from master_service.reporting.status import status_text
+from reporting.report import compute_metrics, write_report
+from reporting.status import status_text
 
 
 @pytest.fixture

@@ -28,7 +28,7 @@ from master_helpers import (
 
 from master_service import Master
 from minimize_surprise.wire import MAX_FRAME_SIZE, Evaluate
-from sim_stub.scripted_robots import (
+from standins.scripted_robots import (
     DISCONNECT,
     DUPLICATE,
     FAIL,

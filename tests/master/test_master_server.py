@@ -40,7 +40,7 @@ from minimize_surprise.wire import (
     frame,
 )
 from needs import require_binary
-from sim_stub.scripted_robots import RobotRefusedError, ScriptedRobot
+from standins.scripted_robots import RobotRefusedError, ScriptedRobot
 from transport.stream import MessageStream
 from transport.tls import ServerTlsConfig
 

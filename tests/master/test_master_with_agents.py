@@ -13,11 +13,11 @@ from master_helpers import SECRET, experiment, master_config, read_csv
 
 import robot_agent.agent as agent_module
 import robot_agent.config as agent_config_module
-import sim_stub.body as sim_body
-import sim_stub.scenarios as scenarios
-import sim_stub.world as world_module
+import simulator.body as sim_body
+import simulator.scenarios as scenarios
+import simulator.world as world_module
 from master_service import Master
-from master_service.reporting.report import write_report
+from reporting.report import write_report
 
 ROBOTS = 3
 

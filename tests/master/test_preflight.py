@@ -29,8 +29,8 @@ from minimize_surprise.config import ExperimentConfig
 from robot_agent.agent import Agent
 from robot_agent.config import AgentConfig
 from robot_agent.config import MasterConfig as AgentMasterConfig
-from sim_stub.fake_i2c import FakeI2C, FakeTCA9548A, FakeTSL45315
-from sim_stub.fake_medulla import StaticThymioModel, private_bus, serve_fake_medulla
+from standins.fake_i2c import FakeI2C, FakeTCA9548A, FakeTSL45315
+from standins.fake_medulla import StaticThymioModel, private_bus, serve_fake_medulla
 
 SECRET = b"preflight-secret"
 #: The robot that never comes is waited for this long; the others connect in milliseconds.

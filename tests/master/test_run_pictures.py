@@ -13,7 +13,7 @@ import pytest
 from master_service.cli import main
 from master_service.experiments.engine_run import FastRun
 from master_service.experiments.simulate import simulation_experiment
-from master_service.reporting import pictures
+from reporting import pictures
 from needs import require_module
 
 require_module("matplotlib")

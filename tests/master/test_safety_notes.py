@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from master_service.reporting.report import _safety_metrics, safety_lines
+from reporting.report import _safety_metrics, safety_lines
 
 
 def _post(reasons: dict[str, int], steps: int) -> dict:

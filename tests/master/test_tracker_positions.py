@@ -31,8 +31,8 @@ import pytest
 from master_service.cli import main
 from master_service.experiments.engine_run import FastRun
 from master_service.experiments.simulation_setup import simulation_experiment
-from master_service.reporting.report import compute_metrics, write_report
-from master_service.reporting.tracker import (
+from reporting.report import compute_metrics, write_report
+from reporting.tracker import (
     MIN_COVERAGE,
     TrackerError,
     read_tracker,

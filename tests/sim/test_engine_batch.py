@@ -11,7 +11,7 @@ from master_service.experiments.simulation_setup import (
     world_config,
 )
 from minimize_surprise.network import GenomeLayout, spec_from_config
-from sim_stub.engine import Swarm, evaluate_swarms
+from simulator.engine import Swarm, evaluate_swarms
 
 
 def _swarms(scenario: str, seeds: list[int]) -> tuple[list[Swarm], list[np.ndarray]]:

@@ -1,10 +1,10 @@
-"""The lab setting's IR and ground sensors against Enki's Thymio II model (sim_stub.physics).
+"""The lab setting's IR and ground sensors against Enki's Thymio II model (simulator.physics).
 
 The world's default sensor models (the "lab" setting, the real robots' calibration) follow Enki's
 Thymio II: the horizontal IR's response ``c / (d^2 + c)`` with c = 73 cm^2 within 14 cm, and the
 ground sensors over a grey carpet with a bright boundary. Here the same geometries are set up in
 Enki itself (Debian's ``python3-enki2``, for the system python: one subprocess runs every probe
-and prints JSON) and in our :class:`~sim_stub.world.World`, and the normalised values compared
+and prints JSON) and in our :class:`~simulator.world.World`, and the normalised values compared
 (IR: raw / 4500, Enki's maximum is 4505; ground: raw / 1023).
 
 What Enki computes (enki/interactions/IRSensor.cpp, GroundSensor.cpp): an IR sensor casts three
@@ -35,9 +35,9 @@ import pytest
 
 from minimize_surprise.safety import SafetyConfig
 from needs import missing
-from sim_stub.physics import GROUND_POSITIONS, IR_POSITIONS
-from sim_stub.scenarios import scenario_config
-from sim_stub.world import World
+from simulator.physics import GROUND_POSITIONS, IR_POSITIONS
+from simulator.scenarios import scenario_config
+from simulator.world import World
 
 SYSTEM_PYTHON = "/usr/bin/python3"
 LAB = scenario_config("basic")  # the lab setting: 1 m carpet, walls 10 cm beyond it

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sim_stub.metrics import (
+from simulator.metrics import (
     backward_share,
     behaviour_label,
     behaviour_metrics,

@@ -9,7 +9,7 @@ import sys
 
 _WITHOUT_DBUS = (
     "import sys; sys.modules['dbus_fast'] = None; "
-    "from sim_stub.serve import main; sys.exit(main(sys.argv[1:]))"
+    "from standins.serve import main; sys.exit(main(sys.argv[1:]))"
 )
 
 

@@ -1,4 +1,4 @@
-"""Simulated bodies over one shared world: lockstep and real time (sim_stub.body)."""
+"""Simulated bodies over one shared world: lockstep and real time (simulator.body)."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ import pytest
 
 from drivers.body import Body
 from drivers.clock import Clock, MonotonicClock
-from sim_stub.body import LockstepClock, SimBody, SimSwarm
-from sim_stub.scenarios import scenario_config
-from sim_stub.world import World
+from simulator.body import LockstepClock, SimBody, SimSwarm
+from simulator.scenarios import scenario_config
+from simulator.world import World
 
 DT = 0.1
 

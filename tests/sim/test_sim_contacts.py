@@ -1,4 +1,4 @@
-"""Boxes, the blade and the force sensor; nothing overlaps (sim_stub.world)."""
+"""Boxes, the blade and the force sensor; nothing overlaps (simulator.world)."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import pytest
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
-from sim_stub.scenarios import scenario_config
-from sim_stub.world import World
+from simulator.scenarios import scenario_config
+from simulator.world import World
 
 FORCE = 9  # index of "force" in the boxes scenario's sensors
 
@@ -219,7 +219,7 @@ def test_nothing_overlaps_after_many_random_steps(scenario, seed, segments):
 def test_a_jam_of_more_pairs_than_the_scratch_holds_parts_the_same():
     # Boxes part pair by pair into scratch arrays that grow in a jam larger than they are; the
     # result must not depend on where they started.
-    from sim_stub.physics.boxes import _box_box, _grid
+    from simulator.physics.boxes import _box_box, _grid
 
     world = World(scenario_config("boxes", {"robots": 1}), seed=3)
     geometry, _ = world.kernel_constants

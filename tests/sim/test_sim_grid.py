@@ -1,5 +1,5 @@
 """The neighbour grid of large swarms gives what looking at every pair gives, bit for bit
-(sim_stub.physics.grid).
+(simulator.physics.grid).
 
 The grid only narrows down which other robots a robot's contacts and IR sensors look at, and
 visits them in increasing index as the all-pairs loops do (every push is added in the same
@@ -16,12 +16,12 @@ import math
 import numpy as np
 import pytest
 
-from sim_stub import physics
-from sim_stub.physics.contacts import contact_reach
-from sim_stub.physics.grid import build, gather, grid_side, new_cells
-from sim_stub.scenarios import WorldConfig, scenario_config
-from sim_stub.settings import world_overrides
-from sim_stub.world import World
+from simulator import physics
+from simulator.physics.contacts import contact_reach
+from simulator.physics.grid import build, gather, grid_side, new_cells
+from simulator.scenarios import WorldConfig, scenario_config
+from simulator.settings import world_overrides
+from simulator.world import World
 
 NEVER = 1 << 40  # grid_robots: look at every pair whatever the number of robots
 

@@ -1,4 +1,4 @@
-"""The paper's behaviour metrics on hand-made trajectories (sim_stub.metrics)."""
+"""The paper's behaviour metrics on hand-made trajectories (simulator.metrics)."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from sim_stub import metrics
-from sim_stub.metrics import (
+from simulator import metrics
+from simulator.metrics import (
     behaviour_metrics,
     box_displacement,
     classify_grouping,

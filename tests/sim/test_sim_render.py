@@ -1,4 +1,4 @@
-"""Pictures of the scenarios (sim_stub.render); needs the optional matplotlib."""
+"""Pictures of the scenarios (simulator.render); needs the optional matplotlib."""
 
 from __future__ import annotations
 
@@ -7,12 +7,12 @@ import sys
 import pytest
 
 from needs import require_module
-from sim_stub.scenarios import SCENARIOS, scenario_config
-from sim_stub.world import World
+from simulator.scenarios import SCENARIOS, scenario_config
+from simulator.world import World
 
 require_module("matplotlib")
 
-from sim_stub import render  # noqa: E402  (needs matplotlib, checked above)
+from simulator import render  # noqa: E402  (needs matplotlib, checked above)
 
 
 def is_png(path) -> bool:
@@ -47,7 +47,7 @@ def test_render_world_draws_trajectories_without_pyplot(tmp_path):
 def test_importing_the_simulator_does_not_import_matplotlib():
     import subprocess
 
-    code = "import sim_stub.world, sim_stub.body, sim_stub.metrics, sim_stub.render, sys; "
+    code = "import simulator.world, simulator.body, simulator.metrics, simulator.render, sys; "
     code += "print('matplotlib' in sys.modules)"
     command = [sys.executable, "-c", code]
     result = subprocess.run(command, capture_output=True, text=True, check=True)

@@ -1,4 +1,4 @@
-"""Named scenarios and their overrides (sim_stub.scenarios)."""
+"""Named scenarios and their overrides (simulator.scenarios)."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import pytest
 
 from minimize_surprise.errors import ConfigError
 from minimize_surprise.sensors import FORCE_SENSORS, GROUND_SENSORS, IR_SENSORS, LIGHT_SENSORS
-from sim_stub.scenarios import SCENARIOS, WorldConfig, scenario_config
-from sim_stub.world import TooManyRobotsError, World
+from simulator.scenarios import SCENARIOS, WorldConfig, scenario_config
+from simulator.world import TooManyRobotsError, World
 
 
 def test_the_three_scenarios_are_named():

@@ -1,4 +1,4 @@
-"""The kinematic world: motion, contacts, sensors, determinism (sim_stub.world)."""
+"""The kinematic world: motion, contacts, sensors, determinism (simulator.world)."""
 
 from __future__ import annotations
 
@@ -11,10 +11,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from minimize_surprise.sensors import ALL_SENSORS
-from sim_stub.physics.model import gaussian, normal_quantile
-from sim_stub.physics.motion import _wrap
-from sim_stub.scenarios import scenario_config
-from sim_stub.world import World
+from simulator.physics.model import gaussian, normal_quantile
+from simulator.physics.motion import _wrap
+from simulator.scenarios import scenario_config
+from simulator.world import World
 
 IR_F2 = 2
 _WRAP_EDGES = [

@@ -22,13 +22,13 @@ from rich.console import Console
 from telemetry_helpers import eventually
 
 from master_service import Master, Progress
-from master_service.reporting.watch import SwarmState, render
+from reporting.watch import SwarmState, render
 from robot_agent.agent import Agent
 from robot_agent.config import AgentConfig, BackoffConfig
 from robot_agent.config import MasterConfig as LinkConfig
-from sim_stub.body import SimSwarm
-from sim_stub.scenarios import scenario_config
-from sim_stub.world import World
+from simulator.body import SimSwarm
+from simulator.scenarios import scenario_config
+from simulator.world import World
 from telemetry.config import TelemetryConfig
 
 FAST = BackoffConfig(initial=0.02, max=0.1, jitter=0.5)

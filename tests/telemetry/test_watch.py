@@ -12,7 +12,7 @@ import pytest
 from rich.console import Console
 from telemetry_helpers import eventually
 
-from master_service.reporting.watch import SwarmState, collect, render, run_watch
+from reporting.watch import SwarmState, collect, render, run_watch
 from minimize_surprise.backoff import BackoffConfig
 from telemetry.config import TelemetryConfig, parse_broker_url
 from telemetry.payloads import (

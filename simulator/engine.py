@@ -47,10 +47,10 @@ from minimize_surprise.safety import (
     safety_seed,
     safety_step,
 )
-from sim_stub import physics
-from sim_stub.physics import Geometry, SenseWork, Sensing
-from sim_stub.scenarios import WorldConfig
-from sim_stub.world import World, box_frame_steps, box_frames
+from simulator import physics
+from simulator.physics import Geometry, SenseWork, Sensing
+from simulator.scenarios import WorldConfig
+from simulator.world import World, box_frame_steps, box_frames
 
 __all__ = [
     "Arenas",
@@ -126,7 +126,7 @@ class Recording(NamedTuple):
 class Scratch(NamedTuple):
     """The working arrays of one :func:`evaluate` call (:func:`new_scratch`), allocated by
     its caller so that the kernel may borrow them: ``values`` (B, N, world's sensors) the
-    readings, ``sensing`` each world's :class:`~sim_stub.physics.SenseWork` stacked (B, N,
+    readings, ``sensing`` each world's :class:`~simulator.physics.SenseWork` stacked (B, N,
     ...); the networks' lanes (``work``, ``acc``, ``previous`` a(t-1) starting as the initial
     action, ``hidden`` h(t-1) starting as the initial hidden state, ``action``,
     ``predictions``); ``total`` (B, N) the summed scores; ``need_force`` (B) each world's flag,
@@ -298,7 +298,7 @@ class EvaluationRecord:
     commands: np.ndarray | None = None
     reasons: np.ndarray | None = None
     poses: np.ndarray | None = None
-    #: the boxes' positions every :func:`~sim_stub.world.box_frame_steps` steps, (frames, boxes,
+    #: the boxes' positions every :func:`~simulator.world.box_frame_steps` steps, (frames, boxes,
     #: 2)
     boxes: np.ndarray | None = None
 

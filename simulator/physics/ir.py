@@ -13,7 +13,7 @@ import math
 import numpy as np
 
 from minimize_surprise.jit import kernel
-from sim_stub.physics.model import IR_HEADINGS, IR_POSITIONS, Sensing, gaussian
+from simulator.physics.model import IR_HEADINGS, IR_POSITIONS, Sensing, gaussian
 
 __all__ = ["IR_CONE", "IR_RAY", "ir_noise", "ir_readings"]
 

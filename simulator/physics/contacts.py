@@ -11,8 +11,8 @@ import math
 import numpy as np
 
 from minimize_surprise.jit import borrow, kernel
-from sim_stub.physics.grid import Cells, build, gather, grid_side, mark_around, new_cells
-from sim_stub.physics.model import Geometry
+from simulator.physics.grid import Cells, build, gather, grid_side, mark_around, new_cells
+from simulator.physics.model import Geometry
 
 # Overlaps shallower than this (metres) are left alone: resolving them exactly would take many
 # more passes for nothing anyone could measure (boxes and robots are a few centimetres).

@@ -1,6 +1,6 @@
 """A simulated Thymio behind the fake asebamedulla: one robot of a real-time world on D-Bus.
 
-:class:`SimThymio` is the fake medulla's :class:`~sim_stub.fake_medulla.ThymioModel` over robot
+:class:`SimThymio` is the fake medulla's :class:`~standins.fake_medulla.ThymioModel` over robot
 ``index`` of a :class:`SignallingWorld`: the world's normalised sensor values become the raw
 readings the real Thymio reports, and the motor targets written over D-Bus become the robot's
 normalised wheel command (the exact inverse of :mod:`drivers.thymio`'s scaling):
@@ -16,8 +16,8 @@ with a real robot. The wait is bounded by :data:`STEP_WAIT_TIMEOUT`, so no call 
 when the world stalls or stops.
 
 :func:`serve_sim_thymio` serves one robot on one bus, like
-:func:`~sim_stub.fake_medulla.serve_fake_medulla` does for a plain fake. This module imports
-``dbus_fast`` at the top, as :mod:`sim_stub.fake_medulla` does.
+:func:`~standins.fake_medulla.serve_fake_medulla` does for a plain fake. This module imports
+``dbus_fast`` at the top, as :mod:`standins.fake_medulla` does.
 """
 
 from __future__ import annotations
@@ -33,10 +33,10 @@ import numpy as np
 from drivers.config import SPEED_SCALE
 from drivers.thymio import GROUND_MAX, IR_MAX, PROX_HORIZONTAL, VBAT, VBAT_SCALE
 from minimize_surprise.sensors import GROUND_SENSORS, IR_SENSORS
-from sim_stub.battery import SimBattery
-from sim_stub.fake_medulla import GROUND_VARIABLES, FakeMedulla, serve_fake_medulla
-from sim_stub.scenarios import WorldConfig
-from sim_stub.world import World
+from simulator.battery import SimBattery
+from standins.fake_medulla import GROUND_VARIABLES, FakeMedulla, serve_fake_medulla
+from simulator.scenarios import WorldConfig
+from simulator.world import World
 
 __all__ = [
     "SENSOR_VARIABLES",
@@ -61,7 +61,7 @@ CALL_LOG_SIZE = 1000
 class SignallingWorld(World):
     """A :class:`World` that calls its step listeners after every step.
 
-    The real-time :class:`~sim_stub.body.SimSwarm` steps it; the listeners (one per served robot)
+    The real-time :class:`~simulator.body.SimSwarm` steps it; the listeners (one per served robot)
     release the sensor reads waiting for that step.
     """
 
@@ -86,7 +86,7 @@ class SignallingWorld(World):
 
 
 class SimThymio:
-    """Robot ``index`` of ``world`` as a :class:`~sim_stub.fake_medulla.ThymioModel`.
+    """Robot ``index`` of ``world`` as a :class:`~standins.fake_medulla.ThymioModel`.
 
     ``speed_scale`` is the motor target of a normalised speed of 1, as in the agent's
     :class:`~drivers.config.ThymioConfig` (the same default, ``drivers.config.SPEED_SCALE``).
@@ -182,7 +182,7 @@ class SimThymio:
 class SimMedulla(FakeMedulla):
     """The fake medulla for a :class:`SimThymio`: sensor reads answer after the next step.
 
-    Everything else is :class:`~sim_stub.fake_medulla.FakeMedulla`'s; :attr:`calls` keeps only
+    Everything else is :class:`~standins.fake_medulla.FakeMedulla`'s; :attr:`calls` keeps only
     the latest :data:`CALL_LOG_SIZE` calls.
     """
 

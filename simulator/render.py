@@ -4,7 +4,7 @@ matplotlib is an optional extra (``minimize-surprise[master]``); it is imported 
 is drawn, through its object-oriented API and the Agg canvas, so drawing never touches pyplot's
 global state or needs a display.
 
-Command line: ``python -m sim_stub.render SCENARIO OUT.png [--seed S] [--steps K]`` draws a
+Command line: ``python -m simulator.render SCENARIO OUT.png [--seed S] [--steps K]`` draws a
 scenario after K steps of a seeded random walk, with the trajectories.
 """
 
@@ -19,8 +19,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from minimize_surprise.figures import save_figure
-from sim_stub.scenarios import WorldConfig
-from sim_stub.world import World
+from simulator.scenarios import WorldConfig
+from simulator.world import World
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -247,9 +247,9 @@ def _random_walk(world: World, steps: int, seed: int) -> np.ndarray:
 
 def main(argv: list[str] | None = None) -> None:
     """Draw a named scenario to a PNG (see the module docstring)."""
-    from sim_stub.scenarios import SCENARIOS, scenario_config
+    from simulator.scenarios import SCENARIOS, scenario_config
 
-    parser = argparse.ArgumentParser(prog="python -m sim_stub.render", description=__doc__)
+    parser = argparse.ArgumentParser(prog="python -m simulator.render", description=__doc__)
     parser.add_argument("scenario", choices=SCENARIOS)
     parser.add_argument("out", type=Path)
     parser.add_argument("--seed", type=int, default=0)

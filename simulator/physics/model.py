@@ -12,7 +12,7 @@ import numpy as np
 
 from minimize_surprise.jit import kernel
 from minimize_surprise.rng import mix32
-from sim_stub.physics.grid import GRID_ROBOTS
+from simulator.physics.grid import GRID_ROBOTS
 
 __all__ = [
     "GROUND_POSITIONS",

@@ -9,11 +9,11 @@
 
 Each robot is served on a private ``dbus-daemon`` of its own, by one of two backends:
 
-- ``sim`` (the default): one process holds a real-time world (:class:`~sim_stub.body.SimSwarm`,
+- ``sim`` (the default): one process holds a real-time world (:class:`~simulator.body.SimSwarm`,
   one step every 0.1 s of wall-clock time) and serves each of its robots as an
-  asebamedulla-like service (:mod:`sim_stub.medulla_model`).
+  asebamedulla-like service (:mod:`standins.medulla_model`).
 - ``playground``: Aseba Playground's simulated Thymios, each behind Debian's real
-  ``asebamedulla``, restarted like systemd's ``Restart=always`` (:mod:`sim_stub.playground`), in
+  ``asebamedulla``, restarted like systemd's ``Restart=always`` (:mod:`standins.playground`), in
   the scenario's arena with walls: a lab day rehearsed without robots (docs/rehearsal.md). Its
   files (world, ground texture, every process's log) are in ``DIR/playground``.
 
@@ -63,16 +63,16 @@ from minimize_surprise.errors import ConfigError
 from minimize_surprise.files import PRIVATE_MODE, write_atomic
 from minimize_surprise.sensors import GROUND_SENSORS, IR_SENSORS
 from minimize_surprise.wire import DEFAULT_PORT
-from sim_stub.playground import PLAYGROUND_SPEED_SCALE, speed_scale_for
-from sim_stub.scenarios import SCENARIOS, WorldConfig, scenario_config
+from standins.playground import PLAYGROUND_SPEED_SCALE, speed_scale_for
+from simulator.scenarios import SCENARIOS, WorldConfig, scenario_config
 
 if TYPE_CHECKING:
-    from sim_stub.medulla_model import SignallingWorld
-    from sim_stub.playground import PlaygroundLab
+    from standins.medulla_model import SignallingWorld
+    from standins.playground import PlaygroundLab
 
 __all__ = ["EXIT_FAILURE", "EXIT_OK", "EXIT_USAGE", "main", "serve"]
 
-log = logging.getLogger("sim_stub.serve")
+log = logging.getLogger("standins.serve")
 
 #: Exit code after SIGTERM or SIGINT: stopping is the normal end of a server.
 EXIT_OK = 0
@@ -437,10 +437,10 @@ async def _serve_sim(
 ) -> SignallingWorld:
     """Serve a real-time world's robots (entered on ``stack``), their entries in ``info``."""
     # Imported here, not at the top: they need dbus-fast, which --help must do without.
-    from sim_stub.body import SimSwarm
-    from sim_stub.fake_medulla import private_bus
-    from sim_stub.medulla_model import SignallingWorld, SimThymio, serve_sim_thymio
-    from sim_stub.warmup import warm_up
+    from simulator.body import SimSwarm
+    from standins.fake_medulla import private_bus
+    from standins.medulla_model import SignallingWorld, SimThymio, serve_sim_thymio
+    from simulator.warmup import warm_up
 
     # Compile (or load) the world's kernels before any robot is served: a first step that
     # compiles would stall the real-time world for seconds, and the agents' reads time out.
@@ -471,7 +471,7 @@ async def _serve_playground(
 ) -> PlaygroundLab:
     """Start Playground and a medulla per robot (entered on ``stack``), their entries in
     ``info``."""
-    from sim_stub.playground import PROGRAMS, Arena, PlaygroundLab
+    from standins.playground import PROGRAMS, Arena, PlaygroundLab
 
     for program in PROGRAMS:
         if shutil.which(program) is None:

@@ -43,8 +43,8 @@ import numpy as np
 
 from drivers.body import Body, SensorFrame, clamp_unit
 from drivers.clock import Clock, MonotonicClock
-from sim_stub.battery import SimBattery
-from sim_stub.world import World
+from simulator.battery import SimBattery
+from simulator.world import World
 
 # Deadlines computed as t0 + k * dt may land a rounding error above the world time steps * dt.
 _TIME_SLACK = 1e-9

@@ -13,9 +13,9 @@ from typing import NamedTuple
 import numpy as np
 
 from minimize_surprise.jit import borrow, kernel
-from sim_stub.physics.grid import Cells, build, gather, grid_side, new_cells
-from sim_stub.physics.ir import ir_noise, ir_readings
-from sim_stub.physics.model import GROUND_POSITIONS, IR_POSITIONS, Sensing, gaussian
+from simulator.physics.grid import Cells, build, gather, grid_side, new_cells
+from simulator.physics.ir import ir_noise, ir_readings
+from simulator.physics.model import GROUND_POSITIONS, IR_POSITIONS, Sensing, gaussian
 
 __all__ = ["SenseWork", "ir_reach", "sense", "sense_work"]
 

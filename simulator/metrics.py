@@ -1,7 +1,7 @@
 """The paper's behaviour metrics (Sec. V; docs/method.md), computed from recorded poses.
 
 ``poses`` is an array of shape (T + 1, N, 3): the ``x, y, theta`` of N robots at T + 1 instants
-(as :meth:`sim_stub.world.World.recorded_poses` returns), in metres and radians.
+(as :meth:`simulator.world.World.recorded_poses` returns), in metres and radians.
 
 * distance covered d_R: mean over robots of the path length (sum of step displacements);
 * box displacement d_B: mean distance between the boxes' start and end positions;
@@ -36,7 +36,7 @@ import msgspec
 import numpy as np
 
 from minimize_surprise.jit import kernel
-from sim_stub.physics.grid import build, gather, grid_side, new_cells
+from simulator.physics.grid import build, gather, grid_side, new_cells
 
 #: Robots closer than this (metres, between positions) are in one cluster (paper: 15.75 cm).
 CLUSTER_DISTANCE = 0.1575

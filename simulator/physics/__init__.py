@@ -1,16 +1,16 @@
 """The arena's physics and sensors as compiled kernels (docs/simulation.md).
 
 Every function of this package is a :func:`minimize_surprise.jit.kernel`: loops over robots and
-boxes on plain arrays, compiled by numba. :class:`~sim_stub.world.World` calls them one step at a
+boxes on plain arrays, compiled by numba. :class:`~simulator.world.World` calls them one step at a
 time (the simulated robots of ``surprise-master sim --engine agents``); the engine
-(:mod:`sim_stub.engine`) calls them from its own compiled evaluation loop. One implementation, so
+(:mod:`simulator.engine`) calls them from its own compiled evaluation loop. One implementation, so
 both give the same trajectories bit for bit.
 
 State of one arena (arrays the caller owns): ``pose`` (N, 3) x, y, theta of each robot's wheel
 axis centre; ``cmd`` (N, 2) normalised wheel speeds; ``force`` (N,) this step's force value;
 ``boxes`` (B, 2) box centres; ``pending`` (B,) boxes that may still overlap something. The
 constants of a world are in a :class:`Geometry` and a :class:`Sensing` (see
-:func:`sim_stub.world.compile_world`).
+:func:`simulator.world.compile_world`).
 
 Models:
 
@@ -43,9 +43,9 @@ Modules: :mod:`.model` (the constants, sensor geometry, noise), :mod:`.motion` (
 
 from __future__ import annotations
 
-from sim_stub.physics.grid import GRID_ROBOTS
-from sim_stub.physics.ir import IR_CONE, IR_RAY
-from sim_stub.physics.model import (
+from simulator.physics.grid import GRID_ROBOTS
+from simulator.physics.ir import IR_CONE, IR_RAY
+from simulator.physics.model import (
     GROUND_POSITIONS,
     IR_HEADINGS,
     IR_POSITIONS,
@@ -53,8 +53,8 @@ from sim_stub.physics.model import (
     Sensing,
     gaussian,
 )
-from sim_stub.physics.motion import clamp_commands, step_world
-from sim_stub.physics.sensing import SenseWork, ir_reach, sense, sense_work
+from simulator.physics.motion import clamp_commands, step_world
+from simulator.physics.sensing import SenseWork, ir_reach, sense, sense_work
 
 __all__ = [
     "GRID_ROBOTS",

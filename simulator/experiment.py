@@ -12,8 +12,8 @@ from typing import Any
 from minimize_surprise.config import ExperimentConfig
 from minimize_surprise.errors import ConfigError
 from minimize_surprise.safety import SafetyConfig
-from sim_stub.scenarios import SCENARIOS, WorldConfig, scenario_config
-from sim_stub.settings import check_setting, safety_config, world_overrides
+from simulator.scenarios import SCENARIOS, WorldConfig, scenario_config
+from simulator.settings import check_setting, safety_config, world_overrides
 
 __all__ = ["scenario_world", "simulated_safety", "world_config"]
 

@@ -12,8 +12,8 @@ import numpy as np
 from minimize_surprise.network import GenomeLayout, NetworkPair, NetworkSpec
 from minimize_surprise.sensors import ALL_SENSORS
 from minimize_surprise.warmup import warm_up_control
-from sim_stub.scenarios import SCENARIOS, scenario_config
-from sim_stub.world import World
+from simulator.scenarios import SCENARIOS, scenario_config
+from simulator.world import World
 
 __all__ = ["warm_up"]
 

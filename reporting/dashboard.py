@@ -40,7 +40,7 @@ import webbrowser
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Final
 
-from master_service.reporting.dashboard_data import (
+from reporting.dashboard_data import (
     RobotRow,
     RunReader,
     Snapshot,
@@ -52,7 +52,7 @@ from master_service.rundir import RunDirError
 if TYPE_CHECKING:
     from bokeh.document import Document
 
-    from master_service.reporting.watch import SwarmState
+    from reporting.watch import SwarmState
 
 __all__ = [
     "DEFAULT_PORT",
@@ -498,7 +498,7 @@ def run_dashboard(
 
 def _telemetry(broker: str, prefix: str | None) -> tuple[Any, SwarmState] | None:
     # The broker's address and an empty swarm state, or None after one line on stderr.
-    from master_service.reporting.watch import SwarmState
+    from reporting.watch import SwarmState
     from telemetry.config import DEFAULT_PREFIX, check_prefix, parse_broker_url
 
     option = "--broker"
@@ -523,7 +523,7 @@ def _telemetry(broker: str, prefix: str | None) -> tuple[Any, SwarmState] | None
 async def _follow(address: Any, state: SwarmState) -> None:
     # The telemetry, whatever happens to it, never takes the page down: an unexpected failure
     # is logged and shown as the broker's state, and following starts again.
-    from master_service.reporting.watch import follow
+    from reporting.watch import follow
 
     while True:
         try:

@@ -13,8 +13,8 @@ import math
 import numpy as np
 
 from minimize_surprise.jit import kernel
-from sim_stub.physics.contacts import _SLOP, _keep_inside_walls
-from sim_stub.physics.model import Geometry
+from simulator.physics.contacts import _SLOP, _keep_inside_walls
+from simulator.physics.model import Geometry
 
 # Rounds of settling boxes around robots wedged among them.
 _SETTLE_ROUNDS = 3

@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from master_service.reporting import pictures
-from sim_stub.metrics import behaviour_label
+from reporting import pictures
+from simulator.metrics import behaviour_label
 
 __all__ = ["compare", "gap_lines", "gap_picture"]
 

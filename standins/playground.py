@@ -4,7 +4,7 @@ docs/rehearsal.md).
 
 - :class:`Arena` is the lab's arena in Playground's world: the carpet (a ground texture the
   Thymio's ground sensors read as the lab's carpet, bright between carpet and walls), four walls
-  and the robots' start poses, placed as :class:`~sim_stub.world.World` places them.
+  and the robots' start poses, placed as :class:`~simulator.world.World` places them.
 - :class:`Bus` is a private ``dbus-daemon`` on an abstract socket (processes with a private /tmp
   reach it too).
 - :class:`Playground` runs ``asebaplayground`` headless (``QT_QPA_PLATFORM=offscreen``) with one
@@ -41,7 +41,7 @@ from typing import IO, Final
 
 from drivers.config import PROGRAM_NODE
 from drivers.thymio import ASEBA_INTERFACE, ASEBA_PATH, ASEBA_SERVICE
-from sim_stub.scenarios import WorldConfig
+from simulator.scenarios import WorldConfig
 
 __all__ = [
     "ENKI_UNIT_SPEED",
@@ -61,7 +61,7 @@ __all__ = [
     "speed_scale_for",
 ]
 
-log = logging.getLogger("sim_stub.playground")
+log = logging.getLogger("standins.playground")
 
 #: Seconds for a program to be ready (Playground listening, medulla listing its robot); Playground
 #: starts in about a second, Qt and Enki on a loaded two-core machine in several.
@@ -214,8 +214,8 @@ def listening(port: int) -> bool:
 
 @dataclass(frozen=True)
 class Arena:
-    """The arena of a :class:`~sim_stub.scenarios.WorldConfig` in Playground (lengths in metres,
-    origin at the carpet's centre, as in :mod:`sim_stub.scenarios`)."""
+    """The arena of a :class:`~simulator.scenarios.WorldConfig` in Playground (lengths in metres,
+    origin at the carpet's centre, as in :mod:`simulator.scenarios`)."""
 
     #: side of the square carpet
     side: float
@@ -231,7 +231,7 @@ class Arena:
         """The arena of ``config`` with its robots where :class:`World` places them for
         ``seed`` (the same start poses as ``--backend sim`` with that seed)."""
         # Imported here: the world's module loads numba, which --help of the server does without.
-        from sim_stub.world import World
+        from simulator.world import World
 
         poses = tuple((float(x), float(y), float(t)) for x, y, t in World(config, seed).poses)
         return cls(config.arena_side, config.wall_margin, config.walls_visible_to_ir, poses)
@@ -311,7 +311,7 @@ class Bus:
 
     def start(self) -> str:
         """Start the daemon; its address."""
-        from sim_stub.fake_medulla import bus_config
+        from standins.fake_medulla import bus_config
 
         self.directory.mkdir(parents=True, exist_ok=True)
         config = self.directory / "bus.conf"
@@ -343,7 +343,7 @@ class Playground:
         self.directory = directory
         self.ports = ports
         if arena is None:
-            from sim_stub.scenarios import scenario_config
+            from simulator.scenarios import scenario_config
 
             arena = Arena.of(scenario_config("basic", {"robots": len(ports)}), 0)
         self.arena = arena

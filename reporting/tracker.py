@@ -8,7 +8,7 @@ the behaviour metrics, classes and the trajectories are those of a simulated run
 The file: a header row naming at least the columns ``time`` (seconds, the tracker's clock),
 ``robot`` (the robot's id in the run, as in ``post_evaluation.json``), ``x``, ``y`` (metres) and
 ``heading`` (radians); other columns are ignored, the rows may come in any order. The frame is the
-simulator's (``sim_stub.scenarios``): origin at the centre of the carpet, x to the right, y up,
+simulator's (``simulator.scenarios``): origin at the centre of the carpet, x to the right, y up,
 a robot's position the point between its wheels, its heading counter-clockwise from the x axis.
 
 Alignment: the trace's step k was taken at tracker time ``offset + k * step_period``; ``offset``

@@ -8,7 +8,7 @@ the traces hold poses (simulation) the behaviour metrics of docs/method.md (d_R,
 cluster size and their classes, the box displacement d_B from ``simulation.json``) and per robot
 its path length and rotation; a real run's the same from a tracker's file (:mod:`.tracker`).
 
-Pictures (``plots/``, each as PNG and PDF; :mod:`master_service.reporting.pictures`): ``fitness``,
+Pictures (``plots/``, each as PNG and PDF; :mod:`reporting.pictures`): ``fitness``,
 ``robot_fitness``, ``predictions``, in simulation ``trajectories`` on the arena, with a baseline
 ``evolved_vs_random``; with ``animate`` also ``post_evaluation.gif``.
 """
@@ -25,8 +25,8 @@ import msgspec
 import numpy as np
 
 from master_service.replay import REPLAY_FILE
-from master_service.reporting import pictures, reality_gap, tracker
-from master_service.reporting.robot_stats import parse_robot_stats, robot_stats
+from reporting import pictures, reality_gap, tracker
+from reporting.robot_stats import parse_robot_stats, robot_stats
 from master_service.rundir import (
     BOX_TRACK,
     METRICS,
@@ -43,8 +43,8 @@ from minimize_surprise.config import ExperimentConfig
 from minimize_surprise.dominance import dominance, ground_at_start
 from minimize_surprise.errors import ConfigError
 from minimize_surprise.safety import intervention_reasons, intervention_share
-from sim_stub import metrics as sim_metrics
-from sim_stub.experiment import world_config
+from simulator import metrics as sim_metrics
+from simulator.experiment import world_config
 
 __all__ = [
     "NO_POSITIONS",

@@ -10,9 +10,9 @@ import math
 import numpy as np
 
 from minimize_surprise.jit import kernel
-from sim_stub.physics.boxes import _push_boxes
-from sim_stub.physics.contacts import _separate_robots
-from sim_stub.physics.model import _TWO_PI, Geometry
+from simulator.physics.boxes import _push_boxes
+from simulator.physics.contacts import _separate_robots
+from simulator.physics.model import _TWO_PI, Geometry
 
 __all__ = ["clamp_commands", "step_world"]
 

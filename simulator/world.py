@@ -1,8 +1,8 @@
 """The kinematic arena: Thymio II robots on a carpet, walls, boxes, a lamp, and their sensors.
 
 :class:`World` holds the state of one arena and steps it with the compiled kernels of
-:mod:`sim_stub.physics` (where the models are described); it knows nothing of asyncio, and
-:mod:`sim_stub.body` drives it in lockstep or in real time. Placing robots and boxes at a reset is
+:mod:`simulator.physics` (where the models are described); it knows nothing of asyncio, and
+:mod:`simulator.body` drives it in lockstep or in real time. Placing robots and boxes at a reset is
 done here, with numpy generators seeded by ``seed``; sensor noise comes from the kernels'
 counter-based generator, keyed by the same seed. The same seed and the same commands give the
 same trajectories bit for bit.
@@ -18,8 +18,8 @@ import numpy as np
 from drivers.body import clamp_unit
 from minimize_surprise.errors import ConfigError
 from minimize_surprise.sensors import ALL_SENSORS
-from sim_stub import physics
-from sim_stub.physics import (
+from simulator import physics
+from simulator.physics import (
     GROUND_POSITIONS,
     IR_HEADINGS,
     IR_POSITIONS,
@@ -28,7 +28,7 @@ from sim_stub.physics import (
     ir_reach,
     sense_work,
 )
-from sim_stub.scenarios import WorldConfig
+from simulator.scenarios import WorldConfig
 
 __all__ = [
     "BOX_FRAME_PERIOD",
@@ -510,7 +510,7 @@ class World:
     @property
     def kernel_state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The live state arrays the kernels update in place: pose, commands, forces, boxes and
-        the boxes that may still overlap something (for :mod:`sim_stub.engine`)."""
+        the boxes that may still overlap something (for :mod:`simulator.engine`)."""
         return self._pose, self._cmd, self._force, self._boxes, self._pending
 
     def advance_to(self, steps: int) -> None:
@@ -535,7 +535,7 @@ class World:
     def recorded_boxes(self, steps: int | None = None) -> np.ndarray:
         """The boxes' positions recorded so far, one frame every :func:`box_frame_steps` steps
         from the start of the recording, shape (frames, boxes, 2); with ``steps`` the frames
-        of the first ``steps`` steps only (as :class:`~sim_stub.engine.Swarm` records them)."""
+        of the first ``steps`` steps only (as :class:`~simulator.engine.Swarm` records them)."""
         frames = self._box_recording
         if steps is not None:
             frames = frames[: box_frames(steps, self._box_every)]

@@ -2,7 +2,7 @@
 trajectories on the arena, and an animation of the post-evaluation.
 
 Every picture is written as PNG (for a quick look) and PDF (vector, for a paper), and titled with
-the scenario and the run. The report (:mod:`master_service.reporting.report`) decides which pictures
+the scenario and the run. The report (:mod:`reporting.report`) decides which pictures
 a run gets; this module only draws, through matplotlib's object-oriented API (no pyplot, no
 display).
 """
@@ -21,8 +21,8 @@ from master_service.rundir import write_atomic, writing
 from minimize_surprise.figures import FORMATS as FIGURE_FORMATS
 from minimize_surprise.figures import save_figure
 from minimize_surprise.safety import SAFETY_DOMINATES
-from sim_stub.render import draw_arena, draw_boxes, draw_robot, robot_colours
-from sim_stub.scenarios import WorldConfig
+from simulator.render import draw_arena, draw_boxes, draw_robot, robot_colours
+from simulator.scenarios import WorldConfig
 
 __all__ = [
     "ANIMATION",
