@@ -93,7 +93,7 @@ def _commit_time(repeats: int = 200) -> float:
         for i in range(repeats):
             row = format_row(i + 1, "offspring", 0.5, 0.5, True, 1, 10.0, 0.0, [0.5] * 100)
             start = time.perf_counter()
-            run.commit(state.to_json(), row, header)
+            run.commit(state.to_checkpoint(), row, header)
             times.append(time.perf_counter() - start)
         run.close()
     return statistics.median(times)

@@ -51,11 +51,13 @@ from master_service import cli_lab
 from master_service.config import load_master_config, required_secret
 from master_service.master import Master
 from master_service.progress import ProgressDisplay
-from master_service.rundir import CONFIG_SNAPSHOT, SIMULATION_FILE, RunDir, RunDirError
+from master_service.rundir import RunDir, RunDirError
 from master_service.stopping import cancelled_by_signal, stop_flag, until_signal
 from minimize_surprise.config import ExperimentConfig, load_experiment
 from minimize_surprise.errors import ConfigError, FileWriteError
 from minimize_surprise.text import plural
+from runfiles import schema
+from runfiles.schema import CONFIG_SNAPSHOT, Replay, Simulation
 
 if TYPE_CHECKING:
     from master_service.experiments.simulation_setup import SimulatedRun
@@ -282,8 +284,8 @@ def _resume(args: argparse.Namespace) -> int:
 
     run = RunDir(args.dir)
     config = run.load_config()
-    checkpoint = run.read_checkpoint_data()
-    if checkpoint is not None and checkpoint.get("phase") == "done":
+    checkpoint = run.read_checkpoint()
+    if checkpoint is not None and checkpoint.phase == "done":
         print(f"run {args.dir} is complete; nothing to resume")
         return 0
     simulation = read_simulation_file(args.dir)
@@ -299,8 +301,8 @@ def _resume(args: argparse.Namespace) -> int:
         return _simulate(
             config.experiment,
             args.dir,
-            simulation.get("engine", "agents"),
-            bool(simulation.get("realtime", False)),
+            simulation.engine,
+            simulation.realtime,
             args.verbose,
             resume=True,
             replay=replay,
@@ -312,13 +314,12 @@ def _resume(args: argparse.Namespace) -> int:
 def _replay_of(run: RunDir) -> ReplaySource | None:
     """The source of a replay being resumed (its simulated robots start where the source's
     did), None for an evolution or a source that is gone."""
-    from master_service.replay import REPLAY_FILE, load_replay_source
+    from master_service.replay import load_replay_source
 
-    info = run.read_json(REPLAY_FILE)
-    if not isinstance(info, dict) or not info.get("source"):
-        return None
     with contextlib.suppress(RunDirError):
-        return load_replay_source(info["source"])
+        info = schema.read(run.path, Replay)
+        if info is not None and info.source:
+            return load_replay_source(info.source)
     return None
 
 
@@ -357,13 +358,13 @@ def _next_step(exc: FileWriteError, run_dir: Path, simulated: bool) -> str:
     else:
         remedy = "put that right"
     run = RunDir(run_dir)
-    needed = (CONFIG_SNAPSHOT, SIMULATION_FILE) if simulated else (CONFIG_SNAPSHOT,)
+    needed = (CONFIG_SNAPSHOT, Simulation.FILE) if simulated else (CONFIG_SNAPSHOT,)
     if not all(run.file(name).is_file() for name in needed):
         # It stopped before it could be resumed.
         return f"{remedy} and start the run again (its --out must be empty)"
     with contextlib.suppress(OSError, RunDirError):
-        checkpoint = run.read_checkpoint_data()
-        if checkpoint is not None and checkpoint.get("phase") == "done":
+        checkpoint = run.read_checkpoint()
+        if checkpoint is not None and checkpoint.phase == "done":
             # Every evaluation is in; what failed was the report at the end.
             return f"{remedy} and run `surprise-master report {run_dir}`"
     return f"{remedy} and run `surprise-master resume {run_dir}`"

@@ -91,14 +91,15 @@ def continue_command(args: argparse.Namespace) -> int:
     from reporting.status import running_master
 
     run = RunDir(args.dir)
-    if running_master(run) is None:
+    if running_master(run.path) is None:
         # Nothing waits: removing the file would only hide why the run stopped where it did.
         raise RunDirError(
             f"no master is running {args.dir}: continue it with `surprise-master resume "
             f"{args.dir}` (a pause ends with the master that waited in it)"
         )
     pause = request_continue(run)
-    print(f"continuing {args.dir} (it was paused: {pause.get('reason', 'no reason given')})")
+    reason = "no reason given" if pause is None else pause.reason
+    print(f"continuing {args.dir} (it was paused: {reason})")
     return 0
 
 

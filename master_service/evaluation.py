@@ -15,10 +15,11 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from master_service.rundir import Phase, RunDir, RunState
+from master_service.rundir import RunDir, RunState
 from minimize_surprise.wire import EvaluationStats, Result
+from runfiles.schema import Phase
 
-__all__ = ["Evaluation", "Evaluator", "Progress", "RunSummary", "format_duration"]
+__all__ = ["Evaluation", "Evaluator", "Progress", "RunSummary"]
 
 
 @dataclass(frozen=True)
@@ -124,15 +125,3 @@ class Evaluator(Protocol):
     def snapshot(self) -> dict[str, Any] | None:
         """A simulator's state, kept in every checkpoint so a resumed run goes on exactly;
         None for real robots. Called between evaluations, every robot idle."""
-
-
-def format_duration(seconds: float) -> str:
-    """``1h02m``, ``5m07s`` or ``42s``."""
-    seconds = max(0, round(seconds))
-    hours, rest = divmod(seconds, 3600)
-    minutes, secs = divmod(rest, 60)
-    if hours:
-        return f"{hours}h{minutes:02d}m"
-    if minutes:
-        return f"{minutes}m{secs:02d}s"
-    return f"{secs}s"

@@ -29,23 +29,18 @@ from typing import Final
 import numpy as np
 
 from master_service.config import MasterConfig
-from master_service.evaluation import Evaluation, Evaluator, Progress, RunSummary, format_duration
+from master_service.evaluation import Evaluation, Evaluator, Progress, RunSummary
 from master_service.pause import Pause, PauseGate, low_batteries
 from master_service.replay import ReplaySource, check_spec
-from master_service.rundir import (
-    FILE_ONLY,
-    POST_EVALUATION,
-    ROBOT_STAT_PREFIXES,
-    RunDir,
-    RunState,
-    evaluation_header,
-    format_row,
-)
+from master_service.rundir import FILE_ONLY, RunDir, RunState
 from minimize_surprise.dominance import dominance, ground_at_start
 from minimize_surprise.errors import FileWriteError
 from minimize_surprise.evolution import OnePlusOne
 from minimize_surprise.fitness import swarm_fitness
 from minimize_surprise.network import GenomeLayout, NetworkSpec
+from minimize_surprise.text import format_duration
+from runfiles import schema
+from runfiles.schema import ROBOT_STAT_PREFIXES, PostEvaluation, evaluation_header, format_row
 
 __all__ = ["ETA_WINDOW", "RETRY_PAUSE", "RETRY_PAUSE_MAX", "EvolutionRun"]
 
@@ -166,7 +161,7 @@ class EvolutionRun:
                 # Make the skipped id durable before any attempt goes out: a process killed
                 # before its own first commit would otherwise leave the old counter on disk,
                 # and the next resume would reuse the id this one sent.
-                self.run_dir.commit(state.to_json(), None, ())
+                self.run_dir.commit(state.to_checkpoint(), None, ())
         else:
             self.run_dir.create(self.config)
         header = self.run_dir.csv_header()
@@ -223,14 +218,14 @@ class EvolutionRun:
             self.log.exception("the run stopped on an error; it can be resumed")
             raise
         opt = state.optimizer
-        post = self.run_dir.read_json(POST_EVALUATION)
+        post = schema.read(self.run_dir.path, PostEvaluation)
         summary = RunSummary(
             run_dir=self.run_dir.path,
             evaluations=opt.evaluations,
             best_fitness=opt.best_fitness,
             best_genome=None if opt.best is None else opt.best.copy(),
             failed_attempts=state.failed_attempts,
-            post_evaluation_fitness=None if post is None else post.get("swarm_fitness"),
+            post_evaluation_fitness=None if post is None else post.swarm_fitness,
         )
         self.log.info(
             "run %s done: %d evaluations, best fitness %s, %d failed attempts",
@@ -416,7 +411,7 @@ class EvolutionRun:
         simulation = self.evaluator.snapshot()
         if simulation is not None:
             state.simulation = simulation
-        data = state.to_json()
+        data = state.to_checkpoint()
         header = evaluation_header(state.roster or [], robot_stats=self._robot_stats)
         best = _best(state.optimizer) if best_changed else None
         text = "".join(rows) or None

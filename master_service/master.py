@@ -61,15 +61,13 @@ from minimize_surprise.wire import (
     Result,
     encode_payload,
 )
+from runfiles.schema import LIVE_INTERVAL, Live
 from telemetry.config import require_client_library
 from telemetry.payloads import RunStatus, master_status_suffix, now, run_status_suffix
 from telemetry.publisher import TelemetryPublisher
 
-__all__ = ["LIVE_INTERVAL", "Master", "Progress", "RunSummary"]
+__all__ = ["Master", "Progress", "RunSummary"]
 
-#: How often live.json is refreshed at the least; ``status`` calls a master silent for 5 periods
-#: gone.
-LIVE_INTERVAL: Final = 2.0
 #: Shortest time between two live.json writes: a thousand robots joining at once cost a few
 #: writes, not a thousand.
 LIVE_MIN_INTERVAL: Final = 0.2
@@ -459,23 +457,23 @@ class Master:
 
     # -- live.json ---------------------------------------------------------------------------
 
-    def _live_data(self, *, running: bool) -> dict[str, Any]:
+    def _live_data(self, *, running: bool) -> Live:
         state = self._require_state()
         pause = self.evolution.pauses.current
-        return {
-            "pid": os.getpid(),
-            "running": running,
-            "host": self.host,
-            "port": self.port,
-            "robots": self.connected_robots,
-            "phase": state.phase,
-            "waiting": self._waiting,
-            "evaluations": state.optimizer.evaluations,
-            "time_left_s": self.evolution.time_left(),
-            "paused": None if pause is None else pause.describe(),
-            "robot_state": dict(self._robot_state),
-            "updated_at": time.time(),
-        }
+        return Live(
+            pid=os.getpid(),
+            running=running,
+            host=self.host,
+            port=self.port,
+            robots=list(self.connected_robots),
+            phase=state.phase,
+            waiting=self._waiting,
+            evaluations=state.optimizer.evaluations,
+            time_left_s=self.evolution.time_left(),
+            paused=None if pause is None else pause.note(),
+            robot_state=dict(self._robot_state),
+            updated_at=time.time(),
+        )
 
     def _write_live(self) -> None:
         self.run_dir.write_live(self._live_data(running=True))

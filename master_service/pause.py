@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 import logging
 import os
 import sys
@@ -27,8 +26,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Final
 
-from master_service.rundir import PAUSE, RunDir, RunDirError, write_atomic
+from master_service.rundir import RunDir, RunDirError
 from minimize_surprise.wire import EvaluationStats
+from runfiles import schema
+from runfiles.schema import PauseFile, PauseNote
 
 __all__ = [
     "PAUSE",
@@ -44,6 +45,9 @@ __all__ = [
 #: one ``stat`` call each.
 POLL_INTERVAL: Final = 0.25
 
+#: The file that says the run waits.
+PAUSE: Final = PauseFile.FILE
+
 
 @dataclass(frozen=True)
 class Pause:
@@ -54,13 +58,13 @@ class Pause:
     text: str
     robots: tuple[str, ...] = ()
 
-    def describe(self) -> dict[str, Any]:
-        """Plain data: ``kind``, ``reason`` and ``robots``."""
-        return {"kind": self.kind, "reason": self.text, "robots": list(self.robots)}
+    def note(self) -> PauseNote:
+        """The pause as ``live.json`` tells it: ``kind``, ``reason`` and ``robots``."""
+        return PauseNote(kind=self.kind, reason=self.text, robots=list(self.robots))
 
-    def to_json(self, since: float) -> dict[str, Any]:
-        """The plain data of ``pause.json``: :meth:`describe` and when the pause began."""
-        return self.describe() | {"since": since}
+    def to_file(self, since: float) -> PauseFile:
+        """``pause.json``: :meth:`note` and when the pause began."""
+        return PauseFile(kind=self.kind, reason=self.text, robots=list(self.robots), since=since)
 
 
 def low_batteries(
@@ -84,29 +88,28 @@ def low_batteries(
     return Pause("battery", text, tuple(robot for robot, _ in low))
 
 
-def read_pause(run_dir: RunDir) -> dict[str, Any] | None:
-    """``pause.json``'s data while the run waits, else None."""
+def read_pause(run_dir: RunDir) -> PauseFile | None:
+    """``pause.json`` while the run waits, else None (also for a file this version cannot read:
+    the pause is then the master's to tell, and ``continue`` still removes the file)."""
     try:
-        data = json.loads(run_dir.file(PAUSE).read_text(encoding="utf-8"))
-    except FileNotFoundError:
+        return schema.read(run_dir.path, PauseFile)
+    except RunDirError:
         return None
-    except ValueError:
-        return None  # being replaced this instant; the next look sees it whole
-    return data if isinstance(data, dict) else None
 
 
-def request_continue(run_dir: RunDir) -> dict[str, Any]:
-    """Let a paused run go on (``surprise-master continue``); the pause it ends.
+def request_continue(run_dir: RunDir) -> PauseFile | None:
+    """Let a paused run go on (``surprise-master continue``); the pause it ends (None when its
+    file could not be read).
 
     Raises :class:`RunDirError` when the run does not wait.
     """
-    data = read_pause(run_dir)
+    pause = read_pause(run_dir)
     path = run_dir.file(PAUSE)
     try:
         path.unlink()
     except FileNotFoundError:
         raise RunDirError(f"{run_dir.path} is not paused (no {PAUSE})") from None
-    return data or {}
+    return pause
 
 
 class PauseGate:
@@ -134,9 +137,7 @@ class PauseGate:
         ``on_change()`` (optional) is called when the pause starts and when it ends.
         """
         since = time.time()
-        await asyncio.to_thread(
-            write_atomic, self.run_dir.file(PAUSE), json.dumps(pause.to_json(since)).encode()
-        )
+        await asyncio.to_thread(schema.write, self.run_dir.path, pause.to_file(since))
         self.current = pause
         how = f"surprise-master continue {self.run_dir.path}"
         if self._console_usable():

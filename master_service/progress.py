@@ -11,9 +11,10 @@ import logging
 import sys
 from typing import IO, Any
 
-from master_service.evaluation import Progress, format_duration
+from master_service.evaluation import Progress
 from master_service.rundir import for_console
 from minimize_surprise.safety import SAFETY_DOMINATES
+from minimize_surprise.text import format_duration
 
 __all__ = ["ProgressDisplay", "describe"]
 

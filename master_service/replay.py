@@ -10,37 +10,26 @@ from, so that ``report`` puts the replay beside that run's own post-evaluation: 
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Final
 
 import msgspec
 import numpy as np
 
-from master_service.rundir import (
-    BEST_GENOME,
-    CONFIG_SNAPSHOT,
-    SIMULATION_FILE,
-    RunDir,
-    RunDirError,
-    write_atomic,
-)
+from master_service.rundir import RunDir, RunDirError
 from minimize_surprise.config import ExperimentConfig
 from minimize_surprise.errors import ConfigError
 from minimize_surprise.network import GenomeLayout, NetworkSpec, spec_from_config
+from runfiles import schema
+from runfiles.schema import CONFIG_SNAPSHOT, BestGenome, Replay, Simulation
 
 __all__ = [
-    "REPLAY_FILE",
     "ReplaySource",
     "check_spec",
     "load_replay_source",
     "replay_experiment",
     "write_replay_file",
 ]
-
-#: In a replay's directory: where its genome came from.
-REPLAY_FILE: Final = "replay.json"
 
 
 @dataclass(frozen=True)
@@ -65,13 +54,13 @@ class ReplaySource:
             return None
         return self.safety_before
 
-    def to_json(self) -> dict[str, Any]:
-        """The plain data of ``replay.json``."""
-        return {
-            "source": str(self.path.resolve()),
-            "source_run": None if self.run_dir is None else str(self.run_dir.resolve()),
-            "genome_fitness": self.fitness,
-        }
+    def to_file(self) -> Replay:
+        """``replay.json`` of a replay of this source."""
+        return Replay(
+            source=str(self.path.resolve()),
+            source_run=None if self.run_dir is None else str(self.run_dir.resolve()),
+            genome_fitness=self.fitness,
+        )
 
 
 def load_replay_source(path: str | Path) -> ReplaySource:
@@ -79,16 +68,18 @@ def load_replay_source(path: str | Path) -> ReplaySource:
     format; :class:`RunDirError` naming the file when it holds none."""
     path = Path(path)
     run_dir = path if path.is_dir() else None
-    genome_file = path / BEST_GENOME if run_dir is not None else path
+    genome_file = path / BestGenome.FILE if run_dir is not None else path
     try:
-        data = json.loads(genome_file.read_text(encoding="utf-8"))
-        spec = msgspec.convert(data["spec"], NetworkSpec)
-        genome = np.array(data["genome"], dtype=np.float64)
-        fitness = data.get("fitness")
+        best = schema.decode(BestGenome, genome_file.read_bytes(), name=str(genome_file))
     except FileNotFoundError:
         raise RunDirError(f"{genome_file} does not exist: no genome to replay") from None
-    except (ValueError, KeyError, TypeError, msgspec.ValidationError) as exc:
-        raise RunDirError(f"{genome_file} holds no genome to replay: {exc}") from None
+    except OSError as exc:
+        raise RunDirError(f"{genome_file} cannot be read: {exc}") from None
+    except RunDirError as exc:
+        raise RunDirError(f"no genome to replay: {exc}") from None
+    spec = best.spec
+    genome = np.array(best.genome, dtype=np.float64)
+    fitness = best.fitness
     if genome.shape != (GenomeLayout(spec).size,):
         raise RunDirError(
             f"{genome_file}: {genome.size} genome values for a network of {GenomeLayout(spec).size}"
@@ -97,15 +88,15 @@ def load_replay_source(path: str | Path) -> ReplaySource:
     safety = None
     if run_dir is not None and (run_dir / CONFIG_SNAPSHOT).exists():
         experiment = RunDir(run_dir).load_config().experiment
-        simulation = RunDir(run_dir).read_json(SIMULATION_FILE)
-        if isinstance(simulation, dict):
-            safety = simulation.get("post_evaluation_safety")
+        simulation = schema.read(run_dir, Simulation)
+        if simulation is not None:
+            safety = simulation.post_evaluation_safety
     return ReplaySource(genome, spec, path, fitness, run_dir, experiment, safety)
 
 
 def write_replay_file(run_dir: RunDir, source: ReplaySource) -> None:
     """Write ``replay.json`` into a new replay's directory."""
-    write_atomic(run_dir.file(REPLAY_FILE), json.dumps(source.to_json(), indent=2).encode())
+    schema.write(run_dir.path, source.to_file())
 
 
 def check_spec(source: ReplaySource, experiment: ExperimentConfig) -> None:

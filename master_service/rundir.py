@@ -1,20 +1,7 @@
 """The run directory: everything a run leaves behind, written so that a crash loses nothing.
 
-Layout::
-
-    config.yaml            the resolved master configuration (experiment inline, paths absolute)
-    checkpoint.json        the commit point: evolution state and run bookkeeping (atomic)
-    evaluations.csv        one row per counted evaluation (see EVALUATION_COLUMNS)
-    best_genome.json       the current best genome with its fitness and network spec
-    master.log             the master's log
-    live.json              while the master runs: pid, address, connected robots (refreshed)
-    pause.json             while the run waits for a person: why, which robots, since when
-    post_evaluation.json   the post-evaluation's per-robot fitness and statistics
-    traces/<robot>.npz     the post-evaluation trace of each robot
-    metrics.json, plots/   written by ``surprise-master report`` (and at the end of ``sim``)
-    simulation.json        in simulation: the world, and the boxes before and after the
-                           post-evaluation
-    box_track.npz          in simulation with boxes: the boxes during the post-evaluation
+The files and their structures are defined once, in :mod:`runfiles.schema`; this module is the
+master's side: creating a run, committing evaluations exactly once, the log, and the artefacts.
 
 Exactly-once rows: a commit first appends the new row to ``evaluations.csv`` and fsyncs it, then
 replaces ``checkpoint.json`` (temp file, fsync, rename, fsync of the directory). The checkpoint
@@ -47,49 +34,47 @@ initial genome is neither an offspring nor a re-evaluation), then ``offspring`` 
 from __future__ import annotations
 
 import contextlib
-import csv
 import io
-import json
 import logging
 import os
 import sys
 import time
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Final, Literal
+from typing import Any, Final
 
 import msgspec
 import numpy as np
 import yaml
 
 from master_service.config import MasterConfig
-from minimize_surprise import files
 from minimize_surprise.config import ExperimentConfig, load_yaml
-from minimize_surprise.errors import ConfigError, FileWriteError, SurpriseError
+from minimize_surprise.errors import ConfigError, FileWriteError
 from minimize_surprise.evolution import EvolutionStateError, OnePlusOne
 from minimize_surprise.network import NetworkSpec
-from minimize_surprise.wire import EvaluationStats, Result
+from minimize_surprise.wire import Result
+from runfiles import schema
+from runfiles.schema import (
+    CONFIG_SNAPSHOT,
+    EVALUATIONS,
+    LOG,
+    TRACES,
+    BestGenome,
+    Checkpoint,
+    Live,
+    Phase,
+    PostEvaluation,
+    PostRobot,
+    RunDirError,
+    evaluation_header,
+    format_row,
+    write_atomic,
+    writing,
+)
 
 __all__ = [
-    "BASELINE_FILE",
-    "BEST_GENOME",
-    "BOX_TRACK",
-    "CHECKPOINT",
-    "CONFIG_SNAPSHOT",
-    "EVALUATIONS",
-    "EVALUATION_COLUMNS",
     "FILE_ONLY",
-    "LIVE",
-    "LOG",
-    "METRICS",
-    "PAUSE",
-    "PLOTS",
-    "POST_EVALUATION",
-    "ROBOT_STAT_PREFIXES",
-    "SIMULATION_FILE",
-    "TRACES",
-    "Phase",
     "RunDir",
     "RunDirError",
     "RunLog",
@@ -97,79 +82,13 @@ __all__ = [
     "evaluation_header",
     "for_console",
     "format_row",
-    "load_baseline",
-    "robot_stat_columns",
-    # the run directory's writers, for the modules that write files into a run
     "write_atomic",
     "writing",
 ]
 
-#: A baseline's results in its output directory (``surprise-master baseline``).
-BASELINE_FILE: Final = "baseline.json"
-CONFIG_SNAPSHOT: Final = "config.yaml"
-CHECKPOINT: Final = "checkpoint.json"
-EVALUATIONS: Final = "evaluations.csv"
-BEST_GENOME: Final = "best_genome.json"
-LOG: Final = "master.log"
-LIVE: Final = "live.json"
-#: While a run waits for a person: why, and which robots (master_service.pause).
-PAUSE: Final = "pause.json"
-POST_EVALUATION: Final = "post_evaluation.json"
-TRACES: Final = "traces"
-METRICS: Final = "metrics.json"
-#: Written by ``surprise-master sim``: how the run is simulated (scenario, setting, engine) and
-#: the boxes before and after the post-evaluation.
-SIMULATION_FILE: Final = "simulation.json"
-#: Written by ``surprise-master sim`` in an arena with boxes: where the boxes were during the
-#: post-evaluation (``positions`` (frames, boxes, 2) in metres, a frame every ``every`` steps).
-BOX_TRACK: Final = "box_track.npz"
-PLOTS: Final = "plots"
-
-#: The fixed columns of ``evaluations.csv``; one ``fitness_<robot id>`` column per robot follows.
-EVALUATION_COLUMNS: Final = (
-    "evaluation",
-    "kind",
-    "fitness",
-    "best_fitness",
-    "accepted",
-    "attempts",
-    "duration_s",
-    "safety_share",
-)
-
-#: Version of checkpoint.json's shape; bump when it changes.
-CHECKPOINT_FORMAT: Final = 1
-
-#: Where a run stands: evolving, post-evaluating the best genome, or finished.
-Phase = Literal["evolution", "post-evaluation", "done"]
-
 #: ``extra`` of a log call whose line belongs in master.log but not on the console, where the
 #: command line says the same thing in its own last line.
 FILE_ONLY: Final = {"file_only": True}
-
-
-class RunDirError(SurpriseError, RuntimeError):
-    """The run directory cannot be used: it exists already, or its files contradict each other."""
-
-
-@contextlib.contextmanager
-def writing(path: Path) -> Iterator[None]:
-    """Inside, an OSError is a :class:`FileWriteError` naming ``path``."""
-    try:
-        yield
-    except FileWriteError:
-        raise
-    except OSError as exc:
-        raise FileWriteError.from_os_error(str(path), exc) from exc
-
-
-def write_atomic(
-    path: str | Path, data: bytes, *, durable: bool = True, mode: int | None = None
-) -> None:
-    """:func:`minimize_surprise.files.write_atomic`, whose OSError is a :class:`FileWriteError`
-    naming ``path`` (the error itself may name the temporary file)."""
-    with writing(Path(path)):
-        files.write_atomic(path, data, durable=durable, mode=mode)
 
 
 def for_console(record: logging.LogRecord) -> bool:
@@ -230,97 +149,42 @@ class RunState:
     #: a simulated run's world and robots at this commit, so that it resumes exactly
     simulation: dict[str, Any] | None = None
 
-    def to_json(self) -> dict[str, Any]:
-        """The checkpoint's plain data."""
-        return {
-            "format": CHECKPOINT_FORMAT,
-            "run_id": self.run_id,
-            "phase": self.phase,
-            "next_evaluation_id": self.next_evaluation_id,
-            "attempts": self.attempts,
-            "failed_attempts": self.failed_attempts,
-            "csv_rows": self.csv_rows,
-            "roster": self.roster,
-            "elapsed_s": self.elapsed_s,
-            "written_at": time.time(),
-            "optimizer": self.optimizer.state(),
-            "simulation": self.simulation,
-        }
+    def to_checkpoint(self) -> Checkpoint:
+        """The checkpoint of this state, stamped now."""
+        return Checkpoint(
+            run_id=self.run_id,
+            phase=self.phase,
+            next_evaluation_id=self.next_evaluation_id,
+            attempts=self.attempts,
+            failed_attempts=self.failed_attempts,
+            csv_rows=self.csv_rows,
+            roster=self.roster,
+            elapsed_s=self.elapsed_s,
+            written_at=time.time(),
+            optimizer=self.optimizer.state(),
+            simulation=self.simulation,
+        )
 
     @classmethod
-    def from_json(cls, config: MasterConfig, data: dict[str, Any]) -> RunState:
-        """Rebuild the state written by :meth:`to_json`; raises :class:`RunDirError`."""
+    def from_checkpoint(cls, config: MasterConfig, checkpoint: Checkpoint) -> RunState:
+        """Rebuild the state written by :meth:`to_checkpoint`; raises :class:`RunDirError`."""
         assert config.experiment is not None
         try:
-            if data["format"] != CHECKPOINT_FORMAT:
-                raise RunDirError(f"checkpoint format {data['format']} is not supported")
-            phase = data["phase"]
-            if phase not in ("evolution", "post-evaluation", "done"):
-                raise RunDirError(f"unknown phase {phase!r} in the checkpoint")
-            return cls(
-                run_id=str(data["run_id"]),
-                optimizer=OnePlusOne.from_state(config.experiment.evolution, data["optimizer"]),
-                phase=phase,
-                next_evaluation_id=int(data["next_evaluation_id"]),
-                attempts=int(data["attempts"]),
-                failed_attempts=int(data["failed_attempts"]),
-                csv_rows=int(data["csv_rows"]),
-                roster=None if data["roster"] is None else [str(r) for r in data["roster"]],
-                elapsed_s=float(data.get("elapsed_s", 0.0)),
-                simulation=data.get("simulation"),
-            )
+            optimizer = OnePlusOne.from_state(config.experiment.evolution, checkpoint.optimizer)
         except (KeyError, TypeError, ValueError, EvolutionStateError) as exc:
             raise RunDirError(f"the checkpoint cannot be read: {exc}") from None
-
-
-#: The per-robot statistics robots report, each a column per robot after the fitness columns.
-ROBOT_STAT_PREFIXES: Final = ("battery_v_", "overruns_", "read_failures_")
-
-
-def evaluation_header(roster: Sequence[str], *, robot_stats: bool) -> list[str]:
-    """The header of a new ``evaluations.csv`` for the swarm ``roster``."""
-    header = [*EVALUATION_COLUMNS, *(f"fitness_{robot}" for robot in roster)]
-    return header + (robot_stat_columns(roster) if robot_stats else [])
-
-
-def robot_stat_columns(roster: Sequence[str]) -> list[str]:
-    """The per-robot statistics' columns: every robot's battery, then overruns, read failures."""
-    return [f"{prefix}{robot}" for prefix in ROBOT_STAT_PREFIXES for robot in roster]
-
-
-def format_row(
-    evaluation: int,
-    kind: str,
-    fitness: float,
-    best_fitness: float,
-    accepted: bool,
-    attempts: int,
-    duration_s: float,
-    safety_share: float,
-    robot_fitness: Iterable[float],
-    robot_stats: Sequence[EvaluationStats] | None = None,
-) -> str:
-    """One line of ``evaluations.csv``; floats in repr form so they read back bit for bit.
-
-    ``robot_stats`` (the robots' in roster order) fills :func:`robot_stat_columns`; None for a
-    file without them.
-    """
-    fields = [
-        str(evaluation),
-        kind,
-        repr(float(fitness)),
-        repr(float(best_fitness)),
-        "true" if accepted else "false",
-        str(attempts),
-        f"{duration_s:.3f}",
-        f"{safety_share:.4f}",
-        *(repr(float(f)) for f in robot_fitness),
-    ]
-    if robot_stats is not None:
-        fields += ["" if s.battery_v is None else f"{s.battery_v:.3f}" for s in robot_stats]
-        fields += [str(s.overruns) for s in robot_stats]
-        fields += [str(s.read_failures) for s in robot_stats]
-    return ",".join(fields) + "\n"
+        return cls(
+            run_id=checkpoint.run_id,
+            optimizer=optimizer,
+            phase=checkpoint.phase,
+            next_evaluation_id=checkpoint.next_evaluation_id,
+            attempts=checkpoint.attempts,
+            failed_attempts=checkpoint.failed_attempts,
+            csv_rows=checkpoint.csv_rows,
+            roster=checkpoint.roster,
+            elapsed_s=checkpoint.elapsed_s,
+            simulation=checkpoint.simulation,
+        )
 
 
 class RunDir:
@@ -369,23 +233,14 @@ class RunDir:
                 key="experiment",
             )
 
-    def read_checkpoint_data(self) -> dict[str, Any] | None:
-        """The checkpoint's plain data, or None before the first commit."""
-        path = self.file(CHECKPOINT)
-        try:
-            text = path.read_text(encoding="utf-8")
-        except FileNotFoundError:
-            return None
-        try:
-            return json.loads(text)
-        except ValueError as exc:
-            # Cannot happen with atomic writes unless the file was edited by hand.
-            raise RunDirError(f"{path} is not valid JSON: {exc}") from None
+    def read_checkpoint(self) -> Checkpoint | None:
+        """The checkpoint, or None before the first commit (RunDirError when unreadable)."""
+        return schema.read(self.path, Checkpoint)
 
     def read_state(self, config: MasterConfig) -> RunState | None:
         """The checkpointed :class:`RunState`, or None before the first commit."""
-        data = self.read_checkpoint_data()
-        return None if data is None else RunState.from_json(config, data)
+        checkpoint = self.read_checkpoint()
+        return None if checkpoint is None else RunState.from_checkpoint(config, checkpoint)
 
     def csv_header(self) -> list[str] | None:
         """The header of ``evaluations.csv`` as written, None while it has none."""
@@ -425,10 +280,10 @@ class RunDir:
 
     # -- committing --------------------------------------------------------------------------
 
-    def commit(self, state_json: dict[str, Any], row: str | None, header: Sequence[str]) -> None:
+    def commit(self, checkpoint: Checkpoint, row: str | None, header: Sequence[str]) -> None:
         """Append ``row`` (if any) to the CSV durably, then write the checkpoint atomically.
 
-        ``state_json`` must already count the row (``csv_rows``). ``header`` is written before
+        ``checkpoint`` must already count the row (``csv_rows``). ``header`` is written before
         the first row. A line the log could not take since is raised first
         (:class:`FileWriteError`), so a run stops when its disk is full even if the commit itself
         would still fit.
@@ -438,7 +293,7 @@ class RunDir:
         if row is not None:
             with writing(self.file(EVALUATIONS)):
                 self._append_row(row, header)
-        write_atomic(self.file(CHECKPOINT), json.dumps(state_json).encode("utf-8"))
+        schema.write(self.path, checkpoint)
 
     def _append_row(self, row: str, header: Sequence[str]) -> None:
         if self._csv is None:
@@ -483,24 +338,17 @@ class RunDir:
         re-evaluations included. Not fsynced: the checkpoint holds the same genome and it is
         rewritten on resume.
         """
-        data = {
-            "evaluation": evaluation,
-            "fitness": float(fitness),
-            "genome": [float(x) for x in np.asarray(genome, dtype=np.float64)],
-            "spec": msgspec.to_builtins(spec),
-        }
-        write_atomic(self.file(BEST_GENOME), json.dumps(data).encode("utf-8"), durable=False)
+        best = BestGenome(
+            evaluation=evaluation,
+            fitness=float(fitness),
+            genome=[float(x) for x in np.asarray(genome, dtype=np.float64)],
+            spec=spec,
+        )
+        schema.write(self.path, best, durable=False)
 
-    def write_live(self, data: dict[str, Any]) -> None:
+    def write_live(self, live: Live) -> None:
         """Write ``live.json`` (not durable: it only describes the running process)."""
-        write_atomic(self.file(LIVE), json.dumps(data).encode("utf-8"), durable=False)
-
-    def read_json(self, name: str) -> Any | None:
-        """A JSON file of the run directory, or None if absent or unreadable."""
-        try:
-            return json.loads(self.file(name).read_text(encoding="utf-8"))
-        except (OSError, ValueError):
-            return None
+        schema.write(self.path, live, durable=False)
 
     def write_post_evaluation(
         self,
@@ -513,35 +361,27 @@ class RunDir:
         traces = self.file(TRACES)
         with writing(traces):
             traces.mkdir(exist_ok=True)
-        robots: dict[str, Any] = {}
+        robots: dict[str, PostRobot] = {}
         for robot_id, result in results.items():
-            entry: dict[str, Any] = {
-                "fitness": result.fitness,
-                "stats": msgspec.to_builtins(result.stats),
-                "trace": None,
-            }
+            trace = None
             if result.trace is not None:
                 name = f"{robot_id}.npz"
                 write_atomic(traces / name, _trace_npz(result))
-                entry["trace"] = f"{TRACES}/{name}"
-            robots[robot_id] = entry
+                trace = f"{TRACES}/{name}"
+            robots[robot_id] = PostRobot(fitness=result.fitness, stats=result.stats, trace=trace)
         fitnesses = [r.fitness for r in results.values()]
-        summary = {
-            "evaluation_id": evaluation_id,
-            "steps": steps,
-            "genome_fitness": genome_fitness,
-            "swarm_fitness": float(np.mean(fitnesses)) if fitnesses else None,
-            "robots": robots,
-        }
-        write_atomic(self.file(POST_EVALUATION), json.dumps(summary, indent=2).encode("utf-8"))
+        summary = PostEvaluation(
+            evaluation_id=evaluation_id,
+            steps=steps,
+            genome_fitness=genome_fitness,
+            swarm_fitness=float(np.mean(fitnesses)) if fitnesses else None,
+            robots=robots,
+        )
+        schema.write(self.path, summary)
 
     def read_rows(self) -> list[dict[str, str]]:
         """The rows of ``evaluations.csv`` as dicts of strings (empty if there is none)."""
-        path = self.file(EVALUATIONS)
-        if not path.exists():
-            return []
-        with open(path, encoding="utf-8", newline="") as file:
-            return list(csv.DictReader(file))
+        return schema.read_rows(self.path)
 
 
 def _trace_npz(result: Result) -> bytes:
@@ -559,11 +399,3 @@ def _trace_npz(result: Result) -> bytes:
     buffer = io.BytesIO()
     np.savez_compressed(buffer, **arrays)  # type: ignore[arg-type]  # numpy's stub: allow_pickle
     return buffer.getvalue()
-
-
-def load_baseline(path: str | Path) -> dict[str, Any]:
-    """``baseline.json`` from a baseline directory (or the file itself)."""
-    path = Path(path)
-    if path.is_dir():
-        path = path / BASELINE_FILE
-    return json.loads(path.read_text(encoding="utf-8"))

@@ -47,7 +47,7 @@ from reporting.dashboard_data import (
     Trajectories,
     parse_value,
 )
-from master_service.rundir import RunDirError
+from runfiles.schema import RunDirError
 
 if TYPE_CHECKING:
     from bokeh.document import Document

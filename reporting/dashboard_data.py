@@ -20,9 +20,7 @@ here: this module is tested on its own (tests/master/test_dashboard_data.py).
 
 from __future__ import annotations
 
-import contextlib
 import csv
-import json
 import math
 import os
 import time
@@ -33,24 +31,29 @@ from pathlib import Path
 from typing import Any, Final
 
 import numpy as np
-import yaml
 
-from master_service.master import LIVE_INTERVAL
-from master_service.rundir import (
-    CHECKPOINT,
+from minimize_surprise.errors import SurpriseError
+from runfiles import schema
+from runfiles.schema import (
     CONFIG_SNAPSHOT,
     EVALUATION_COLUMNS,
     EVALUATIONS,
-    LIVE,
-    POST_EVALUATION,
-    SIMULATION_FILE,
+    STALE_AFTER,
     TRACES,
+    Checkpoint,
+    Live,
+    PauseFile,
+    PauseNote,
+    PostEvaluation,
+    RunConfig,
+    RunFile,
+    Simulation,
+    master_alive,
 )
 
 __all__ = [
     "ACTIVE_WINDOW",
     "MAX_TRACE_POINTS",
-    "PAUSE_FILE",
     "STALE_AFTER",
     "Curve",
     "Pause",
@@ -62,13 +65,6 @@ __all__ = [
     "robot_keys",
 ]
 
-#: Written by the master while the run waits for a person (master_service.pause): why, which
-#: robots, since when. Read by name so that the dashboard also reads runs of other versions.
-PAUSE_FILE: Final = "pause.json"
-#: Seconds after which a ``live.json`` that says ``running`` is taken for a master that died: the
-#: master rewrites it at least every LIVE_INTERVAL, five missed refreshes are no hiccup (the same
-#: rule as ``surprise-master status``).
-STALE_AFTER: Final = 5 * LIVE_INTERVAL
 #: A run without ``live.json`` (the fast engine) counts as running while its checkpoint is younger
 #: than this many seconds: it commits every evaluation, which takes well under a second there.
 ACTIVE_WINDOW: Final = 10.0
@@ -283,19 +279,22 @@ class _Watched:
             return False
         try:
             self.value = self._load(self.path)
-        except (OSError, ValueError, KeyError, yaml.YAMLError) as exc:
+        except (OSError, SurpriseError) as exc:
             self.problem = f"{self.path.name}: {exc}"
             return False
         self._key, self.problem = key, None
         return True
 
 
-def _json(path: Path) -> Any:
-    return json.loads(path.read_text(encoding="utf-8"))
+def _file(kind: type[RunFile]) -> Callable[[Path], Any]:
+    def load(path: Path) -> Any:
+        return schema.decode(kind, path.read_bytes(), name=path.name)
+
+    return load
 
 
-def _yaml(path: Path) -> Any:
-    return yaml.safe_load(path.read_text(encoding="utf-8"))
+def _config(path: Path) -> RunConfig:
+    return schema.read_config(path.parent)
 
 
 def _thin(points: np.ndarray) -> np.ndarray:
@@ -313,12 +312,12 @@ class RunReader:
         self.path = Path(path)
         self._clock = clock
         self._csv = _Csv(self.path / EVALUATIONS)
-        self._config = _Watched(self.path / CONFIG_SNAPSHOT, _yaml)
-        self._checkpoint = _Watched(self.path / CHECKPOINT, _json)
-        self._live = _Watched(self.path / LIVE, _json)
-        self._pause = _Watched(self.path / PAUSE_FILE, _json)
-        self._post = _Watched(self.path / POST_EVALUATION, _json)
-        self._simulation = _Watched(self.path / SIMULATION_FILE, _json)
+        self._config = _Watched(self.path / CONFIG_SNAPSHOT, _config)
+        self._checkpoint = _Watched(self.path / Checkpoint.FILE, _file(Checkpoint))
+        self._live = _Watched(self.path / Live.FILE, _file(Live))
+        self._pause = _Watched(self.path / PauseFile.FILE, _file(PauseFile))
+        self._post = _Watched(self.path / PostEvaluation.FILE, _file(PostEvaluation))
+        self._simulation = _Watched(self.path / Simulation.FILE, _file(Simulation))
         self._traces_key: tuple[Any, ...] = ()
         self._trajectories: Trajectories | None = None
 
@@ -345,50 +344,45 @@ class RunReader:
 
     def _snapshot(self, trajectories: Trajectories | None, problems: list[str]) -> Snapshot:
         now = self._clock()
-        checkpoint = _mapping(self._checkpoint.value)
-        optimizer = _mapping(checkpoint.get("optimizer"))
+        checkpoint: Checkpoint | None = self._checkpoint.value
+        live: Live | None = self._live.value
+        post: PostEvaluation | None = self._post.value
+        config: RunConfig | None = self._config.value
         header = self._csv.header or []
         rows = self._csv.rows
-        counted = checkpoint.get("csv_rows")
-        if isinstance(counted, int) and 0 <= counted <= len(rows):
+        counted = None if checkpoint is None else checkpoint.csv_rows
+        if counted is not None and 0 <= counted <= len(rows):
             rows = rows[:counted]  # a row past the checkpoint is not counted yet (rundir.py)
         last = dict(zip(header, rows[-1], strict=True)) if rows else None
-        evaluations = optimizer.get("evaluations")
-        if not isinstance(evaluations, int):
-            evaluations = len(rows)
-        live = _mapping(self._live.value)
-        fresh = _live_is_fresh(live, now)
-        pause_data = _mapping(self._pause.value)
-        if not pause_data and fresh:
-            pause_data = _mapping(live.get("paused"))
-        pause = _pause(pause_data)
-        phase = str(checkpoint.get("phase", "not started"))
+        evaluations = len(rows) if checkpoint is None else checkpoint.evaluations
+        fresh = master_alive(live, now)
+        pause = _pause(self._pause.value or (live.paused if fresh and live is not None else None))
+        phase = "not started" if checkpoint is None else checkpoint.phase
         best = last.get("best_fitness") if last else None
-        if best is None and isinstance(optimizer.get("best_fitness"), float):
-            best = repr(optimizer["best_fitness"])
-        post = _mapping(self._post.value)
+        if best is None and checkpoint is not None and checkpoint.best_fitness is not None:
+            best = repr(checkpoint.best_fitness)
         post_robots = _post_robots(post)
-        # A master that stopped has no robot connected; without live.json nobody knows.
-        seen = live if fresh else {"robots": []} if live else {}
-        robots, keys = self._robots(header, last, seen, checkpoint, post_robots)
+        robots, keys = self._robots(header, last, live, fresh, checkpoint, post_robots)
         return Snapshot(
             name=self.path.resolve().name,
             read_at=now,
             phase=phase,
             state=_state(phase, fresh, live, pause, checkpoint, now),
             evaluations=evaluations,
-            planned=_planned(self._config.value),
+            planned=None
+            if config is None or config.experiment is None
+            else config.experiment.evolution.evaluations,
             best_fitness=best,
             last_row=last,
-            time_left_s=_number(live.get("time_left_s")) if fresh else None,
+            time_left_s=_number(live.time_left_s) if fresh and live is not None else None,
             pause=pause,
-            master=f"{live.get('host')}:{live.get('port')} (pid {live.get('pid')})"
-            if fresh
+            master=f"{live.host}:{live.port} (pid {live.pid})"
+            if fresh and live is not None
             else None,
             robots=robots,
             keys=keys,
             curve=_curve(self._csv.points[: len(rows)], self._csv.generation),
-            post_fitness=_number(post.get("swarm_fitness")),
+            post_fitness=None if post is None else _number(post.swarm_fitness),
             post_robots=post_robots,
             trajectories=trajectories,
             problems=problems,
@@ -398,14 +392,16 @@ class RunReader:
         self,
         header: Sequence[str],
         last: Mapping[str, str] | None,
-        live: Mapping[str, Any],
-        checkpoint: Mapping[str, Any],
+        live: Live | None,
+        fresh: bool,
+        checkpoint: Checkpoint | None,
         post_robots: Mapping[str, Any],
     ) -> tuple[list[RobotRow], list[str]]:
         csv_robots, csv_keys = robot_keys(header)
-        state = _mapping(live.get("robot_state"))
-        connected = _list(live.get("robots")) if "robots" in live else None
-        roster = _list(checkpoint.get("roster"))
+        # A master that stopped has no robot connected; without live.json nobody knows.
+        state = live.robot_state if fresh and live is not None else {}
+        connected = None if live is None else live.robots if fresh else []
+        roster = [] if checkpoint is None or checkpoint.roster is None else checkpoint.roster
         names = _unique([*roster, *csv_robots, *(connected or []), *state, *post_robots])
         keys = set(csv_keys)
         table = []
@@ -440,7 +436,8 @@ class RunReader:
             self._traces_key, self._trajectories = (), None
             return None
         stats = [(e.name, e.stat()) for e in entries]
-        side = _mapping(_mapping(self._simulation.value).get("world")).get("arena_side")
+        simulation: Simulation | None = self._simulation.value
+        side = None if simulation is None else simulation.world.arena_side
         key = (*((n, s.st_size, s.st_mtime_ns) for n, s in stats), side)
         if key == self._traces_key:
             return self._trajectories
@@ -469,10 +466,6 @@ def _mapping(value: Any) -> dict[str, Any]:
     return value if isinstance(value, dict) else {}
 
 
-def _list(value: Any) -> list[Any]:
-    return value if isinstance(value, list) else []
-
-
 def _number(value: Any) -> float | None:
     if isinstance(value, bool) or not isinstance(value, int | float):
         return None
@@ -483,74 +476,45 @@ def _unique(items: Sequence[Any]) -> list[str]:
     return list(dict.fromkeys(str(item) for item in items))
 
 
-def _planned(config: Any) -> int | None:
-    evolution = _mapping(_mapping(_mapping(config).get("experiment")).get("evolution"))
-    planned = evolution.get("evaluations")
-    return planned if isinstance(planned, int) else None
-
-
-def _live_is_fresh(live: Mapping[str, Any], now: float) -> bool:
-    if not live.get("running"):
-        return False
-    updated = _number(live.get("updated_at"))
-    if updated is None or now - updated > STALE_AFTER:
-        return False
-    pid = live.get("pid")
-    if isinstance(pid, int) and pid > 0:
-        # A master on this machine that died leaves its file behind; one elsewhere (a copied
-        # run) cannot be asked, and its file's age alone decides.
-        with contextlib.suppress(PermissionError):
-            try:
-                os.kill(pid, 0)
-            except ProcessLookupError:
-                return False
-    return True
-
-
-def _pause(data: Mapping[str, Any]) -> Pause | None:
-    if not data:
+def _pause(note: PauseNote | None) -> Pause | None:
+    if note is None:
         return None
-    robots = data.get("robots")
     return Pause(
-        reason=str(data.get("reason") or data.get("kind") or "paused"),
-        robots=tuple(str(r) for r in robots) if isinstance(robots, list) else (),
-        since=_number(data.get("since")),
+        reason=note.reason or note.kind or "paused",
+        robots=tuple(note.robots),
+        since=note.since if isinstance(note, PauseFile) else None,
     )
 
 
 def _state(
     phase: str,
     fresh: bool,
-    live: Mapping[str, Any],
+    live: Live | None,
     pause: Pause | None,
-    checkpoint: Mapping[str, Any],
+    checkpoint: Checkpoint | None,
     now: float,
 ) -> str:
     if phase == "done":
         return "finished"
     if pause is not None:
         return "paused"
-    if fresh:
-        return "waiting for robots" if live.get("waiting") else "running"
-    if live:
+    if fresh and live is not None:
+        return "waiting for robots" if live.waiting else "running"
+    if live is not None:
         return "stopped"  # a master wrote live.json, and is gone
-    written = _number(checkpoint.get("written_at"))
-    if written is not None and now - written < ACTIVE_WINDOW:
+    if checkpoint is not None and now - checkpoint.written_at < ACTIVE_WINDOW:
         return "running"
-    return "not started" if not checkpoint else "stopped"
+    return "not started" if checkpoint is None else "stopped"
 
 
-def _post_robots(post: Mapping[str, Any]) -> dict[str, dict[str, Value]]:
+def _post_robots(post: PostEvaluation | None) -> dict[str, dict[str, Value]]:
     robots: dict[str, dict[str, Value]] = {}
-    for robot, entry in _mapping(post.get("robots")).items():
-        entry = _mapping(entry)
-        stats = _mapping(entry.get("stats"))
-        steps = stats.get("steps_run")
-        interventions = _mapping(stats.get("interventions"))
+    for robot, entry in ({} if post is None else post.robots).items():
+        steps = entry.stats.steps_run
         share = None
-        if isinstance(steps, int) and steps > 0:
-            share = sum(v for v in interventions.values() if isinstance(v, int)) / steps
-        robots[str(robot)] = {"fitness": _number(entry.get("fitness")), "safety_share": share}
+        if steps > 0:
+            share = sum(entry.stats.interventions.values()) / steps
+        robots[robot] = {"fitness": _number(entry.fitness), "safety_share": share}
     return robots
 
 

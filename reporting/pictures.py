@@ -17,10 +17,10 @@ from typing import Any, Final
 
 import numpy as np
 
-from master_service.rundir import write_atomic, writing
 from minimize_surprise.figures import FORMATS as FIGURE_FORMATS
 from minimize_surprise.figures import save_figure
 from minimize_surprise.safety import SAFETY_DOMINATES
+from runfiles.schema import write_atomic, writing
 from simulator.render import draw_arena, draw_boxes, draw_robot, robot_colours
 from simulator.scenarios import WorldConfig
 

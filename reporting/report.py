@@ -24,25 +24,26 @@ from typing import Any, Final
 import msgspec
 import numpy as np
 
-from master_service.replay import REPLAY_FILE
-from reporting import pictures, reality_gap, tracker
-from reporting.robot_stats import parse_robot_stats, robot_stats
-from master_service.rundir import (
-    BOX_TRACK,
-    METRICS,
-    PLOTS,
-    POST_EVALUATION,
-    SIMULATION_FILE,
-    RunDir,
-    RunDirError,
-    load_baseline,
-    write_atomic,
-    writing,
-)
 from minimize_surprise.config import ExperimentConfig
 from minimize_surprise.dominance import dominance, ground_at_start
 from minimize_surprise.errors import ConfigError
 from minimize_surprise.safety import intervention_reasons, intervention_share
+from reporting import pictures, reality_gap, tracker
+from reporting.robot_stats import parse_robot_stats, robot_stats
+from runfiles import schema
+from runfiles.schema import (
+    BOX_TRACK,
+    METRICS,
+    PLOTS,
+    Checkpoint,
+    PostEvaluation,
+    Replay,
+    RunDirError,
+    Simulation,
+    load_baseline,
+    write_atomic,
+    writing,
+)
 from simulator import metrics as sim_metrics
 from simulator.experiment import world_config
 
@@ -63,10 +64,10 @@ NO_POSITIONS: Final = (
 )
 
 
-def _rows(run: RunDir, limit: int | None) -> tuple[list[dict[str, Any]], list[str]]:
+def _rows(run: Path, limit: int | None) -> tuple[list[dict[str, Any]], list[str]]:
     # Rows past the checkpoint's count belong to an unfinished commit (resume drops them); the
     # last of them may be torn, so they are cut before being parsed.
-    rows = run.read_rows()[:limit]
+    rows = schema.read_rows(run)[:limit]
     robots = []
     if rows:
         robots = [key[len("fitness_") :] for key in rows[0] if key.startswith("fitness_")]
@@ -94,30 +95,33 @@ def _rows(run: RunDir, limit: int | None) -> tuple[list[dict[str, Any]], list[st
     return typed, robots
 
 
-def _traces(run: RunDir, post: dict[str, Any] | None) -> dict[str, dict[str, np.ndarray]]:
+def _traces(run: Path, post: PostEvaluation | None) -> dict[str, dict[str, np.ndarray]]:
     traces: dict[str, dict[str, np.ndarray]] = {}
     if post is None:
         return traces
-    for robot, entry in post.get("robots", {}).items():
-        if entry.get("trace"):
-            with np.load(run.path / entry["trace"]) as data:
+    for robot, entry in post.robots.items():
+        if entry.trace:
+            with np.load(run / entry.trace) as data:
                 traces[robot] = {key: data[key] for key in data.files}
     return traces
 
 
 def _post_metrics(
-    post: dict[str, Any],
+    post: PostEvaluation,
     traces: dict[str, dict[str, np.ndarray]],
     sensors: list[str],
-    simulation: dict[str, Any] | None,
+    simulation: Simulation | None,
     dt: float,
 ) -> dict[str, Any]:
     robots: dict[str, Any] = {}
     predicted: list[np.ndarray] = []
     real: list[np.ndarray] = []
     poses: dict[str, np.ndarray] = {}
-    for robot, entry in post.get("robots", {}).items():
-        info: dict[str, Any] = {"fitness": entry["fitness"], "stats": entry["stats"]}
+    for robot, entry in post.robots.items():
+        info: dict[str, Any] = {
+            "fitness": entry.fitness,
+            "stats": msgspec.to_builtins(entry.stats),
+        }
         trace = traces.get(robot)
         if trace is not None:
             steps = len(trace["sensors"])
@@ -134,9 +138,9 @@ def _post_metrics(
                 info["rotation"] = sim_metrics.rotation(one, sim_metrics.default_window(one, dt))
         robots[robot] = info
     metrics: dict[str, Any] = {
-        "steps": post.get("steps"),
-        "genome_fitness": post.get("genome_fitness"),
-        "swarm_fitness": post.get("swarm_fitness"),
+        "steps": post.steps,
+        "genome_fitness": post.genome_fitness,
+        "swarm_fitness": post.swarm_fitness,
         "robots": robots,
     }
     if predicted:
@@ -154,9 +158,12 @@ def _post_metrics(
     if poses:
         steps = min(len(p) for p in poses.values())
         stacked = np.stack([p[:steps] for p in poses.values()], axis=1)
-        boxes = (simulation or {}).get("post_evaluation_boxes") or {}
+        boxes = None if simulation is None else simulation.post_evaluation_boxes
         behaviour = sim_metrics.behaviour_metrics(
-            stacked, boxes.get("start"), boxes.get("end"), dt=dt
+            stacked,
+            None if boxes is None else np.asarray(boxes.start, dtype=np.float64),
+            None if boxes is None else np.asarray(boxes.end, dtype=np.float64),
+            dt=dt,
         )
         metrics["behaviour"] = msgspec.to_builtins(behaviour)
     else:
@@ -166,7 +173,7 @@ def _post_metrics(
 
 def _safety_metrics(
     rows: list[dict[str, Any]],
-    post: dict[str, Any] | None,
+    post: PostEvaluation | None,
     traces: dict[str, dict[str, np.ndarray]],
 ) -> dict[str, Any] | None:
     """How much the safety layer drove: over the run, its last tenth and the post-evaluation."""
@@ -177,16 +184,15 @@ def _safety_metrics(
         metrics["evolution_mean_share"] = float(np.mean(shares))
         metrics["last_tenth_share"] = float(np.mean(tail))
     counts: list[dict[str, int]] = []
-    if post is not None and post.get("robots"):
-        stats = {robot: entry["stats"] for robot, entry in post["robots"].items()}
-        counts = [e["interventions"] for e in stats.values()]
+    if post is not None and post.robots:
+        stats = {robot: entry.stats for robot, entry in post.robots.items()}
+        counts = [e.interventions for e in stats.values()]
         metrics["post_evaluation_share"] = intervention_share(
-            counts, sum(e["steps_run"] for e in stats.values())
+            counts, sum(e.steps_run for e in stats.values())
         )
         metrics["post_evaluation_reasons"] = dict(intervention_reasons(counts).most_common())
         metrics["post_evaluation_robots"] = {
-            robot: intervention_share([e["interventions"]], e["steps_run"])
-            for robot, e in stats.items()
+            robot: intervention_share([e.interventions], e.steps_run) for robot, e in stats.items()
         }
     if not metrics:
         return None
@@ -226,27 +232,27 @@ def _evolution_note(share: float) -> str:
 class _Run:
     """Everything a report reads from a run directory, read once."""
 
-    run: RunDir
+    run: Path
     experiment: ExperimentConfig
-    checkpoint: dict[str, Any]
+    checkpoint: Checkpoint | None
     rows: list[dict[str, Any]]
     robots: list[str]
-    post: dict[str, Any] | None
+    post: PostEvaluation | None
     traces: dict[str, dict[str, np.ndarray]]
-    simulation: dict[str, Any] | None
+    simulation: Simulation | None
     tracked: dict[str, Any] | None = None  # where a tracker's file gave the poses
 
 
 def _load(
     path: str | Path, positions: str | Path | None = None, offset: float | None = None
 ) -> _Run:
-    run = RunDir(path)
-    config = run.load_config()
+    run = Path(path)
+    config = schema.read_config(run)
     assert config.experiment is not None
-    checkpoint = run.read_checkpoint_data() or {}
-    rows, robots = _rows(run, checkpoint.get("csv_rows"))
-    post = run.read_json(POST_EVALUATION)
-    simulation = run.read_json(SIMULATION_FILE)
+    checkpoint = schema.read(run, Checkpoint)
+    rows, robots = _rows(run, None if checkpoint is None else checkpoint.csv_rows)
+    post = schema.read(run, PostEvaluation)
+    simulation = schema.read(run, Simulation)
     traces = _traces(run, post)
     # A tracker's poses stand where a simulated trace holds them: all is computed as for one.
     tracked = tracker.add_tracked_poses(
@@ -263,8 +269,8 @@ def compute_metrics(path: str | Path) -> dict[str, Any]:
 def _metrics(data: _Run) -> dict[str, Any]:
     run, checkpoint, rows, robots = data.run, data.checkpoint, data.rows, data.robots
     metrics: dict[str, Any] = {
-        "run_id": checkpoint.get("run_id", run.path.resolve().name),
-        "phase": checkpoint.get("phase", "evolution"),
+        "run_id": run.resolve().name if checkpoint is None else checkpoint.run_id,
+        "phase": "evolution" if checkpoint is None else checkpoint.phase,
         "evaluations": len(rows),
         "evaluations_planned": data.experiment.evolution.evaluations,
         "robots": robots,
@@ -280,7 +286,7 @@ def _metrics(data: _Run) -> dict[str, Any]:
             accepted_offspring=sum(r["accepted"] for r in offspring),
             reevaluations=sum(r["kind"] == "reevaluation" for r in rows),
             attempts=sum(r["attempts"] for r in rows),
-            failed_attempts=checkpoint.get("failed_attempts"),
+            failed_attempts=None if checkpoint is None else checkpoint.failed_attempts,
             duration_s=float(sum(r["duration_s"] for r in rows)),
             robot_fitness={
                 robot: {
@@ -306,9 +312,9 @@ def _metrics(data: _Run) -> dict[str, Any]:
     )
     if data.tracked is not None and metrics["post_evaluation"] is not None:
         metrics["post_evaluation"]["positions"] = data.tracked
-    replay = run.read_json(REPLAY_FILE)
-    if isinstance(replay, dict) and replay.get("source_run"):
-        source = Path(replay["source_run"])
+    replay = schema.read(run, Replay)
+    if replay is not None and replay.source_run:
+        source = Path(replay.source_run)
         # The source's metrics as its own report computes them (its metrics.json may be stale).
         source_metrics = compute_metrics(source) if source.is_dir() else {}
         metrics["reality_gap"] = reality_gap.compare(source_metrics, metrics, str(source))
@@ -378,8 +384,8 @@ def write_report(
         metrics["baseline"] = _baseline_metrics(metrics, loaded)
     if plots or animate:
         drawn = _draw(data, metrics, plots=plots, animate=animate)
-        metrics["pictures"] = [str(p.relative_to(data.run.path)) for p in drawn]
-    write_atomic(data.run.file(METRICS), json.dumps(metrics, indent=2).encode("utf-8"))
+        metrics["pictures"] = [str(p.relative_to(data.run)) for p in drawn]
+    write_atomic(data.run / METRICS, json.dumps(metrics, indent=2).encode("utf-8"))
     return metrics
 
 
@@ -445,16 +451,16 @@ def _arena(data: _Run) -> pictures.Arena | None:
     if data.simulation is None:
         return pictures.Arena(world_config(data.experiment)) if data.tracked else None
     config = world_config(data.experiment)
-    boxes = data.simulation.get("post_evaluation_boxes") or {}
+    boxes = data.simulation.post_evaluation_boxes
     track, every = None, 1
-    path = data.run.file(BOX_TRACK)
+    path = data.run / BOX_TRACK
     if path.is_file():
         with np.load(path) as stored:
             track, every = stored["positions"], int(stored["every"])
     return pictures.Arena(
         config,
-        boxes_start=np.asarray(boxes["start"]) if boxes.get("start") else None,
-        boxes_end=np.asarray(boxes["end"]) if boxes.get("end") else None,
+        boxes_start=np.asarray(boxes.start) if boxes is not None and boxes.start else None,
+        boxes_end=np.asarray(boxes.end) if boxes is not None and boxes.end else None,
         box_track=track,
         box_every=every,
     )
@@ -462,7 +468,7 @@ def _arena(data: _Run) -> pictures.Arena | None:
 
 def _draw(data: _Run, metrics: dict[str, Any], *, plots: bool, animate: bool) -> list[Path]:
     """Draw the run's pictures into ``plots/``; the paths written."""
-    directory = data.run.file(PLOTS)
+    directory = data.run / PLOTS
     with writing(directory):
         directory.mkdir(exist_ok=True)
     title = _title(data, metrics)
@@ -498,7 +504,7 @@ def _draw(data: _Run, metrics: dict[str, Any], *, plots: bool, animate: bool) ->
     if animate:
         if arena is None:
             raise RunDirError(
-                f"{data.run.path} holds no simulated post-evaluation with poses to animate"
+                f"{data.run} holds no simulated post-evaluation with poses to animate"
             )
         drawn.append(
             pictures.animate_post_evaluation(

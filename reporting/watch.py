@@ -35,8 +35,8 @@ from rich.panel import Panel
 from rich.table import Table
 from rich.text import Text
 
-from master_service.evaluation import format_duration
 from minimize_surprise.backoff import Backoff, BackoffConfig
+from minimize_surprise.text import format_duration
 from telemetry.config import (
     DEFAULT_PREFIX,
     BrokerAddress,

@@ -34,9 +34,9 @@ from drivers.config import SPEED_SCALE
 from drivers.thymio import GROUND_MAX, IR_MAX, PROX_HORIZONTAL, VBAT, VBAT_SCALE
 from minimize_surprise.sensors import GROUND_SENSORS, IR_SENSORS
 from simulator.battery import SimBattery
-from standins.fake_medulla import GROUND_VARIABLES, FakeMedulla, serve_fake_medulla
 from simulator.scenarios import WorldConfig
 from simulator.world import World
+from standins.fake_medulla import GROUND_VARIABLES, FakeMedulla, serve_fake_medulla
 
 __all__ = [
     "SENSOR_VARIABLES",

@@ -63,8 +63,8 @@ from minimize_surprise.errors import ConfigError
 from minimize_surprise.files import PRIVATE_MODE, write_atomic
 from minimize_surprise.sensors import GROUND_SENSORS, IR_SENSORS
 from minimize_surprise.wire import DEFAULT_PORT
-from standins.playground import PLAYGROUND_SPEED_SCALE, speed_scale_for
 from simulator.scenarios import SCENARIOS, WorldConfig, scenario_config
+from standins.playground import PLAYGROUND_SPEED_SCALE, speed_scale_for
 
 if TYPE_CHECKING:
     from standins.medulla_model import SignallingWorld
@@ -438,9 +438,9 @@ async def _serve_sim(
     """Serve a real-time world's robots (entered on ``stack``), their entries in ``info``."""
     # Imported here, not at the top: they need dbus-fast, which --help must do without.
     from simulator.body import SimSwarm
+    from simulator.warmup import warm_up
     from standins.fake_medulla import private_bus
     from standins.medulla_model import SignallingWorld, SimThymio, serve_sim_thymio
-    from simulator.warmup import warm_up
 
     # Compile (or load) the world's kernels before any robot is served: a first step that
     # compiles would stall the real-time world for seconds, and the agents' reads time out.

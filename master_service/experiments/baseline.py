@@ -21,11 +21,11 @@ import msgspec
 import numpy as np
 
 from master_service.experiments.simulation_setup import simulated_safety, world_config
-from master_service.rundir import BASELINE_FILE, load_baseline, write_atomic
 from minimize_surprise.config import ExperimentConfig
 from minimize_surprise.evolution import random_genome
 from minimize_surprise.fitness import surprise_fitness, swarm_fitness
 from minimize_surprise.network import GenomeLayout, spec_from_config
+from runfiles.schema import BASELINE_FILE, load_baseline, write_atomic
 from simulator import metrics as sim_metrics
 from simulator.engine import EvaluationRecord, Swarm
 

@@ -37,7 +37,7 @@ from master_service.experiments.simulation_setup import (
 )
 from master_service.master import Master
 from master_service.replay import ReplaySource
-from master_service.rundir import SIMULATION_FILE, RunDir
+from master_service.rundir import RunDir
 from minimize_surprise.backoff import BackoffConfig
 from minimize_surprise.config import ExperimentConfig
 from minimize_surprise.safety import SafetyState
@@ -52,7 +52,6 @@ from simulator.world import World, box_frame_steps
 
 __all__ = [
     "SCENARIOS",
-    "SIMULATION_FILE",
     "SimulatedRun",
     "SimulatedSwarm",
     "quiet_agents",

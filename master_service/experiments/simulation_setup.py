@@ -8,7 +8,6 @@ the robots are run.
 from __future__ import annotations
 
 import io
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Final
@@ -16,9 +15,10 @@ from typing import Any, Final
 import numpy as np
 
 from master_service.evaluation import RunSummary
-from master_service.rundir import BOX_TRACK, SIMULATION_FILE, RunDirError, write_atomic
 from minimize_surprise.config import ExperimentConfig, decode_experiment, read_yaml
 from minimize_surprise.errors import ConfigError
+from runfiles import schema
+from runfiles.schema import BOX_TRACK, BoxesMoved, SimulatedWorld, Simulation, write_atomic
 from simulator.engine import robot_ids
 from simulator.experiment import scenario_world, simulated_safety, world_config
 from simulator.scenarios import WorldConfig
@@ -168,39 +168,29 @@ def write_simulation_file(
     Written when the run starts, so that ``surprise-master resume`` knows to restart the
     simulated robots, and again at its end, for the report's box displacement.
     """
-    data: dict[str, Any] = {
-        "scenario": experiment.scenario,
-        "setting": experiment.setting,
-        "engine": engine,
-        "realtime": realtime,
-        "world": {
-            "arena_side": world.config.arena_side,
-            "robots": world.config.robots,
-            "boxes": len(world.box_positions),
-        },
-    }
+    boxes = None
     if boxes_before is not None and len(world.box_positions):
-        data["post_evaluation_boxes"] = {
-            "start": boxes_before,
-            "end": world.box_positions.tolist(),
-        }
-    if safety_before is not None:
-        data["post_evaluation_safety"] = safety_before
-    write_atomic(Path(run_dir) / SIMULATION_FILE, json.dumps(data).encode("utf-8"))
+        boxes = BoxesMoved(start=boxes_before, end=world.box_positions.tolist())
+    simulation = Simulation(
+        scenario=experiment.scenario,
+        setting=experiment.setting,
+        engine=engine,  # type: ignore[arg-type]  # one of ENGINES, checked by the caller
+        realtime=realtime,
+        world=SimulatedWorld(
+            arena_side=world.config.arena_side,
+            robots=world.config.robots,
+            boxes=len(world.box_positions),
+        ),
+        post_evaluation_boxes=boxes,
+        post_evaluation_safety=safety_before,
+    )
+    schema.write(run_dir, simulation)
 
 
-def read_simulation_file(run_dir: str | Path) -> dict[str, Any] | None:
-    """``simulation.json`` of ``run_dir``, or None for a run of real robots."""
-    path = Path(run_dir) / SIMULATION_FILE
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        return None
-    except ValueError as exc:
-        raise RunDirError(f"{path} is not valid JSON: {exc}") from None
-    if not isinstance(data, dict) or data.get("engine", "agents") not in ENGINES:
-        raise RunDirError(f"{path}: 'engine' must be one of {', '.join(ENGINES)}")
-    return data
+def read_simulation_file(run_dir: str | Path) -> Simulation | None:
+    """``simulation.json`` of ``run_dir``, or None for a run of real robots (RunDirError naming
+    the file and the key when it cannot be read)."""
+    return schema.read(run_dir, Simulation)
 
 
 def write_box_track(run_dir: str | Path, positions: np.ndarray, every: int) -> None:

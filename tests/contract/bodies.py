@@ -24,10 +24,10 @@ from drivers.config import (
     ThymioConfig,
 )
 from simulator.body import SimSwarm
-from standins.fake_i2c import FakeADS1115, FakeI2C, FakeTCA9548A, FakeTSL45315
-from standins.fake_medulla import StaticThymioModel, private_bus, serve_fake_medulla
 from simulator.scenarios import scenario_config
 from simulator.world import World
+from standins.fake_i2c import FakeADS1115, FakeI2C, FakeTCA9548A, FakeTSL45315
+from standins.fake_medulla import StaticThymioModel, private_bus, serve_fake_medulla
 
 #: The fake medulla answers in about a millisecond; this only bounds a broken test.
 CALL_TIMEOUT = 1.0

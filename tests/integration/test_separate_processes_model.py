@@ -15,16 +15,16 @@ import pytest
 from drivers.config import SPEED_SCALE, ThymioConfig
 from drivers.thymio import ThymioBase
 from minimize_surprise.errors import HardwareError
-from standins import serve
 from simulator.battery import SimBattery
 from simulator.body import SimSwarm
+from simulator.scenarios import scenario_config
+from standins import serve
 from standins.medulla_model import (
     STEP_WAIT_TIMEOUT,
     SignallingWorld,
     SimThymio,
     serve_sim_thymio,
 )
-from simulator.scenarios import scenario_config
 from standins.serve import servable_scenarios
 
 #: A driver timeout longer than the medulla's bounded wait, so the bound is what a test sees.

@@ -17,12 +17,14 @@ from typing import Any
 import numpy as np
 
 from master_service import Master, MasterConfig, Progress
-from master_service.rundir import RunDir, evaluation_header, format_row
+from master_service.rundir import RunDir
 from minimize_surprise.config import EvolutionConfig, ExperimentConfig
 from minimize_surprise.evolution import OnePlusOne
 from minimize_surprise.fitness import swarm_fitness
 from minimize_surprise.network import GenomeLayout, spec_from_config
 from minimize_surprise.wire import EvaluationStats
+from runfiles import schema
+from runfiles.schema import Simulation, evaluation_header, format_row
 from standins.scripted_robots import ScriptedRobot, deterministic_fitness
 
 SECRET = b"test-secret"
@@ -187,5 +189,6 @@ def assert_same_run(a: Path, b: Path, robots: int, ignore: frozenset[str] | set[
         ):
             for name in TRACE_ARRAYS:
                 assert np.array_equal(x[name], y[name]), (robot, name)
-    first, second = RunDir(a).read_json("simulation.json"), RunDir(b).read_json("simulation.json")
-    assert first.get("post_evaluation_boxes") == second.get("post_evaluation_boxes")
+    first, second = schema.read(a, Simulation), schema.read(b, Simulation)
+    assert first is not None and second is not None
+    assert first.post_evaluation_boxes == second.post_evaluation_boxes

@@ -15,10 +15,13 @@ import pytest
 from master_service.cli import main
 from master_service.experiments.simulate import SimulatedSwarm, simulation_experiment
 from master_service.pause import read_pause
-from master_service.rundir import PAUSE, RunDir
+from master_service.rundir import RunDir
+from runfiles.schema import PauseFile
 from simulator.battery import SimBattery
 
 pytestmark = pytest.mark.slow
+
+PAUSE = PauseFile.FILE
 
 EVALUATIONS = 12
 STEPS = 30
@@ -46,7 +49,7 @@ def evolution_rows(run: Path) -> list[dict[str, str]]:
     ]
 
 
-async def wait_for_pause(run: Path, task: asyncio.Task) -> dict:
+async def wait_for_pause(run: Path, task: asyncio.Task) -> PauseFile:
     deadline = time.monotonic() + PAUSE_TIMEOUT
     while (pause := read_pause(RunDir(run))) is None:
         assert not task.done(), "the run ended without pausing"
@@ -67,8 +70,8 @@ async def test_a_low_battery_pauses_the_run_which_goes_on_to_the_same_result(tmp
     task = asyncio.create_task(swarm.run(paused))
     pause = await wait_for_pause(paused, task)
 
-    assert pause["kind"] == "battery" and pause["robots"] == ["sim-1"]
-    assert "swap the battery of sim-1 (3.5" in pause["reason"]
+    assert pause.kind == "battery" and pause.robots == ["sim-1"]
+    assert "swap the battery of sim-1 (3.5" in pause.reason
     # Paused after the 5th evaluation, with that evaluation on disk and the motors stopped.
     rows = RunDir(paused).read_rows()
     assert len(rows) == 5
@@ -128,7 +131,7 @@ async def test_pause_before_post_waits_with_the_evolution_on_disk(tmp_path, caps
     task = asyncio.create_task(swarm.run(run))
     pause = await wait_for_pause(run, task)
 
-    assert pause["kind"] == "before-post-evaluation" and pause["robots"] == []
+    assert pause.kind == "before-post-evaluation" and pause.robots == []
     checkpoint = json.loads((run / "checkpoint.json").read_text())
     assert (checkpoint["phase"], checkpoint["csv_rows"]) == ("post-evaluation", EVALUATIONS)
     assert not (run / "post_evaluation.json").exists()

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import csv
 import json
-import os
 import socket
 import subprocess
 import sys
@@ -22,6 +21,7 @@ from typing import Any, Final
 
 import numpy as np
 import pytest
+from run_files import write_checkpoint, write_live
 
 from needs import end_process, require_binary, require_module
 
@@ -262,20 +262,15 @@ def test_a_pause_batteries_and_a_half_written_row_show_on_the_page(
     )
     first = "1,initial,0.5,0.5,true,1,9.000,0.1000,0.4,0.6,3.912,,0,3,0,1\n"
     (run / "evaluations.csv").write_text(header + first + "2,offspring,0.7,0.7,true,1,9.0")
-    checkpoint = {"phase": "evolution", "csv_rows": 1, "optimizer": {"evaluations": 1}}
-    (run / "checkpoint.json").write_text(json.dumps(checkpoint))
-    live = {
-        "pid": os.getpid(),
-        "running": True,
-        "host": "127.0.0.1",
-        "port": 1,
-        "robots": ["t1"],
-        "time_left_s": 3600.0,
-        "paused": {"reason": "battery low: t2 <3.5 V", "robots": ["t2"]},
-        "robot_state": {"t2": {"battery_v": 3.4, "overruns": 3, "read_failures": 1}},
-        "updated_at": time.time(),
-    }
-    (run / "live.json").write_text(json.dumps(live))
+    write_checkpoint(run, 1, best_fitness=None)
+    paused = {"kind": "battery", "reason": "battery low: t2 <3.5 V", "robots": ["t2"]}
+    write_live(
+        run,
+        robots=["t1"],
+        time_left_s=3600.0,
+        paused=paused,
+        robot_state={"t2": {"battery_v": 3.4, "overruns": 3, "read_failures": 1}},
+    )
     dashboard, url = _start_dashboard(run, tmp_path / "dashboard.log")
     try:
         browser.get(url)
@@ -295,10 +290,8 @@ def test_a_pause_batteries_and_a_half_written_row_show_on_the_page(
         # The row completed and counted, the pause over: the page follows.
         with open(run / "evaluations.csv", "a", encoding="utf-8") as file:
             file.write("00,0.2000,0.7,0.7,3.9,3.8,0,0,0,0\n")
-        checkpoint |= {"csv_rows": 2, "optimizer": {"evaluations": 2}}
-        (run / "checkpoint.json").write_text(json.dumps(checkpoint))
-        live |= {"paused": None, "robot_state": {}, "updated_at": time.time()}
-        (run / "live.json").write_text(json.dumps(live))
+        write_checkpoint(run, 2, best_fitness=None)
+        write_live(run, robots=["t1"], time_left_s=3600.0)
         deadline = time.monotonic() + CATCH_UP
         while (page := _page(browser)).get("evaluations", [None])[0] != "2" or "pause" in page:
             assert time.monotonic() < deadline, f"the page did not follow: {page}"

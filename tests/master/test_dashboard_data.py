@@ -5,21 +5,30 @@ columns the master adds later, a master that runs, pauses or died."""
 from __future__ import annotations
 
 import json
-import os
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
+from run_files import write_checkpoint, write_live
 
+from minimize_surprise.wire import EvaluationStats
 from reporting.dashboard import robots_html, status_html
 from reporting.dashboard_data import (
     MAX_TRACE_POINTS,
-    STALE_AFTER,
     RunReader,
     parse_value,
     robot_keys,
+)
+from runfiles import schema
+from runfiles.schema import (
+    STALE_AFTER,
+    Phase,
+    PostEvaluation,
+    PostRobot,
+    SimulatedWorld,
+    Simulation,
 )
 
 FIXED = "evaluation,kind,fitness,best_fitness,accepted,attempts,duration_s,safety_share"
@@ -37,15 +46,8 @@ def _run(tmp_path: Path, robots: tuple[str, ...] = ("a", "b"), planned: int = 10
     return run
 
 
-def _checkpoint(run: Path, rows: int, phase: str = "evolution", written_at: float = 0.0) -> None:
-    data = {
-        "phase": phase,
-        "csv_rows": rows,
-        "roster": None,
-        "written_at": written_at,
-        "optimizer": {"evaluations": rows, "best_fitness": 0.5},
-    }
-    (run / "checkpoint.json").write_text(json.dumps(data))
+def _checkpoint(run: Path, rows: int, phase: Phase = "evolution", written_at: float = 0.0) -> None:
+    write_checkpoint(run, rows, phase, written_at)
 
 
 def _csv(run: Path, text: str, mode: str = "w") -> None:
@@ -54,9 +56,7 @@ def _csv(run: Path, text: str, mode: str = "w") -> None:
 
 
 def _live(run: Path, **fields: Any) -> None:
-    data = {"pid": os.getpid(), "running": True, "host": "127.0.0.1", "port": 1, "robots": []}
-    data |= {"updated_at": time.time(), **fields}
-    (run / "live.json").write_text(json.dumps(data))
+    write_live(run, **fields)
 
 
 def test_values_are_parsed_where_they_are_numbers() -> None:
@@ -167,7 +167,7 @@ def test_a_running_master_tells_connections_time_left_and_a_pause(tmp_path: Path
     _live(
         run,
         robots=["a", "b"],
-        paused={"reason": "battery <low> on b", "robots": ["b"]},
+        paused={"kind": "battery", "reason": "battery <low> on b", "robots": ["b"]},
         robot_state={"b": {"battery_v": 3.41, "overruns": 0}},
     )
     snapshot = reader.read()
@@ -232,17 +232,14 @@ def test_trajectories_are_thinned_and_traces_without_poses_left_out(tmp_path: Pa
     poses = np.column_stack([np.linspace(0, 1, steps), np.linspace(0, -1, steps), np.zeros(steps)])
     np.savez_compressed(traces / "a.npz", poses=poses, sensors=np.zeros((steps, 2)))
     np.savez_compressed(traces / "real.npz", sensors=np.zeros((steps, 2)))
-    (run / "simulation.json").write_text(json.dumps({"world": {"arena_side": 1.5}}))
-    (run / "post_evaluation.json").write_text(
-        json.dumps(
-            {
-                "swarm_fitness": 0.75,
-                "robots": {
-                    "a": {"fitness": 0.75, "stats": {"steps_run": 10, "interventions": {"x": 3}}}
-                },
-            }
-        )
+    world = SimulatedWorld(arena_side=1.5, robots=1, boxes=0)
+    schema.write(run, Simulation(scenario="basic", setting="paper", world=world))
+    stats = EvaluationStats(steps_run=10, overruns=0, interventions={"x": 3})
+    robots = {"a": PostRobot(fitness=0.75, stats=stats, trace="traces/a.npz")}
+    post = PostEvaluation(
+        evaluation_id=1, steps=10, genome_fitness=0.7, swarm_fitness=0.75, robots=robots
     )
+    schema.write(run, post)
     reader = RunReader(run)
     snapshot = reader.read()
     trajectories = snapshot.trajectories

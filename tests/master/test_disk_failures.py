@@ -38,10 +38,12 @@ from master_helpers import (
 )
 
 from master_service import Master
-from master_service import rundir as rundir_module
 from master_service.rundir import RunDir, RunLog
 from minimize_surprise.errors import FileWriteError
 from needs import find_binary, missing, obeying_modes
+from runfiles import schema
+from runfiles import schema as rundir_module
+from runfiles.schema import Checkpoint, Live
 
 pytestmark = pytest.mark.slow
 
@@ -55,6 +57,18 @@ FULL_DISK_SIZE = "128k"
 FREED_DISK_SIZE = "64m"
 #: Seconds a subprocess may take: far above what these small runs need.
 COMMAND_TIMEOUT = 300
+
+
+#: A checkpoint of a run that has counted nothing yet.
+CHECKPOINT = Checkpoint(
+    run_id="r",
+    phase="evolution",
+    next_evaluation_id=0,
+    attempts=0,
+    failed_attempts=0,
+    csv_rows=0,
+    roster=None,
+)
 
 
 def command(*argv: str) -> list[str]:
@@ -98,13 +112,14 @@ def wait_for(predicate, process: subprocess.Popen[bytes], what: str, timeout: fl
 
 
 def counted(run: Path) -> int:
-    data = RunDir(run).read_checkpoint_data() if (run / "checkpoint.json").exists() else None
-    return 0 if data is None else data["optimizer"]["evaluations"]
+    checkpoint = RunDir(run).read_checkpoint()
+    return 0 if checkpoint is None else checkpoint.evaluations
 
 
 def assert_finished(run: Path, evaluations: int) -> None:
     assert len(RunDir(run).read_rows()) == evaluations
-    assert RunDir(run).read_checkpoint_data()["phase"] == "done"
+    checkpoint = RunDir(run).read_checkpoint()
+    assert checkpoint is not None and checkpoint.phase == "done"
 
 
 # -- a read-only run directory ---------------------------------------------------------------------
@@ -202,8 +217,8 @@ def wait_for_live_master(process: subprocess.Popen[bytes], run: Path) -> None:
     """Wait until the master ``process`` (not an earlier one) announces its port in live.json."""
 
     def announced() -> bool:
-        data = RunDir(run).read_json("live.json")
-        return bool(data and data.get("running") and data.get("pid") == process.pid)
+        live = schema.read(run, Live)
+        return live is not None and live.running and live.pid == process.pid
 
     wait_for(announced, process, "live.json of this master")
 
@@ -346,7 +361,7 @@ def test_a_log_line_that_cannot_be_written_is_kept_back_and_stops_the_next_commi
     assert capsys.readouterr().err == ""
     assert isinstance(handler, RunLog)
     with pytest.raises(FileWriteError) as failure:
-        directory.commit({"csv_rows": 0}, None, ())
+        directory.commit(CHECKPOINT, None, ())
     assert str(failure.value) == f"cannot write {directory.file('master.log')}: " + os.strerror(
         errno.ENOSPC
     )

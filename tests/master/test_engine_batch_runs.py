@@ -33,7 +33,7 @@ def small(scenario: str, seed: int, evaluations: int, side: float | None = None)
 def assert_same_batched_run(a: Path, b: Path, robots: int) -> None:
     assert_same_run(a, b, robots, TIMING_COLUMNS)
     assert len(run_rows(a, TIMING_COLUMNS)) > 0
-    best = [RunDir(p).read_checkpoint_data()["optimizer"]["best"] for p in (a, b)]
+    best = [RunDir(p).read_checkpoint().optimizer["best"] for p in (a, b)]  # type: ignore[union-attr]
     assert best[0] == best[1] and best[0] is not None
 
 

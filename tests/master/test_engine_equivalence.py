@@ -12,7 +12,9 @@ import pytest
 
 from master_service.experiments.engine_run import FastRun
 from master_service.experiments.simulate import SimulatedSwarm, simulation_experiment
-from master_service.rundir import ROBOT_STAT_PREFIXES, RunDir
+from master_service.rundir import RunDir
+from runfiles import schema
+from runfiles.schema import ROBOT_STAT_PREFIXES, BestGenome, PostEvaluation, Simulation
 
 TRACE_ARRAYS = ("sensors", "predictions", "actions", "commands", "safety", "poses")
 
@@ -66,30 +68,33 @@ def test_engine_and_agents_give_the_same_run(tmp_path: Path, scenario: str, over
     ]
     assert all(len(s) == 3 * config.robots and set(s.values()) <= {"", "0"} for s in stats)
     assert fast_rows == agent_rows
-    best = RunDir(fast).read_json("best_genome.json")
-    assert best == RunDir(agents).read_json("best_genome.json")
-    assert best["evaluation"] == finder(fast_rows), fast_rows
+    best = schema.read(fast, BestGenome)
+    assert best is not None and best == schema.read(agents, BestGenome)
+    assert best.evaluation == finder(fast_rows), fast_rows
     for robot in [f"sim-{i}" for i in range(config.robots)]:
         a = np.load(fast / "traces" / f"{robot}.npz")
         b = np.load(agents / "traces" / f"{robot}.npz")
         for name in TRACE_ARRAYS:
             assert np.array_equal(a[name], b[name]), (robot, name)
-    post_fast = RunDir(fast).read_json("post_evaluation.json")
-    post_agents = RunDir(agents).read_json("post_evaluation.json")
-    assert post_fast["swarm_fitness"] == post_agents["swarm_fitness"]
-    for robot, entry in post_fast["robots"].items():
-        assert entry["fitness"] == post_agents["robots"][robot]["fitness"]
-        other = post_agents["robots"][robot]
-        assert entry["stats"]["interventions"] == other["stats"]["interventions"]
-    sim_fast = RunDir(fast).read_json("simulation.json")
-    sim_agents = RunDir(agents).read_json("simulation.json")
-    assert sim_fast.get("post_evaluation_boxes") == sim_agents.get("post_evaluation_boxes")
+    post_fast = schema.read(fast, PostEvaluation)
+    post_agents = schema.read(agents, PostEvaluation)
+    assert post_fast is not None and post_agents is not None
+    assert post_fast.swarm_fitness == post_agents.swarm_fitness
+    for robot, entry in post_fast.robots.items():
+        assert entry.fitness == post_agents.robots[robot].fitness
+        other = post_agents.robots[robot]
+        assert entry.stats.interventions == other.stats.interventions
+    sim_fast = schema.read(fast, Simulation)
+    sim_agents = schema.read(agents, Simulation)
+    assert sim_fast is not None and sim_agents is not None
+    assert sim_fast.post_evaluation_boxes == sim_agents.post_evaluation_boxes
     if scenario == "boxes":
         # The boxes' track, which the report's animation draws, is the same too.
         with np.load(fast / "box_track.npz") as a, np.load(agents / "box_track.npz") as b:
-            boxes = len(sim_fast["post_evaluation_boxes"]["start"])
+            assert sim_fast.post_evaluation_boxes is not None
+            boxes = len(sim_fast.post_evaluation_boxes.start)
             # 80 steps of 0.01 s: a frame every 10 steps (0.1 s) from the first.
             assert a["positions"].shape == (8, boxes, 2)
-            assert np.allclose(a["positions"][0], sim_fast["post_evaluation_boxes"]["start"])
+            assert np.allclose(a["positions"][0], sim_fast.post_evaluation_boxes.start)
             assert np.array_equal(a["positions"], b["positions"])
             assert int(a["every"]) == int(b["every"]) == 10

@@ -77,7 +77,7 @@ async def test_a_crash_between_row_and_checkpoint_counts_the_row_once(tmp_path):
         commit = master.run_dir.commit
 
         def crashing_commit(state, row, header):
-            if state["csv_rows"] == 5:
+            if state.csv_rows == 5:
                 # The row reaches the disk, then a torn line, and the checkpoint never does.
                 with open(run / "evaluations.csv", "a") as file:
                     file.write(row + "6,offspring,0.5,0.")

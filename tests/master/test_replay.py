@@ -12,7 +12,7 @@ import pytest
 from master_service.cli import main
 from master_service.experiments.engine_run import FastRun
 from master_service.experiments.simulate import simulation_experiment
-from master_service.replay import REPLAY_FILE
+from runfiles.schema import Replay
 
 pytestmark = pytest.mark.slow
 
@@ -56,7 +56,7 @@ def test_a_replay_on_simulated_robots_reproduces_the_post_evaluation(
         json.loads((out / "best_genome.json").read_text())["genome"]
         == json.loads((source / "best_genome.json").read_text())["genome"]
     )
-    assert json.loads((out / REPLAY_FILE).read_text())["source_run"] == str(source.resolve())
+    assert json.loads((out / Replay.FILE).read_text())["source_run"] == str(source.resolve())
     gap = json.loads((out / "metrics.json").read_text())["reality_gap"]
     assert gap["swarm_fitness"]["gap"] == 0.0
     assert gap["behaviour"]["source"] == gap["behaviour"]["replay"]

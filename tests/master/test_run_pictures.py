@@ -13,8 +13,8 @@ import pytest
 from master_service.cli import main
 from master_service.experiments.engine_run import FastRun
 from master_service.experiments.simulate import simulation_experiment
-from reporting import pictures
 from needs import require_module
+from reporting import pictures
 
 require_module("matplotlib")
 Image = require_module("PIL.Image")

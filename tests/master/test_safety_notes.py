@@ -6,11 +6,17 @@ from __future__ import annotations
 
 import numpy as np
 
+from minimize_surprise.wire import EvaluationStats
 from reporting.report import _safety_metrics, safety_lines
+from runfiles.schema import PostEvaluation, PostRobot
 
 
-def _post(reasons: dict[str, int], steps: int) -> dict:
-    return {"robots": {"r0": {"stats": {"interventions": reasons, "steps_run": steps}}}}
+def _post(reasons: dict[str, int], steps: int) -> PostEvaluation:
+    stats = EvaluationStats(steps_run=steps, overruns=0, interventions=reasons)
+    robots = {"r0": PostRobot(fitness=0.5, stats=stats)}
+    return PostEvaluation(
+        evaluation_id=0, steps=steps, genome_fitness=None, swarm_fitness=0.5, robots=robots
+    )
 
 
 def test_the_report_says_notes_and_warnings_apart() -> None:

@@ -118,7 +118,8 @@ def counted(run: Path) -> int:
     """Evaluations the run's checkpoint counts (0 before its first commit)."""
     if not (run / "checkpoint.json").exists():
         return 0
-    return RunDir(run).read_checkpoint_data()["optimizer"]["evaluations"]
+    checkpoint = RunDir(run).read_checkpoint()
+    return 0 if checkpoint is None else checkpoint.evaluations
 
 
 def wait_for_checkpoint(run: Path, process: subprocess.Popen[str], timeout: float = 120) -> None:
@@ -162,7 +163,8 @@ def test_sim_stops_quietly_on_a_signal_and_resume_finishes_the_run(
     assert f"run directory: {run}" in out
     assert f"evaluations: {evaluations} (resumed; " in out
     assert len(RunDir(run).read_rows()) == evaluations
-    assert RunDir(run).read_checkpoint_data()["phase"] == "done"
+    checkpoint = RunDir(run).read_checkpoint()
+    assert checkpoint is not None and checkpoint.phase == "done"
 
 
 @pytest.mark.parametrize("engine", ["fast", "agents"])

@@ -31,6 +31,7 @@ import pytest
 from master_service.cli import main
 from master_service.experiments.engine_run import FastRun
 from master_service.experiments.simulation_setup import simulation_experiment
+from minimize_surprise.errors import ConfigError
 from reporting.report import compute_metrics, write_report
 from reporting.tracker import (
     MIN_COVERAGE,
@@ -39,7 +40,6 @@ from reporting.tracker import (
     resample,
     tracked_poses,
 )
-from minimize_surprise.errors import ConfigError
 
 ROBOTS = [f"sim-{i}" for i in range(5)]
 #: The tracker's clock when the post-evaluation's first step was taken.

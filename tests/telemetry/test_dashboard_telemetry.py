@@ -13,10 +13,10 @@ import pytest
 from telemetry_helpers import eventually
 
 from master_service.cli import main
+from minimize_surprise.backoff import BackoffConfig
 from reporting.dashboard import _follow, _Page, _Poller, robots_html
 from reporting.dashboard_data import RunReader
 from reporting.watch import SwarmState
-from minimize_surprise.backoff import BackoffConfig
 from telemetry.config import TelemetryConfig, parse_broker_url
 from telemetry.payloads import EvaluationSummary
 from telemetry.publisher import TelemetryPublisher

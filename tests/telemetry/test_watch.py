@@ -12,8 +12,8 @@ import pytest
 from rich.console import Console
 from telemetry_helpers import eventually
 
-from reporting.watch import SwarmState, collect, render, run_watch
 from minimize_surprise.backoff import BackoffConfig
+from reporting.watch import SwarmState, collect, render, run_watch
 from telemetry.config import TelemetryConfig, parse_broker_url
 from telemetry.payloads import (
     ClientStatus,

@@ -1,0 +1,516 @@
+"""Every file of a run directory, as typed and versioned structures: the one definition that the
+master, ``status``, ``report``, the dashboard, the replay and the studies write and read.
+
+Layout (docs/runs.md shows each file)::
+
+    config.yaml            the resolved master configuration (experiment inline, paths absolute);
+                           readers below the master read the part they need as RunConfig
+    checkpoint.json        Checkpoint: the commit point, evolution state and run bookkeeping
+    evaluations.csv        one row per counted evaluation (EVALUATION_COLUMNS, format_row)
+    best_genome.json       BestGenome: the current best genome, its fitness and network shape
+    master.log             the master's log
+    live.json              Live: while a master serves the run (master_alive says if it still does)
+    pause.json             PauseFile: while the run waits for a person
+    post_evaluation.json   PostEvaluation: the post-evaluation's per-robot fitness and statistics
+    traces/<robot>.npz     the post-evaluation trace of each robot
+    metrics.json, plots/   written by ``surprise-master report`` (and at the end of ``sim``)
+    simulation.json        Simulation: in simulation, the world, and the boxes before and after
+                           the post-evaluation
+    box_track.npz          in simulation with boxes: the boxes during the post-evaluation
+    replay.json            Replay: in a replay's directory, where its genome came from
+
+Versions. Each JSON file carries its ``format``, the version of its structure here (a file written
+before formats were written down has none and counts as format 1). :func:`read` decodes a file of
+any format this version knows and refuses a newer one with a message naming both versions; when a
+structure changes, its ``FORMAT`` goes up and :func:`read` learns to read the old one (or to
+refuse it by name). Unknown keys are ignored, so an older reader still reads a file that only
+gained keys.
+
+Whether a master still serves a run is decided in one place, :func:`master_alive`: it says
+``running``, it rewrote the file within :data:`STALE_AFTER` seconds, and its process exists when it
+names one on this machine.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import json
+import os
+from collections.abc import Iterable, Iterator, Sequence
+from pathlib import Path
+from typing import Any, ClassVar, Final, Literal, TypeVar
+
+import msgspec
+
+from minimize_surprise import files
+from minimize_surprise.config import ExperimentConfig
+from minimize_surprise.errors import FileWriteError, SurpriseError
+from minimize_surprise.network import NetworkSpec
+from minimize_surprise.wire import EvaluationStats
+
+__all__ = [
+    "BASELINE_FILE",
+    "BOX_TRACK",
+    "CONFIG_SNAPSHOT",
+    "EVALUATIONS",
+    "EVALUATION_COLUMNS",
+    "LIVE_INTERVAL",
+    "LOG",
+    "METRICS",
+    "PLOTS",
+    "ROBOT_STAT_PREFIXES",
+    "STALE_AFTER",
+    "TRACES",
+    "BestGenome",
+    "BoxesMoved",
+    "Checkpoint",
+    "Live",
+    "PauseFile",
+    "PauseNote",
+    "Phase",
+    "PostEvaluation",
+    "PostRobot",
+    "Replay",
+    "RunConfig",
+    "RunDirError",
+    "RunFile",
+    "SimulatedWorld",
+    "Simulation",
+    "decode",
+    "encode",
+    "evaluation_header",
+    "format_row",
+    "load_baseline",
+    "master_alive",
+    "read",
+    "read_config",
+    "read_rows",
+    "robot_stat_columns",
+    "write",
+    "write_atomic",
+    "writing",
+]
+
+CONFIG_SNAPSHOT: Final = "config.yaml"
+EVALUATIONS: Final = "evaluations.csv"
+LOG: Final = "master.log"
+TRACES: Final = "traces"
+METRICS: Final = "metrics.json"
+PLOTS: Final = "plots"
+#: In simulation with boxes: where the boxes were during the post-evaluation (``positions``
+#: (frames, boxes, 2) in metres, a frame every ``every`` steps).
+BOX_TRACK: Final = "box_track.npz"
+#: A baseline's results in its output directory (``surprise-master baseline``).
+BASELINE_FILE: Final = "baseline.json"
+
+#: How often a master rewrites live.json at the least.
+LIVE_INTERVAL: Final = 2.0
+#: A live.json that says ``running`` but is older than this is a master that died: five missed
+#: refreshes are no hiccup.
+STALE_AFTER: Final = 5 * LIVE_INTERVAL
+
+#: Where a run stands: evolving, post-evaluating the best genome, or finished.
+Phase = Literal["evolution", "post-evaluation", "done"]
+
+
+class RunDirError(SurpriseError, RuntimeError):
+    """The run directory cannot be used: it exists already, a file of it cannot be read, or its
+    files contradict each other."""
+
+
+# -- writing ---------------------------------------------------------------------------------
+
+
+@contextlib.contextmanager
+def writing(path: Path) -> Iterator[None]:
+    """Inside, an OSError is a :class:`FileWriteError` naming ``path``."""
+    try:
+        yield
+    except FileWriteError:
+        raise
+    except OSError as exc:
+        raise FileWriteError.from_os_error(str(path), exc) from exc
+
+
+def write_atomic(
+    path: str | Path, data: bytes, *, durable: bool = True, mode: int | None = None
+) -> None:
+    """:func:`minimize_surprise.files.write_atomic`, whose OSError is a :class:`FileWriteError`
+    naming ``path`` (the error itself may name the temporary file)."""
+    with writing(Path(path)):
+        files.write_atomic(path, data, durable=durable, mode=mode)
+
+
+# -- the JSON files --------------------------------------------------------------------------
+
+
+class RunFile(msgspec.Struct, frozen=True, kw_only=True):
+    """A JSON file of the run directory: ``FILE`` is its name, ``FORMAT`` the version written.
+
+    The ``format`` key is added when the file is written and checked when it is read; it is not
+    a field, so that a structure is the file's data only.
+    """
+
+    FILE: ClassVar[str]
+    FORMAT: ClassVar[int]
+    #: indentation of the written JSON (None: one line), as each file has always been written
+    INDENT: ClassVar[int | None] = None
+    #: keys left out when they hold None, for files that never wrote them as null
+    OMIT_NONE: ClassVar[tuple[str, ...]] = ()
+
+
+class PauseNote(RunFile, frozen=True, kw_only=True):
+    """Why a run waits: ``kind`` (``battery`` or ``before-post-evaluation``), one line for a
+    person (``reason``), the robots concerned (none: the whole swarm)."""
+
+    FILE: ClassVar[str] = "pause.json"
+    FORMAT: ClassVar[int] = 1
+
+    kind: str
+    reason: str
+    robots: list[str] = msgspec.field(default_factory=list)
+
+
+class PauseFile(PauseNote, frozen=True, kw_only=True):
+    """``pause.json``: the pause, and since when (seconds since the epoch)."""
+
+    since: float
+
+
+class Live(RunFile, frozen=True, kw_only=True):
+    """``live.json``: written by a master serving robots, first once it accepts connections,
+    then after every change and at least every :data:`LIVE_INTERVAL` seconds; ``running`` false
+    once it stopped."""
+
+    FILE: ClassVar[str] = "live.json"
+    FORMAT: ClassVar[int] = 1
+
+    pid: int
+    running: bool
+    host: str
+    port: int
+    #: the robots connected now
+    robots: list[str]
+    phase: Phase
+    #: waiting for robots to connect
+    waiting: bool
+    evaluations: int
+    time_left_s: float | None
+    paused: PauseNote | None
+    #: per robot what it reported last (``battery_v``, ``overruns``, ``read_failures``, ...)
+    robot_state: dict[str, dict[str, Any]]
+    updated_at: float
+
+
+class Checkpoint(RunFile, frozen=True, kw_only=True):
+    """``checkpoint.json``: the commit point (rundir.py says how a commit is made exactly once).
+
+    ``optimizer`` is :meth:`minimize_surprise.evolution.OnePlusOne.state` (versioned on its
+    own); ``simulation`` a simulated run's world and robots at this commit, so that it resumes
+    exactly.
+    """
+
+    FILE: ClassVar[str] = "checkpoint.json"
+    FORMAT: ClassVar[int] = 1
+
+    run_id: str
+    phase: Phase
+    next_evaluation_id: int
+    attempts: int
+    failed_attempts: int
+    #: how many rows of evaluations.csv this state accounts for
+    csv_rows: int
+    #: the swarm's robot ids once fixed (the CSV's per-robot columns)
+    roster: list[str] | None
+    elapsed_s: float = 0.0
+    written_at: float = 0.0
+    optimizer: dict[str, Any] = msgspec.field(default_factory=dict)
+    simulation: dict[str, Any] | None = None
+
+    @property
+    def evaluations(self) -> int:
+        """The evaluations counted."""
+        value = self.optimizer.get("evaluations", 0)
+        return value if isinstance(value, int) else 0
+
+    @property
+    def best_fitness(self) -> float | None:
+        """The best genome's fitness, None before the first evaluation."""
+        value = self.optimizer.get("best_fitness")
+        return float(value) if isinstance(value, int | float) else None
+
+
+class BestGenome(RunFile, frozen=True, kw_only=True):
+    """``best_genome.json``: the best genome (bit-exact floats), its current fitness, the counted
+    evaluation that found it, and its network's shape."""
+
+    FILE: ClassVar[str] = "best_genome.json"
+    FORMAT: ClassVar[int] = 1
+
+    evaluation: int
+    fitness: float
+    genome: list[float]
+    spec: NetworkSpec
+
+
+class PostRobot(msgspec.Struct, frozen=True, kw_only=True):
+    """One robot's post-evaluation: its fitness, statistics, and its trace's path in the run
+    (None where it sent none)."""
+
+    fitness: float
+    stats: EvaluationStats
+    trace: str | None = None
+
+
+class PostEvaluation(RunFile, frozen=True, kw_only=True):
+    """``post_evaluation.json``: the best genome's post-evaluation, robot by robot."""
+
+    FILE: ClassVar[str] = "post_evaluation.json"
+    FORMAT: ClassVar[int] = 1
+    INDENT: ClassVar[int | None] = 2
+
+    evaluation_id: int
+    steps: int
+    #: the genome's fitness during evolution
+    genome_fitness: float | None
+    #: the mean of the robots' fitness in the post-evaluation
+    swarm_fitness: float | None
+    robots: dict[str, PostRobot]
+
+
+class SimulatedWorld(msgspec.Struct, frozen=True, kw_only=True):
+    """The simulated world of a run: the carpet's side (metres), robots and boxes."""
+
+    arena_side: float
+    robots: int
+    boxes: int
+
+
+class BoxesMoved(msgspec.Struct, frozen=True, kw_only=True):
+    """Where the boxes were when the post-evaluation began and ended, ``[x, y]`` in metres."""
+
+    start: list[list[float]]
+    end: list[list[float]]
+
+
+class Simulation(RunFile, frozen=True, kw_only=True):
+    """``simulation.json``: the run is simulated, on which engine, in which world; written when
+    the run starts (so that ``resume`` restarts the simulated robots) and again at its end."""
+
+    FILE: ClassVar[str] = "simulation.json"
+    FORMAT: ClassVar[int] = 1
+    OMIT_NONE: ClassVar[tuple[str, ...]] = ("post_evaluation_boxes", "post_evaluation_safety")
+
+    scenario: str
+    setting: str
+    engine: Literal["fast", "agents"] = "agents"
+    realtime: bool = False
+    world: SimulatedWorld
+    post_evaluation_boxes: BoxesMoved | None = None
+    #: every robot's safety state when the post-evaluation began (a replay starts from it)
+    post_evaluation_safety: list[list[int]] | None = None
+
+
+class Replay(RunFile, frozen=True, kw_only=True):
+    """``replay.json``, in a replay's directory: the genome's file, its run, its fitness."""
+
+    FILE: ClassVar[str] = "replay.json"
+    FORMAT: ClassVar[int] = 1
+    INDENT: ClassVar[int | None] = 2
+
+    source: str
+    source_run: str | None
+    genome_fitness: float | None
+
+
+class RunConfig(msgspec.Struct, frozen=True, kw_only=True):
+    """What a reader below the master needs of ``config.yaml`` (the master's whole configuration,
+    ``master_service.config.MasterConfig``): the experiment and the swarm's size."""
+
+    experiment: ExperimentConfig | None = None
+    expected_robots: int | None = None
+
+    @property
+    def robot_count(self) -> int | None:
+        """How many robots form the swarm, None when the snapshot does not say."""
+        if self.expected_robots is not None:
+            return self.expected_robots
+        return None if self.experiment is None else self.experiment.robots
+
+
+_F = TypeVar("_F", bound=RunFile)
+
+
+def encode(data: RunFile) -> bytes:
+    """The file's bytes: ``format`` first, then the structure's fields in order."""
+    plain = msgspec.to_builtins(data)
+    for key in data.OMIT_NONE:
+        if plain.get(key) is None:
+            plain.pop(key, None)
+    text = json.dumps({"format": data.FORMAT, **plain}, indent=data.INDENT)
+    return text.encode("utf-8")
+
+
+def write(run_dir: str | Path, data: RunFile, *, durable: bool = True) -> None:
+    """Write ``data`` as its file of ``run_dir``, atomically."""
+    write_atomic(Path(run_dir) / data.FILE, encode(data), durable=durable)
+
+
+def decode(kind: type[_F], raw: bytes | str, *, name: str | None = None) -> _F:
+    """Decode one file's text as ``kind``; :class:`RunDirError` naming the file (``name``), the
+    key or the format when it is not one this version reads."""
+    name = name or kind.FILE
+    try:
+        data = json.loads(raw)
+    except ValueError as exc:
+        raise RunDirError(f"{name} is not valid JSON: {exc}") from None
+    if not isinstance(data, dict):
+        raise RunDirError(f"{name} holds no object")
+    version = data.pop("format", 1)
+    if not isinstance(version, int) or isinstance(version, bool) or version < 1:
+        raise RunDirError(f"{name}: format {version!r} is not a version")
+    if version > kind.FORMAT:
+        raise RunDirError(
+            f"{name} is format {version}, written by a newer minimize-surprise; this one reads "
+            f"{kind.__name__} up to format {kind.FORMAT}: upgrade it to read this run"
+        )
+    try:
+        return msgspec.convert(data, kind)
+    except msgspec.ValidationError as exc:
+        raise RunDirError(f"{name} cannot be read (format {version}): {exc}") from None
+
+
+def read(run_dir: str | Path, kind: type[_F]) -> _F | None:
+    """The file ``kind.FILE`` of ``run_dir`` as ``kind``; None when it does not exist.
+
+    A file that exists but cannot be decoded raises :class:`RunDirError` naming it.
+    """
+    path = Path(run_dir) / kind.FILE
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        return None
+    except OSError as exc:
+        raise RunDirError(f"{path} cannot be read: {exc}") from None
+    return decode(kind, raw, name=str(path))
+
+
+def read_config(run_dir: str | Path) -> RunConfig:
+    """The part of ``config.yaml`` a reader needs (:class:`RunConfig`); a ConfigError names the
+    file and the key, a RunDirError a directory that is no run."""
+    from minimize_surprise.config import load_yaml
+
+    path = Path(run_dir) / CONFIG_SNAPSHOT
+    if not path.is_file():
+        raise RunDirError(f"{run_dir} is not a run directory: {CONFIG_SNAPSHOT} is missing")
+    return load_yaml(path, RunConfig)
+
+
+def master_alive(live: Live | None, now: float) -> bool:
+    """Whether the master that wrote ``live`` still serves the run at ``now``: the one rule of
+    ``status``, the dashboard and every other reader.
+
+    It must say ``running`` and have rewritten the file within :data:`STALE_AFTER` seconds; a
+    process id of this machine's that is gone means a master that died (one elsewhere, in a
+    copied run, cannot be asked: the file's age decides). Only a positive id is asked about:
+    ``os.kill`` of 0 or a negative id asks about process groups, which always answer.
+    """
+    if live is None or not live.running or now - live.updated_at > STALE_AFTER:
+        return False
+    if live.pid > 0:
+        try:
+            os.kill(live.pid, 0)
+        except ProcessLookupError:
+            return False
+        except PermissionError:
+            pass  # another user's process: alive
+    return True
+
+
+# -- evaluations.csv -------------------------------------------------------------------------
+
+#: The fixed columns of ``evaluations.csv``; one ``fitness_<robot id>`` column per robot follows,
+#: then with robots (not the compiled engine) :func:`robot_stat_columns`.
+EVALUATION_COLUMNS: Final = (
+    "evaluation",
+    "kind",
+    "fitness",
+    "best_fitness",
+    "accepted",
+    "attempts",
+    "duration_s",
+    "safety_share",
+)
+
+#: The per-robot statistics robots report, each a column per robot after the fitness columns.
+ROBOT_STAT_PREFIXES: Final = ("battery_v_", "overruns_", "read_failures_")
+
+
+def evaluation_header(roster: Sequence[str], *, robot_stats: bool) -> list[str]:
+    """The header of a new ``evaluations.csv`` for the swarm ``roster``."""
+    header = [*EVALUATION_COLUMNS, *(f"fitness_{robot}" for robot in roster)]
+    return header + (robot_stat_columns(roster) if robot_stats else [])
+
+
+def robot_stat_columns(roster: Sequence[str]) -> list[str]:
+    """The per-robot statistics' columns: every robot's battery, then overruns, read failures."""
+    return [f"{prefix}{robot}" for prefix in ROBOT_STAT_PREFIXES for robot in roster]
+
+
+def format_row(
+    evaluation: int,
+    kind: str,
+    fitness: float,
+    best_fitness: float,
+    accepted: bool,
+    attempts: int,
+    duration_s: float,
+    safety_share: float,
+    robot_fitness: Iterable[float],
+    robot_stats: Sequence[EvaluationStats] | None = None,
+) -> str:
+    """One line of ``evaluations.csv``; floats in repr form so they read back bit for bit.
+
+    ``robot_stats`` (the robots' in roster order) fills :func:`robot_stat_columns`; None for a
+    file without them.
+    """
+    fields = [
+        str(evaluation),
+        kind,
+        repr(float(fitness)),
+        repr(float(best_fitness)),
+        "true" if accepted else "false",
+        str(attempts),
+        f"{duration_s:.3f}",
+        f"{safety_share:.4f}",
+        *(repr(float(f)) for f in robot_fitness),
+    ]
+    if robot_stats is not None:
+        fields += ["" if s.battery_v is None else f"{s.battery_v:.3f}" for s in robot_stats]
+        fields += [str(s.overruns) for s in robot_stats]
+        fields += [str(s.read_failures) for s in robot_stats]
+    return ",".join(fields) + "\n"
+
+
+def read_rows(run_dir: str | Path) -> list[dict[str, str]]:
+    """The rows of ``evaluations.csv`` as dicts of strings (empty if there is none); a torn last
+    line is read as it stands (a commit's count, ``Checkpoint.csv_rows``, says which rows hold)."""
+    path = Path(run_dir) / EVALUATIONS
+    try:
+        with open(path, encoding="utf-8", newline="") as file:
+            return list(csv.DictReader(file))
+    except FileNotFoundError:
+        return []
+
+
+# -- a baseline's directory ------------------------------------------------------------------
+
+
+def load_baseline(path: str | Path) -> dict[str, Any]:
+    """``baseline.json`` of a ``surprise-master baseline`` directory (or the file itself): the
+    random pairs' results, as written by ``master_service.experiments.baseline``."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / BASELINE_FILE
+    return json.loads(path.read_text(encoding="utf-8"))
