@@ -8,7 +8,8 @@ classified into nine patterns.
 
 Modules: :mod:`gridworld.world` (geometry, sensor models, start configurations),
 :mod:`gridworld.kernels`, :mod:`gridworld.runs` and :mod:`gridworld.evaluate` (compiled simulation
-of whole generations),
+of whole generations), :mod:`gridworld.predictor` and :mod:`gridworld.simd` (the predictor's
+step on vectors of lanes, written as LLVM intrinsics),
 :mod:`gridworld.patterns` (the nine patterns and solution quality), :mod:`gridworld.config`,
 :mod:`gridworld.evolve` (a run with checkpoints), :mod:`gridworld.tasks` (the studies' entry
 point), :mod:`gridworld.plots`, :mod:`gridworld.figures` and :mod:`gridworld.cli`

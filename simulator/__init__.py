@@ -1,13 +1,19 @@
-"""The simulator that stands in for the hardware: a kinematic arena of Thymio II robots.
+"""The simulator: a kinematic arena of Thymio II robots, and the swarm's compiled engine.
 
+* :mod:`simulator.settings` - the ``paper`` and ``lab`` settings' values (docs/simulation.md);
 * :mod:`simulator.scenarios` - every world parameter (``WorldConfig``) and the named scenarios of
   the paper (``basic``, ``boxes``, ``gradient``) with overrides: ``scenario_config(name, ...)``;
-* :mod:`simulator.world` - the vectorised world: motion, contacts, boxes, sensors (``World``);
+* :mod:`simulator.experiment` - an experiment's world and safety layer in simulation;
+* :mod:`simulator.physics` - motion, contacts, boxes and sensors as compiled kernels;
+* :mod:`simulator.world` - the world stepped one step at a time (``World``);
+* :mod:`simulator.engine` - whole evaluations of a swarm in one compiled loop (``Swarm``);
 * :mod:`simulator.body` - the drivers' ``Body`` over a shared world, in lockstep or real time
   (``SimSwarm``, ``SimBody``, ``LockstepClock``);
+* :mod:`simulator.battery` - a simulated robot's battery, for the lab's battery pauses;
 * :mod:`simulator.metrics` - the paper's behaviour metrics from recorded poses;
 * :mod:`simulator.render` - pictures of a world (needs the optional matplotlib);
-* :mod:`standins.fake_i2c`, :mod:`standins.fake_medulla` - fake devices behind the real drivers.
+* :mod:`simulator.warmup` - compiles the kernels a run needs before it starts.
 
-Nothing is imported here, so that each part costs only what it uses.
+The stand-ins for the lab's hardware (fake medulla, fake I2C chips, served robots) are the
+package :mod:`standins`. Nothing is imported here, so that each part costs only what it uses.
 """

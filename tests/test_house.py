@@ -7,23 +7,15 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import tomllib
 from pathlib import Path
 
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-#: The packages, as pyproject.toml installs them.
-PACKAGES = (
-    "minimize_surprise",
-    "drivers",
-    "simulator",
-    "robot_agent",
-    "master_service",
-    "telemetry",
-    "transport",
-    "studies",
-    "gridworld",
-)
+#: The packages, as pyproject.toml installs them: every directory at the top with an __init__.py.
+PACKAGES = tuple(sorted(p.parent.name for p in REPO.glob("*/__init__.py")))
+PYPROJECT = tomllib.loads((REPO / "pyproject.toml").read_text(encoding="utf-8"))
 #: A source file longer than this says at its top why it is one file.
 LONGEST = 600
 #: The words that start that reason, in the module's docstring.
@@ -65,6 +57,46 @@ def test_the_packages_type_check() -> None:
     assert "Success: no issues found" in result.stdout, _explain(result)
 
 
+def test_every_package_is_installed_checked_and_in_a_layer() -> None:
+    linter = PYPROJECT["tool"]["importlinter"]
+    contracts = linter["contracts"]
+    top = next(c for c in contracts if c["type"] == "layers" and "containers" not in c)
+    layered = {name.strip() for layer in top["layers"] for name in layer.split("|")}
+    where = {
+        "installed (tool.setuptools.packages.find.include)": {
+            name.removesuffix("*")
+            for name in PYPROJECT["tool"]["setuptools"]["packages"]["find"]["include"]
+        },
+        "type-checked (tool.mypy.packages)": set(PYPROJECT["tool"]["mypy"]["packages"]),
+        "linted (tool.importlinter.root_packages)": set(linter["root_packages"]),
+        "in the packages' layers contract": layered,
+    }
+    for what, names in where.items():
+        assert set(PACKAGES) == names, f"not {what}: {sorted(set(PACKAGES) ^ names)}"
+
+
+def test_every_package_with_modules_has_its_rooms_layered_exhaustively() -> None:
+    contained = {
+        container
+        for contract in PYPROJECT["tool"]["importlinter"]["contracts"]
+        if contract.get("exhaustive")
+        for container in contract.get("containers", ())
+    }
+    packages = set()
+    for package in PACKAGES:
+        for init in (REPO / package).rglob("__init__.py"):
+            directory = init.parent
+            rooms = [
+                p for p in directory.iterdir() if p.suffix == ".py" and p.name != "__init__.py"
+            ]
+            rooms += [p for p in directory.iterdir() if (p / "__init__.py").is_file()]
+            if len(rooms) > 1:
+                packages.add(".".join(directory.relative_to(REPO).parts))
+    assert packages <= contained, (
+        f"no exhaustive layers contract for {sorted(packages - contained)}"
+    )
+
+
 def test_no_file_too_long_without_a_reason() -> None:
     unexplained = []
     for package in (*PACKAGES, "docs/tools"):
@@ -82,3 +114,49 @@ def test_the_docs_index_lists_every_page() -> None:
     pages = sorted(p.name for p in (REPO / "docs").glob("*.md") if p.name != "README.md")
     missing = [page for page in pages if f"]({page})" not in index]
     assert not missing, f"docs/README.md does not list {', '.join(missing)}"
+
+
+def _modules(package: Path) -> set[str]:
+    dotted = ".".join(package.relative_to(REPO).parts)
+    names = {p.stem for p in package.glob("*.py") if p.name not in ("__init__.py", "__main__.py")}
+    names |= {p.parent.name for p in package.glob("*/__init__.py")}
+    return {f"{dotted}.{name}" for name in names}
+
+
+def test_package_docstrings_name_only_modules_that_exist_and_lists_are_complete() -> None:
+    """A package docstring that names modules names existing ones; one that lists them (a
+    ``Modules:`` line or a ``* :mod:`` list) lists all of them."""
+    import ast
+    import re
+
+    problems = []
+    for package in PACKAGES:
+        for init in sorted((REPO / package).rglob("__init__.py")):
+            directory = init.parent
+            dotted = ".".join(directory.relative_to(REPO).parts)
+            doc = ast.get_docstring(ast.parse(init.read_text(encoding="utf-8"))) or ""
+            named = {
+                f"{dotted}{ref}" if ref.startswith(".") else ref
+                for ref in re.findall(r":mod:`~?([\w.]+)`", doc)
+            }
+            every = {
+                name
+                for path in REPO.glob("*/")
+                if (path / "__init__.py").is_file()
+                for name in {path.name} | _all_modules(path)
+            }
+            missing_targets = sorted(n for n in named if n not in every)
+            if missing_targets:
+                problems.append(f"{dotted} names no such module: {', '.join(missing_targets)}")
+            lists = "Modules:" in doc or re.search(r"^\* :mod:", doc, re.MULTILINE)
+            unlisted = sorted(_modules(directory) - named) if lists else []
+            if unlisted:
+                problems.append(f"{dotted}'s list of modules misses {', '.join(unlisted)}")
+    assert not problems, "; ".join(problems)
+
+
+def _all_modules(package: Path) -> set[str]:
+    found = set()
+    for init in package.rglob("__init__.py"):
+        found |= _modules(init.parent) | {".".join(init.parent.relative_to(REPO).parts)}
+    return found

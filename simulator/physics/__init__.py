@@ -37,8 +37,8 @@ Models:
 
 Modules: :mod:`.model` (the constants, sensor geometry, noise), :mod:`.motion` (the step),
 :mod:`.contacts` (walls, robots), :mod:`.boxes` (boxes, force), :mod:`.ir` (the IR models),
-:mod:`.sensing` (every sensor). Everything public is here too: ``physics.sense``,
-``physics.step_world``, ...
+:mod:`.sensing` (every sensor), :mod:`.grid` (the cells that find neighbours in large swarms).
+Everything public is here too: ``physics.sense``, ``physics.step_world``, ...
 """
 
 from __future__ import annotations

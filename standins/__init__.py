@@ -1,0 +1,17 @@
+"""Stand-ins for the lab's hardware: what runs where a robot, its asebamedulla or its I2C chips
+would be, in tests, rehearsals and the simulated swarm's separate processes.
+
+* :mod:`standins.fake_medulla` - a fake asebamedulla on a private D-Bus (the real drivers talk to
+  it as to the real one);
+* :mod:`standins.medulla_model` - a simulated Thymio behind the fake medulla: its sensors read
+  from the simulated world, its motors drive it;
+* :mod:`standins.fake_i2c` - emulated I2C chips (light sensors, force-sensor ADC, multiplexer);
+* :mod:`standins.playground` - the real asebamedulla and Aseba Playground, started and stopped
+  for a rehearsal;
+* :mod:`standins.serve` - ``surprise-sim-robots``: simulated robots served as separate
+  processes behind either medulla;
+* :mod:`standins.scripted_robots` - robots that speak the protocol over TCP from a script, for
+  the master's tests and benchmarks.
+
+Nothing is imported here, so that each part costs only what it uses.
+"""

@@ -1,0 +1,248 @@
+"""The run directory's schema: every file round-trips, is pinned by its bytes, reads the files of
+the version before formats were written down, and refuses a newer format by name; one rule says
+whether a master is alive."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from minimize_surprise.config import ExperimentConfig
+from minimize_surprise.network import NetworkSpec
+from minimize_surprise.wire import EvaluationStats
+from runfiles import schema
+from runfiles.schema import (
+    STALE_AFTER,
+    BestGenome,
+    BoxesMoved,
+    Checkpoint,
+    Live,
+    PauseFile,
+    PauseNote,
+    PostEvaluation,
+    PostRobot,
+    Replay,
+    RunDirError,
+    RunFile,
+    SimulatedWorld,
+    Simulation,
+    master_alive,
+)
+
+STATS = EvaluationStats(steps_run=100, overruns=1, interventions={"front": 3}, battery_v=3.9)
+
+#: One filled example of every file, and its bytes as this version writes them. A renamed,
+#: retyped or dropped field changes the bytes: then the file format changed, and its FORMAT must
+#: go up with a reader for the old one (docs/runs.md).
+GOLDEN: dict[type[RunFile], tuple[RunFile, str]] = {
+    Checkpoint: (
+        Checkpoint(
+            run_id="r1",
+            phase="evolution",
+            next_evaluation_id=4,
+            attempts=1,
+            failed_attempts=2,
+            csv_rows=3,
+            roster=["a", "b"],
+            elapsed_s=1.5,
+            written_at=1700000000.25,
+            optimizer={"evaluations": 3, "best_fitness": 0.75},
+            simulation=None,
+        ),
+        '{"format": 1, "run_id": "r1", "phase": "evolution", "next_evaluation_id": 4, '
+        '"attempts": 1, "failed_attempts": 2, "csv_rows": 3, "roster": ["a", "b"], '
+        '"elapsed_s": 1.5, "written_at": 1700000000.25, '
+        '"optimizer": {"evaluations": 3, "best_fitness": 0.75}, "simulation": null}',
+    ),
+    Live: (
+        Live(
+            pid=123,
+            running=True,
+            host="0.0.0.0",
+            port=7474,
+            robots=["a"],
+            phase="post-evaluation",
+            waiting=False,
+            evaluations=10,
+            time_left_s=30.0,
+            paused=PauseNote(kind="battery", reason="swap a", robots=["a"]),
+            robot_state={"a": {"battery_v": 3.7, "overruns": 0, "read_failures": 0}},
+            updated_at=1700000001.0,
+        ),
+        '{"format": 1, "pid": 123, "running": true, "host": "0.0.0.0", "port": 7474, '
+        '"robots": ["a"], "phase": "post-evaluation", "waiting": false, "evaluations": 10, '
+        '"time_left_s": 30.0, "paused": {"kind": "battery", "reason": "swap a", '
+        '"robots": ["a"]}, "robot_state": {"a": {"battery_v": 3.7, "overruns": 0, '
+        '"read_failures": 0}}, "updated_at": 1700000001.0}',
+    ),
+    PauseFile: (
+        PauseFile(kind="before-post-evaluation", reason="place the robots", robots=[], since=5.0),
+        '{"format": 1, "kind": "before-post-evaluation", "reason": "place the robots", '
+        '"robots": [], "since": 5.0}',
+    ),
+    BestGenome: (
+        BestGenome(
+            evaluation=7,
+            fitness=0.5,
+            genome=[0.1, -0.2],
+            spec=NetworkSpec(sensors=("ir.f0", "ground.0"), actor_hidden=1, predictor_hidden=1),
+        ),
+        '{"format": 1, "evaluation": 7, "fitness": 0.5, "genome": [0.1, -0.2], '
+        '"spec": {"sensors": ["ir.f0", "ground.0"], "actor_hidden": 1, "predictor_hidden": 1, '
+        '"predefined": {}, "initial_action": 0.0}}',
+    ),
+    PostEvaluation: (
+        PostEvaluation(
+            evaluation_id=12,
+            steps=100,
+            genome_fitness=0.5,
+            swarm_fitness=0.625,
+            robots={"a": PostRobot(fitness=0.625, stats=STATS, trace="traces/a.npz")},
+        ),
+        '{\n  "format": 1,\n  "evaluation_id": 12,\n  "steps": 100,\n  "genome_fitness": 0.5,\n'
+        '  "swarm_fitness": 0.625,\n  "robots": {\n    "a": {\n      "fitness": 0.625,\n'
+        '      "stats": {\n        "steps_run": 100,\n        "overruns": 1,\n'
+        '        "interventions": {\n          "front": 3\n        },\n'
+        '        "read_failures": 0,\n        "battery_v": 3.9\n      },\n'
+        '      "trace": "traces/a.npz"\n    }\n  }\n}',
+    ),
+    Simulation: (
+        Simulation(
+            scenario="boxes",
+            setting="paper",
+            engine="fast",
+            realtime=False,
+            world=SimulatedWorld(arena_side=1.1, robots=4, boxes=2),
+            post_evaluation_boxes=BoxesMoved(start=[[0.0, 0.1]], end=[[0.2, 0.1]]),
+            post_evaluation_safety=[[0, 1]],
+        ),
+        '{"format": 1, "scenario": "boxes", "setting": "paper", "engine": "fast", '
+        '"realtime": false, "world": {"arena_side": 1.1, "robots": 4, "boxes": 2}, '
+        '"post_evaluation_boxes": {"start": [[0.0, 0.1]], "end": [[0.2, 0.1]]}, '
+        '"post_evaluation_safety": [[0, 1]]}',
+    ),
+    Replay: (
+        Replay(source="/runs/a", source_run="/runs/a", genome_fitness=None),
+        '{\n  "format": 1,\n  "source": "/runs/a",\n  "source_run": "/runs/a",\n'
+        '  "genome_fitness": null\n}',
+    ),
+}
+
+
+def _files() -> set[type[RunFile]]:
+    found: set[type[RunFile]] = set()
+    todo = list(RunFile.__subclasses__())
+    while todo:
+        kind = todo.pop()
+        todo += kind.__subclasses__()
+        if kind is not PauseNote:  # live.json's part; its file is PauseFile
+            found.add(kind)
+    return found
+
+
+def test_every_file_of_the_schema_has_a_golden_example() -> None:
+    assert _files() == set(GOLDEN)
+
+
+@pytest.mark.parametrize("kind", list(GOLDEN), ids=lambda k: k.FILE)
+def test_every_file_is_pinned_by_its_bytes_and_reads_back(kind: type[RunFile], tmp_path) -> None:
+    example, golden = GOLDEN[kind]
+    assert schema.encode(example).decode() == golden
+    schema.write(tmp_path, example)
+    assert (tmp_path / kind.FILE).read_text() == golden
+    assert schema.read(tmp_path, kind) == example
+
+
+def test_an_absent_file_is_none_and_a_damaged_one_is_named(tmp_path: Path) -> None:
+    assert schema.read(tmp_path, Live) is None
+    (tmp_path / "live.json").write_text('{"pid": 1, "runn')
+    with pytest.raises(RunDirError, match=r"live\.json is not valid JSON"):
+        schema.read(tmp_path, Live)
+
+
+def test_files_written_before_formats_existed_are_read_as_format_1(tmp_path: Path) -> None:
+    # As the previous version wrote them: json.dumps of plain dicts, no "format" key.
+    (tmp_path / "simulation.json").write_text(
+        json.dumps(
+            {
+                "scenario": "basic",
+                "setting": "paper",
+                "realtime": False,
+                "world": {"arena_side": 1.0, "robots": 10, "boxes": 0},
+            }
+        )
+    )
+    simulation = schema.read(tmp_path, Simulation)
+    assert simulation is not None and simulation.engine == "agents"  # older runs: agents
+    assert simulation.post_evaluation_boxes is None
+    (tmp_path / "pause.json").write_text(
+        json.dumps({"kind": "battery", "reason": "swap b", "robots": ["b"], "since": 2.0})
+    )
+    assert schema.read(tmp_path, PauseFile) == PauseFile(
+        kind="battery", reason="swap b", robots=["b"], since=2.0
+    )
+
+
+def test_a_newer_format_is_refused_naming_both_versions(tmp_path: Path) -> None:
+    golden = GOLDEN[Checkpoint][1]
+    (tmp_path / "checkpoint.json").write_text(golden.replace('"format": 1', '"format": 2'))
+    with pytest.raises(RunDirError) as refused:
+        schema.read(tmp_path, Checkpoint)
+    message = str(refused.value)
+    assert "checkpoint.json is format 2" in message and "up to format 1" in message
+
+
+def test_a_missing_or_mistyped_key_is_named(tmp_path: Path) -> None:
+    (tmp_path / "live.json").write_text(json.dumps({"format": 1, "pid": "7"}))
+    with pytest.raises(RunDirError, match=r"live\.json cannot be read \(format 1\).*\$\.pid"):
+        schema.read(tmp_path, Live)
+
+
+def test_unknown_keys_of_a_later_minor_change_are_ignored(tmp_path: Path) -> None:
+    example, golden = GOLDEN[Replay]
+    data = json.loads(golden) | {"note": "added later"}
+    (tmp_path / "replay.json").write_text(json.dumps(data))
+    assert schema.read(tmp_path, Replay) == example
+
+
+def test_the_config_snapshot_gives_readers_the_experiment_and_the_swarm(tmp_path: Path) -> None:
+    (tmp_path / "config.yaml").write_text(
+        "experiment:\n  robots: 4\n  evolution:\n    evaluations: 30\nport: 7474\n"
+    )
+    config = schema.read_config(tmp_path)
+    assert isinstance(config.experiment, ExperimentConfig)
+    assert config.experiment.evolution.evaluations == 30 and config.robot_count == 4
+    with pytest.raises(RunDirError, match="not a run directory"):
+        schema.read_config(tmp_path / "elsewhere")
+
+
+def _live(**fields) -> Live:
+    example, _ = GOLDEN[Live]
+    data = schema.decode(Live, schema.encode(example))
+    return Live(**{f: getattr(data, f) for f in Live.__struct_fields__} | fields)
+
+
+def test_a_master_is_alive_while_running_fresh_and_its_process_exists() -> None:
+    now = 1000.0
+    assert master_alive(_live(pid=os.getpid(), updated_at=now - 1), now)
+    assert not master_alive(_live(pid=os.getpid(), updated_at=now - 1, running=False), now)
+    assert not master_alive(_live(pid=os.getpid(), updated_at=now - STALE_AFTER - 1), now)
+    assert not master_alive(None, now)
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    assert not master_alive(_live(pid=gone.pid, updated_at=now), now)
+
+
+@pytest.mark.parametrize("pid", [0, -1])
+def test_a_pid_that_names_no_process_is_not_asked_about(pid: int) -> None:
+    # os.kill(0 or -1, 0) asks about process groups, which always answer: only the file's age
+    # decides then.
+    now = time.time()
+    assert master_alive(_live(pid=pid, updated_at=now), now)
+    assert not master_alive(_live(pid=pid, updated_at=now - STALE_AFTER - 1), now)
