@@ -219,6 +219,29 @@ class SafetyParams(NamedTuple):
     backward_needs_both_wheels: bool
 
 
+class SafetySensors(NamedTuple):
+    """Where each group of sensors the rules read sits in the sensor values, as the kernel takes
+    it: int64 positions in ``values`` (empty: that group's rule is off). Fixed per sensor layout
+    (:class:`SafetyLayer` makes it once); built with every field named, which a test checks."""
+
+    front: np.ndarray  # the front IRs: the stop profile's forward rule, escapes backward
+    rear: np.ndarray  # the rear IRs: the stop profile's backward rule, escapes forward
+    ground: np.ndarray  # the ground sensors: the boundary rule
+    force: np.ndarray  # the force sensor: the escape profile's pushing rule
+
+
+class SafetyInput(NamedTuple):
+    """One step's input to the kernel: the reading and the intended command. Built with every
+    field named, which a test checks (a swapped pair of positional floats would compile and
+    run)."""
+
+    values: np.ndarray  # the normalised sensor values, float64, in the layout's order
+    left: float  # the intended left wheel command (not trusted: NaN, inf, out of range)
+    right: float  # the intended right wheel command
+    fresh: bool  # False: the values are not a new reading (a failed or timed-out read)
+    age: float  # the reading's age in seconds; -inf: unknown (only ``fresh`` counts)
+
+
 def safety_params(config: SafetyConfig) -> SafetyParams:
     """The kernel's form of ``config``."""
     return SafetyParams(
@@ -387,25 +410,21 @@ def _begin_drive(p: SafetyParams, state: np.ndarray, direction: int) -> tuple[fl
 
 @kernel(inline=True)
 def safety_step(
-    p: SafetyParams,
-    front: np.ndarray,
-    rear: np.ndarray,
-    ground: np.ndarray,
-    force: np.ndarray,
-    values: np.ndarray,
-    left: float,
-    right: float,
-    fresh: bool,
-    age: float,
-    state: np.ndarray,
+    p: SafetyParams, sensors: SafetySensors, inputs: SafetyInput, state: np.ndarray
 ) -> tuple[float, float, int]:
     """One step of the rules for one robot: ``(left, right, reason code)`` to apply.
 
-    ``front``, ``rear``, ``ground``, ``force`` are the positions in ``values`` of each group of
-    sensors (empty: that rule is off); ``age`` is the reading's age in seconds (NaN: unknown);
-    ``state`` (int64 ``[phase, steps_left, direction, backward_steps, rng]``) is updated in place.
-    Reason codes index :data:`REASON_OF_CODE`.
+    ``sensors`` are the positions in ``inputs.values`` of each group of sensors (empty: that
+    rule is off); ``inputs`` are the reading and the intended command, ``inputs.age`` the
+    reading's age in seconds (-inf: unknown, only ``fresh`` counts; NaN: stale); ``state``
+    (int64 ``[phase, steps_left, direction, backward_steps, rng]``) is updated in place. Four
+    arguments of four kinds with every input named in them: two of them swapped fail (numba
+    does not compile the call, Python raises AttributeError). Reason codes index
+    :data:`REASON_OF_CODE`.
     """
+    front, rear, ground, force = sensors.front, sensors.rear, sensors.ground, sensors.force
+    values, left, right = inputs.values, inputs.left, inputs.right
+    fresh, age = inputs.fresh, inputs.age
     max_age = p.max_frame_age
     # -inf: the age is unknown, only ``fresh`` counts; a NaN age is stale.
     if not fresh or (max_age >= 0.0 and age != -math.inf and not age <= max_age):
@@ -532,12 +551,35 @@ class SafetyLayer:
         def indices(group: Sequence[str]) -> np.ndarray:
             return np.array([where[n] for n in group if n in where], dtype=np.int64)
 
-        self.front = indices(_FRONT_IR)
-        self.rear = indices(_REAR_IR)
-        self.ground = indices(GROUND_SENSORS)
-        self.force = indices(FORCE_SENSORS)
-        if self.config.profile == "stop":
-            self.force = self.force[:0]  # the stop profile has no force rule
+        force = indices(FORCE_SENSORS)
+        #: the kernel's positions of each group of sensors in :attr:`sensors`
+        self.groups = SafetySensors(
+            front=indices(_FRONT_IR),
+            rear=indices(_REAR_IR),
+            ground=indices(GROUND_SENSORS),
+            # the stop profile has no force rule
+            force=force[:0] if self.config.profile == "stop" else force,
+        )
+
+    @property
+    def front(self) -> np.ndarray:
+        """The positions of the front IRs in :attr:`sensors`."""
+        return self.groups.front
+
+    @property
+    def rear(self) -> np.ndarray:
+        """The positions of the rear IRs in :attr:`sensors`."""
+        return self.groups.rear
+
+    @property
+    def ground(self) -> np.ndarray:
+        """The positions of the ground sensors in :attr:`sensors`."""
+        return self.groups.ground
+
+    @property
+    def force(self) -> np.ndarray:
+        """The positions of the force sensor in :attr:`sensors` (none in the stop profile)."""
+        return self.groups.force
 
     @property
     def active_rules(self) -> tuple[str, ...]:
@@ -583,10 +625,14 @@ class SafetyLayer:
         if not numeric:
             left = right = math.nan
         array = state.to_array()
-        sl, sr, code = safety_step(
-            self.params, self.front, self.rear, self.ground, self.force, v, left, right,
-            bool(fresh), -math.inf if age is None else float(age), array,
-        )  # fmt: skip
+        inputs = SafetyInput(
+            values=v,
+            left=left,
+            right=right,
+            fresh=bool(fresh),
+            age=-math.inf if age is None else float(age),
+        )
+        sl, sr, code = safety_step(self.params, self.groups, inputs, array)
         changed = (array != state.to_array()).any()
         return Decision(
             (float(sl), float(sr)),

@@ -41,8 +41,10 @@ from minimize_surprise.safety import (
     REASON_OF_CODE,
     REASONS,
     SafetyConfig,
+    SafetyInput,
     SafetyLayer,
     SafetyParams,
+    SafetySensors,
     intervention_share,
     safety_seed,
     safety_step,
@@ -82,10 +84,7 @@ class SafetyLayers(NamedTuple):
     and ``state`` (B, N, 5) int64, each robot's state in each arena, updated in place."""
 
     params: SafetyParams
-    front: np.ndarray
-    rear: np.ndarray
-    ground: np.ndarray
-    force: np.ndarray
+    sensors: SafetySensors
     state: np.ndarray
 
 
@@ -198,8 +197,7 @@ def evaluate(
     geometries, sensings, poses, cmds = arenas.geometry, arenas.sensing, arenas.pose, arenas.cmd
     forces, boxes, pending, clock = arenas.force, arenas.boxes, arenas.pending, arenas.clock
     box_start = arenas.box_start
-    sp, front, rear, ground = safety.params, safety.front, safety.rear, safety.ground
-    force_idx, states = safety.force, safety.state
+    sp, groups, states = safety.params, safety.sensors, safety.state
     a_in, a_out, p_in, p_self, p_out = net.a_in, net.a_out, net.p_in, net.p_self, net.p_out
     free, fixed = net.free, net.fixed
     values, work, acc = scratch.values, scratch.work, scratch.acc
@@ -232,10 +230,14 @@ def evaluate(
             cmd, state, counts = cmds[b], states[b], interventions[b]
             for i in range(n):
                 lane = b * n + i
-                left, right, code = safety_step(
-                    sp, front, rear, ground, force_idx, values[b, i], action[0, lane],
-                    action[1, lane], True, 0.0, state[i],
-                )  # fmt: skip
+                inputs = SafetyInput(
+                    values=values[b, i],
+                    left=action[0, lane],
+                    right=action[1, lane],
+                    fresh=True,
+                    age=0.0,
+                )
+                left, right, code = safety_step(sp, groups, inputs, state[i])
                 counts[i, code] += 1
                 cmd[i, 0] = left
                 cmd[i, 1] = right
@@ -419,9 +421,10 @@ def evaluate_swarms(
     )
     layer = first.layer
     safety = SafetyLayers(
-        layer.params, layer.front, layer.rear, layer.ground, layer.force,
-        np.stack([swarm.safety for swarm in swarms]),
-    )  # fmt: skip
+        params=layer.params,
+        sensors=layer.groups,
+        state=np.stack([swarm.safety for swarm in swarms]),
+    )
     recs = [swarm._recording(steps, record) for swarm in swarms] if record else empty
     fitness = np.empty((len(swarms), n))
     interventions = np.zeros((len(swarms), n, len(REASON_OF_CODE)), dtype=np.int64)
