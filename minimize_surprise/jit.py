@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import linecache
 import os
 import shutil
 import tempfile
@@ -33,7 +34,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any, Literal, TypeVar
 
-__all__ = ["JIT", "borrow", "kernel", "typed_list"]
+__all__ = ["JIT", "BorrowError", "borrow", "kernel", "typed_list"]
 
 F = TypeVar("F", bound=Callable[..., Any])
 T = TypeVar("T")
@@ -189,6 +190,108 @@ def _unowned(context: Any, builder: Any, numba_type: Any, value: Any) -> Any:
     return value
 
 
+class BorrowError(TypeError):
+    """A kernel borrows memory it owns (:data:`borrow`): raised when numba compiles it."""
+
+
+# Where a borrowed value may come from: the kernel's arguments, constants, and what they hold
+# (an attribute, an item, a view, a loop's items). Anything else the kernel computed (a call,
+# arithmetic on arrays, an item taken with an array of indices) is memory the kernel owns.
+_THROUGH = ("getattr", "static_getitem", "getitem", "typed_getitem", "exhaust_iter", "cast")
+_THROUGH_ITER = ("pair_first", "iternext", "getiter")
+_NOTHING = ("null", "undef")
+
+
+def _where(loc: Any) -> str:
+    # "file:line (`source`)" of a numba IR location.
+    line = linecache.getline(loc.filename, loc.line).strip()
+    return f"{loc.short()} (`{line}`)" if line else loc.short()
+
+
+class _Lender:
+    # One function's IR after type inference (and after numba inlined its ``inline=True``
+    # callees): every call of ``borrow`` in it, traced back to where its argument comes from.
+
+    def __init__(self, ir: Any, types: Any, func_ir: Any, typemap: Any, lend: Any) -> None:
+        self.ir, self.types, self.typemap = ir, types, typemap
+        self.defs: dict[str, list[Any]] = {}
+        lenders = set()
+        for block in func_ir.blocks.values():
+            for inst in block.find_insts(ir.Assign):
+                self.defs.setdefault(inst.target.name, []).append(inst.value)
+                if isinstance(inst.value, (ir.Global, ir.FreeVar)) and inst.value.value is lend:
+                    lenders.add(inst.target.name)
+        self.lenders = lenders
+
+    def is_borrow(self, expr: Any) -> bool:
+        return (
+            isinstance(expr, self.ir.Expr)
+            and expr.op == "call"
+            and expr.func.name in self.lenders
+            and len(expr.args) == 1
+        )
+
+    def check(self, func_ir: Any) -> None:
+        if not self.lenders:
+            return
+        for block in func_ir.blocks.values():
+            for inst in block.find_insts(self.ir.Assign):
+                if not self.is_borrow(inst.value):
+                    continue
+                arg = inst.value.args[0]
+                if not _owns_memory(self.typemap.get(arg.name)):
+                    continue  # nothing counted in it: borrowing changes nothing
+                owned = self.owned(arg.name, set())
+                if owned is not None:
+                    what, loc = owned
+                    raise BorrowError(
+                        f"jit.borrow at {_where(inst.loc)} borrows memory the kernel owns "
+                        f"({what} at {_where(loc)}), which numba frees after its last use "
+                        "while the borrowed value is still read. Borrow only the kernel's "
+                        "arguments and what they hold; an array the kernel needs borrowed is "
+                        "allocated by its caller and passed in."
+                    )
+
+    def owned(self, name: str, seen: set[str]) -> tuple[str, Any] | None:
+        # None when ``name`` is the kernel's argument or held by one, else what made it.
+        if name in seen:
+            return None  # a loop's back edge: its other definitions decide
+        seen.add(name)
+        for value in self.defs.get(name, ()):
+            found = self.value_owned(value, seen)
+            if found is not None:
+                return found
+        return None
+
+    def value_owned(self, value: Any, seen: set[str]) -> tuple[str, Any] | None:
+        ir = self.ir
+        if isinstance(value, (ir.Arg, ir.Global, ir.FreeVar, ir.Const)):
+            return None  # an argument, or a constant numba never frees
+        if isinstance(value, ir.Var):
+            return self.owned(value.name, seen)
+        if not isinstance(value, ir.Expr):
+            return (f"a {type(value).__name__}", value.loc)
+        op = value.op
+        if op in _NOTHING:
+            return None
+        if self.is_borrow(value):
+            return self.owned(value.args[0].name, seen)
+        if op == "getitem" and isinstance(self.typemap.get(value.index.name), self.types.Array):
+            return ("an item taken with an array of indices, a copy", value.loc)
+        if op in _THROUGH or op in _THROUGH_ITER:
+            return self.owned(value.value.name, seen)
+        if op in ("build_tuple", "phi"):
+            items = value.items if op == "build_tuple" else value.incoming_values
+            for item in items:
+                found = self.value_owned(item, seen)
+                if found is not None:
+                    return found
+            return None
+        if op == "call":
+            return ("the result of a call", value.loc)
+        return (f"the result of {op}", value.loc)
+
+
 def _borrow_intrinsic(numba: ModuleType) -> Any:
     @numba.extending.intrinsic
     def borrow(typingctx: Any, value: Any) -> Any:
@@ -201,7 +304,26 @@ def _borrow_intrinsic(numba: ModuleType) -> Any:
 
         return value(value), codegen
 
+    _refuse_owned_borrows(borrow)
     return borrow
+
+
+def _refuse_owned_borrows(lend: Any) -> None:
+    # The check of :data:`borrow`, at compile time: numba runs its "after-inference" rewrites on
+    # every function it compiles in nopython mode, after type inference and after inlining the
+    # ``inline=True`` kernels it calls (so an inlined kernel's borrow of an argument is traced
+    # into its caller, where that argument may be the caller's own). This one rewrites nothing.
+    from numba.core import ir, rewrites, types
+
+    @rewrites.register_rewrite("after-inference")
+    class RefuseOwnedBorrows(rewrites.Rewrite):
+        def __init__(self, state: Any) -> None:
+            super().__init__(state)
+            lender = _Lender(ir, types, state.func_ir, state.typemap, lend)
+            lender.check(state.func_ir)
+
+        def match(self, func_ir: Any, block: Any, typemap: Any, calltypes: Any) -> bool:
+            return False
 
 
 def _identity(value: T) -> T:
@@ -213,9 +335,13 @@ def _identity(value: T) -> T:
 #: or item taken from it. Every view of an owned array takes and drops a reference, an atomic
 #: operation; in the engine's loop over robots those cost more than the robots' arithmetic
 #: (docs/simulation.md, "Two engines"). Borrow only what outlives the kernel's use of it: the
-#: kernel's own arguments (the caller holds them for the call) or items of an argument's
-#: list, never an array the kernel allocates (numba frees it after its owner's last use), and
-#: never return or store a borrowed array. Without numba it is the identity.
+#: kernel's own arguments (the caller holds them for the call) or what they hold (fields,
+#: views, items of an argument's list). An array the kernel allocates is refused: numba frees
+#: it after its owner's last use, so its borrowed view would be read after it is freed; compiling
+#: such a kernel raises :class:`BorrowError` naming both lines (traced through the kernel's
+#: ``inline=True`` callees too; a kernel called without inlining may borrow its arguments,
+#: which its caller holds). Never return or store a borrowed array. Without numba it is the
+#: identity, and nothing is checked (nothing is freed early either).
 borrow: Callable[[T], T] = _borrow_intrinsic(_numba) if _numba is not None else _identity
 
 

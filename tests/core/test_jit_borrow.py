@@ -5,18 +5,19 @@ borrowed tuple holds besides arrays (a typed list) stays alive and intact."""
 from __future__ import annotations
 
 import re
-from typing import NamedTuple
+from collections.abc import Callable, Sequence
+from typing import Any, NamedTuple
 
 import numpy as np
 import pytest
 
-from minimize_surprise.jit import JIT, borrow, kernel, typed_list
+from minimize_surprise.jit import JIT, BorrowError, borrow, kernel, typed_list
 
 
 class _Pair(NamedTuple):
     rows: np.ndarray
     scale: float
-    names: object  # a typed list of arrays
+    names: Sequence[np.ndarray]  # a typed list of arrays
     ids: np.ndarray
 
 
@@ -79,3 +80,81 @@ def test_a_typed_list_holds_the_items_in_order() -> None:
     listed = typed_list(items)
     assert len(listed) == 3
     assert [item.tolist() for item in listed] == [[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]]
+
+
+# --------------------------------------------------------------------------- what is refused
+
+
+def _refusals() -> dict[str, tuple[Callable[..., float], tuple[Any, ...], str]]:
+    # Kernels that borrow memory they own, made inside the test (each compiles once, when
+    # called): numba frees such an array after its last use, while the borrowed view is read.
+    import numba
+
+    @numba.njit
+    def allocated(n: int) -> float:
+        made = np.zeros(n)
+        view = borrow(made)
+        return view[0]
+
+    @numba.njit
+    def a_copy(rows: np.ndarray, picks: np.ndarray) -> float:
+        view = borrow(rows[picks])  # an array of indices: a copy the kernel made
+        return view[0]
+
+    @numba.njit
+    def in_a_tuple(rows: np.ndarray) -> float:
+        pair = borrow((rows, rows * 2.0))  # the product is the kernel's
+        return pair[1][0]
+
+    @kernel(inline=True)
+    def first(values: np.ndarray) -> float:
+        values = borrow(values)
+        return values[0]
+
+    @numba.njit
+    def inlined(n: int) -> float:
+        # ``first`` is compiled into this kernel, where its argument is this kernel's own.
+        return first(np.ones(n))
+
+    return {
+        "allocated": (allocated, (3,), "made = np.zeros(n)"),
+        "a_copy": (a_copy, (np.ones(3), np.array([0, 2])), "a copy"),
+        "in_a_tuple": (in_a_tuple, (np.ones(3),), "rows * 2.0"),
+        "inlined": (inlined, (3,), "np.ones(n)"),
+    }
+
+
+@pytest.mark.skipif(not JIT, reason="the check runs when numba compiles a kernel")
+@pytest.mark.parametrize("case", ["allocated", "a_copy", "in_a_tuple", "inlined"])
+def test_borrowing_memory_the_kernel_owns_does_not_compile(case: str) -> None:
+    function, args, made = _refusals()[case]
+    with pytest.raises(BorrowError, match="borrows memory the kernel owns") as refused:
+        function(*args)
+    message = str(refused.value)
+    assert made in message, message  # the line that made the memory
+    assert "test_jit_borrow.py:" in message, message
+
+
+@pytest.mark.skipif(not JIT, reason="the check runs when numba compiles a kernel")
+def test_borrowing_arguments_and_what_they_hold_compiles() -> None:
+    import numba
+
+    @kernel(inline=True)
+    def first(values: np.ndarray) -> float:
+        values = borrow(values)
+        return values[0]
+
+    @numba.njit
+    def held(pair: _Pair, rows: np.ndarray, flag: bool) -> float:
+        rows = borrow(rows)
+        total = first(rows) + first(pair.rows[1])  # inlined: an argument's own rows
+        tail = borrow(rows[1:] if flag else rows)  # a view of an argument, either way
+        for item in pair.names:
+            total += borrow(item)[0]  # an item of an argument's list
+        nothing = borrow(None)
+        made = np.ones(2)
+        total += made[0] if nothing is None else 0.0
+        return total + tail[0] + borrow(pair).ids[0]
+
+    pair = _pair(np.arange(6.0).reshape(3, 2))
+    assert held(pair, np.arange(3.0), True) == 0.0 + 2.0 + 0.75 + 1.0 + 1.0 + 0.0
