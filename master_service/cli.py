@@ -55,6 +55,7 @@ from master_service.rundir import RunDir, RunDirError
 from master_service.stopping import cancelled_by_signal, stop_flag, until_signal
 from minimize_surprise.config import ExperimentConfig, load_experiment
 from minimize_surprise.errors import ConfigError, FileWriteError
+from minimize_surprise.files import write_new_secret
 from minimize_surprise.text import plural
 from runfiles import schema
 from runfiles.schema import CONFIG_SNAPSHOT, Replay, Simulation
@@ -184,6 +185,18 @@ def _parser() -> argparse.ArgumentParser:
     )
     baseline.set_defaults(handler=_baseline)
 
+    secret = sub.add_parser(
+        "secret",
+        help="write a new shared secret of the master and the robots (only you may read it)",
+    )
+    secret.add_argument(
+        "file",
+        type=Path,
+        metavar="FILE",
+        help="where to write it, e.g. secret.key (never replaced)",
+    )
+    secret.set_defaults(handler=_secret)
+
     status = sub.add_parser("status", help="show where a run stands")
     status.add_argument("dir", type=Path, metavar="DIR", help="the run directory")
     status.set_defaults(handler=cli_lab.status_command)
@@ -232,8 +245,8 @@ def _experiment_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--setting",
         choices=SETTINGS,
-        help="paper: the authors' Webots simulation; lab: the real robots (default: the file's, "
-        "else paper)",
+        help="paper: the authors' Webots simulation; lab: the real robots (default: the "
+        "experiment file's, lab if it names none, as for the robots; without --config: paper)",
     )
     parser.add_argument(
         "--arena", type=float, metavar="SIDE", help="side of the carpet in metres (basic: 0.7-1.5)"
@@ -266,6 +279,23 @@ def _os_error_text(exc: OSError) -> str:
     if exc.filename is not None and exc.strerror:
         return f"{exc.filename}: {exc.strerror}"
     return str(exc)
+
+
+def _secret(args: argparse.Namespace) -> int:
+    try:
+        path = write_new_secret(args.file)
+    except FileExistsError:
+        print(
+            f"surprise-master: {args.file} exists: keep it (the robots may hold it) or remove it "
+            "first",
+            file=sys.stderr,
+        )
+        return 1
+    print(
+        f"wrote a new shared secret to {path} (only you may read it); copy it to every robot: "
+        f"sudo deploy/install-pi.sh ROBOT_ID {path}"
+    )
+    return 0
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -409,6 +439,16 @@ def _sim_experiment(args: argparse.Namespace, evaluations: int | None = None):
         value = getattr(args, name, None)
         if value is not None and value < 1:
             raise ConfigError(f"expected a positive number, got {value}", key=f"--{name}")
+    if args.config is not None and args.setting is None:
+        from minimize_surprise.config import read_yaml
+
+        data = read_yaml(args.config)
+        if isinstance(data, dict) and "setting" not in data:
+            print(
+                f"note: {args.config} names no setting: lab (the real robots' numbers), as for "
+                "`surprise-master run`; `setting: paper` is the authors' Webots simulation",
+                file=sys.stderr,
+            )
     return simulation_experiment(
         args.scenario,
         setting=args.setting,

@@ -151,8 +151,8 @@ class ExperimentConfig(Strict, frozen=True):
     """
 
     #: the bundle of defaults the experiment starts from: ``paper`` (the authors' Webots
-    #: simulation) or ``lab`` (the real robots); see docs/simulation.md. A simulated run
-    #: (``surprise-master sim``, a study) starts from ``paper`` when the file names none
+    #: simulation) or ``lab`` (the real robots); see docs/simulation.md. A file that names none
+    #: is ``lab`` wherever it is read (``run``, ``check``, ``sim --config``, a study)
     setting: Setting = "lab"
 
     #: the sensors the networks see, by name, in this order (``ir.f0`` .. ``ir.f4``, ``ir.b0``,

@@ -10,13 +10,14 @@ the usual ``022``). Secrets ask for :data:`PRIVATE_MODE` instead.
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
 import secrets
 from pathlib import Path
 from typing import Final
 
-__all__ = ["PRIVATE_MODE", "write_atomic", "write_json"]
+__all__ = ["PRIVATE_MODE", "SECRET_BYTES", "write_atomic", "write_json", "write_new_secret"]
 
 #: The mode of a file only its owner may read or write: for secrets.
 PRIVATE_MODE: Final = 0o600
@@ -69,6 +70,23 @@ def write_json(path: Path, data: object) -> None:
     """Write ``data`` as indented JSON with :func:`write_atomic` (a crash or a power cut leaves
     the old file or the new one, never an empty one)."""
     write_atomic(path, json.dumps(data, indent=1).encode("utf-8"))
+
+
+#: Random bytes of a new shared secret: 256 bits, written as 64 hex digits.
+SECRET_BYTES: Final = 32
+
+
+def write_new_secret(path: str | Path) -> Path:
+    """Write a new random shared secret of the master and the robots to ``path``: one line of
+    hex digits in a file only its owner may read (:data:`PRIVATE_MODE`). Never overwrites:
+    :class:`FileExistsError` when ``path`` exists, since robots may hold that secret already.
+    The path written is returned."""
+    path = Path(path)
+    if path.exists():
+        raise FileExistsError(errno.EEXIST, "exists already: the robots may hold it", str(path))
+    # Written whole, so that a stop half-way leaves no empty secret file behind.
+    write_atomic(path, (secrets.token_hex(SECRET_BYTES) + "\n").encode("ascii"), mode=PRIVATE_MODE)
+    return path
 
 
 def _create_temp(path: Path, mode: int) -> tuple[int, Path]:

@@ -1,9 +1,9 @@
 """The simulator: a kinematic arena of Thymio II robots, and the swarm's compiled engine.
 
-* :mod:`simulator.settings` - the ``paper`` and ``lab`` settings' values (docs/simulation.md);
 * :mod:`simulator.scenarios` - every world parameter (``WorldConfig``) and the named scenarios of
   the paper (``basic``, ``boxes``, ``gradient``) with overrides: ``scenario_config(name, ...)``;
-* :mod:`simulator.experiment` - an experiment's world and safety layer in simulation;
+* :mod:`simulator.experiment` - an experiment's world and safety layer in simulation: its
+  scenario in its setting (``minimize_surprise.settings`` holds what each setting gives);
 * :mod:`simulator.physics` - motion, contacts, boxes and sensors as compiled kernels;
 * :mod:`simulator.world` - the world stepped one step at a time (``World``);
 * :mod:`simulator.engine` - whole evaluations of a swarm in one compiled loop (``Swarm``);

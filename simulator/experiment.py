@@ -9,13 +9,59 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from minimize_surprise.config import ExperimentConfig
+from minimize_surprise.config import ExperimentConfig, Strict, decode
 from minimize_surprise.errors import ConfigError
 from minimize_surprise.safety import SafetyConfig
+from minimize_surprise.settings import SETTINGS, setting_defaults
 from simulator.scenarios import SCENARIOS, WorldConfig, scenario_config
-from simulator.settings import check_setting, safety_config, world_overrides
 
-__all__ = ["scenario_world", "simulated_safety", "world_config"]
+__all__ = [
+    "check_setting",
+    "safety_config",
+    "scenario_world",
+    "simulated_safety",
+    "world_config",
+    "world_overrides",
+]
+
+
+def check_setting(setting: object, file: str | Path | None = None) -> None:
+    """Raise :class:`ConfigError` (key ``setting``, naming ``file``) unless ``setting`` is one of
+    :data:`~minimize_surprise.settings.SETTINGS`."""
+    if setting not in SETTINGS:
+        raise ConfigError(
+            f"unknown setting {setting!r}; expected one of: {', '.join(SETTINGS)}",
+            file=str(file) if file else None,
+            key="setting",
+        )
+
+
+def world_overrides(setting: str, scenario: str) -> dict[str, Any]:
+    """What ``setting`` changes in ``scenario``'s world (the ``lab`` setting: nothing)."""
+    check_setting(setting)
+    given = setting_defaults(setting)
+    return {**given.world, **given.scenario_world.get(scenario, {})}
+
+
+def safety_config(
+    setting: str,
+    scenario: str,
+    overrides: dict[str, Any] | None = None,
+    *,
+    file: str | Path | None = None,
+) -> SafetyConfig:
+    """The simulated robots' safety layer in ``setting`` and ``scenario``, with the experiment's
+    ``safety`` overrides; a bad key raises :class:`ConfigError` naming ``safety.<key>``."""
+    check_setting(setting, file)
+    table = setting_defaults(setting).safety
+    merged = {**table.get(scenario, {"profile": "stop"}), **(overrides or {})}
+    return decode({"safety": merged}, _SafetyDocument, file=file).safety
+
+
+class _SafetyDocument(Strict, frozen=True):
+    # Wrapping the safety in a ``safety`` key makes decode() name keys as the experiment file
+    # spells them, e.g. "safety.force_threshold".
+    safety: SafetyConfig
 
 
 def scenario_world(

@@ -3,7 +3,7 @@
 ::
 
     surprise-sim-robots --scenario basic --robots 4 --seed 1 --dir robots \\
-        [--backend sim|playground] [--arena 1.0] \\
+        [--ids thymio-1,thymio-2,...] [--backend sim|playground] [--arena 1.0] \\
         [--master-host 127.0.0.1] [--master-port 7474] [--secret-file secret.key] \\
         [--reconnect-initial 0.5] [--reconnect-max 30] [--speed-scale 265] [--poses]
 
@@ -17,13 +17,14 @@ Each robot is served on a private ``dbus-daemon`` of its own, by one of two back
   the scenario's arena with walls: a lab day rehearsed without robots (docs/rehearsal.md). Its
   files (world, ground texture, every process's log) are in ``DIR/playground``.
 
-In ``--dir`` it writes one ready-to-use agent configuration per robot, ``agent-sim-<i>.yaml``
-(robot id ``sim-<i>``, the master's address and secret, ``body.thymio.bus`` set to that robot's
-bus, and the Thymio settings the backend needs), so that ``surprise-agent --config
-DIR/agent-sim-<i>.yaml`` drives the simulated robot with the real Thymio driver, in its own
-process, exactly as on a robot's Pi. ``DIR/robots.json`` announces the running service (process
-id, each robot's bus and configuration); it is written once every robot is served and removed on
-exit. The command lines to start the agents are printed.
+In ``--dir`` it writes one ready-to-use agent configuration per robot, ``agent-<id>.yaml``
+(the robot's id, ``sim-<i>`` unless ``--ids`` names them as a lab's master file does, the
+master's address and secret, ``body.thymio.bus`` set to that robot's bus, and the Thymio
+settings the backend needs), so that ``surprise-agent --config DIR/agent-<id>.yaml`` drives the
+simulated robot with the real Thymio driver, in its own process, exactly as on a robot's Pi.
+``DIR/robots.json`` announces the running service (process id, each robot's bus and
+configuration); it is written once every robot is served and removed on exit. The command lines
+to start the agents are printed.
 
 It runs until SIGTERM or SIGINT, then stops every process it started (the world, Playground,
 the medullas, every dbus-daemon; exit code 0). With ``--poses`` (``sim`` only) the poses of every
@@ -47,7 +48,7 @@ import contextlib
 import json
 import logging
 import os
-import secrets
+import re
 import shutil
 import signal
 import sys
@@ -60,7 +61,7 @@ import yaml
 
 from drivers.config import SPEED_SCALE
 from minimize_surprise.errors import ConfigError
-from minimize_surprise.files import PRIVATE_MODE, write_atomic
+from minimize_surprise.files import write_atomic, write_new_secret
 from minimize_surprise.sensors import GROUND_SENSORS, IR_SENSORS
 from minimize_surprise.wire import DEFAULT_PORT
 from simulator.scenarios import SCENARIOS, WorldConfig, scenario_config
@@ -88,6 +89,8 @@ ROBOT_ID_PREFIX = "sim-"
 ROBOTS_FILE = "robots.json"
 POSES_FILE = "poses.npy"
 SECRET_FILE = "secret.key"
+#: The first line of every agent configuration this command writes: only those are replaced.
+_HEADER = "# Written by surprise-sim-robots"
 #: The subdirectory of DIR with the playground backend's files.
 PLAYGROUND_DIR = "playground"
 BACKENDS = ("sim", "playground")
@@ -102,9 +105,22 @@ ROBOT_EXTRA = "pip install -e '.[robot]'"
 _THYMIO_SENSORS = frozenset(IR_SENSORS + GROUND_SENSORS)
 
 
-def robot_id(index: int) -> str:
-    """The id of simulated robot ``index``: ``sim-<index>``."""
-    return f"{ROBOT_ID_PREFIX}{index}"
+def robot_id(index: int, ids: Sequence[str] | None = None) -> str:
+    """The id of simulated robot ``index``: ``ids[index]`` when given (``--ids``), else
+    ``sim-<index>``."""
+    return ids[index] if ids else f"{ROBOT_ID_PREFIX}{index}"
+
+
+def _ids(text: str) -> list[str]:
+    ids = [part.strip() for part in text.split(",")]
+    for robot in ids:
+        if not re.fullmatch(r"[A-Za-z0-9_.-]{1,64}", robot):
+            raise argparse.ArgumentTypeError(
+                f"{robot!r} is no robot id (letters, digits, '_', '.', '-'; at most 64)"
+            )
+    if len(set(ids)) != len(ids):
+        raise argparse.ArgumentTypeError(f"the ids repeat: {text}")
+    return ids
 
 
 def _positive(text: str) -> float:
@@ -156,6 +172,13 @@ def _parser() -> argparse.ArgumentParser:
         "behind real asebamedulla processes (default: sim)",
     )
     parser.add_argument("--robots", type=_count, help="number of robots (default: the scenario's)")
+    parser.add_argument(
+        "--ids",
+        type=_ids,
+        metavar="ID,ID,...",
+        help="the robots' ids, e.g. the lab's thymio-1,thymio-2,thymio-3,thymio-4, so that the "
+        "lab's master.yaml is rehearsed as it is (default: sim-0, sim-1, ...; sets --robots)",
+    )
     parser.add_argument(
         "--arena",
         type=_positive,
@@ -219,7 +242,7 @@ def agent_config(
     """The agent configuration (plain data) of robot ``index`` served on ``bus``; ``thymio``
     adds to its ``body.thymio`` settings."""
     return {
-        "robot_id": robot_id(index),
+        "robot_id": robot_id(index, args.ids),
         "master": {
             "host": args.master_host,
             "port": args.master_port,
@@ -257,15 +280,15 @@ def _write_agent_config(
 ) -> dict[str, Any]:
     """Write robot ``index``'s agent configuration (``what`` the robot is, for its header); the
     robot's entry in robots.json."""
-    path = directory / f"agent-{robot_id(index)}.yaml"
+    path = directory / f"agent-{robot_id(index, args.ids)}.yaml"
     header = (
-        f"# Written by surprise-sim-robots (pid {os.getpid()}): {what}.\n"
+        f"{_HEADER} (pid {os.getpid()}): {what}.\n"
         "# Valid while that process runs: the bus below is its private dbus-daemon.\n"
     )
     text = yaml.safe_dump(agent_config(args, index, bus, secret_file, thymio), sort_keys=False)
     # Readers (the tests, a script waiting for robots.json) see the whole file or none.
     write_atomic(path, (header + text).encode("utf-8"), durable=False)
-    return {"robot_id": robot_id(index), "index": index, "bus": bus, "config": str(path)}
+    return {"robot_id": robot_id(index, args.ids), "index": index, "bus": bus, "config": str(path)}
 
 
 def _secret_file(given: Path | None, directory: Path) -> Path:
@@ -276,10 +299,8 @@ def _secret_file(given: Path | None, directory: Path) -> Path:
         return path
     path = directory / SECRET_FILE
     if not path.exists():
-        # Only the owner may read it, as an agent's secret on a robot; written whole, so that a
-        # stop half-way leaves no empty secret file for the next start to take.
-        text = secrets.token_hex(16) + "\n"
-        write_atomic(path, text.encode("utf-8"), mode=PRIVATE_MODE)
+        # As `surprise-master secret` writes one: only the owner may read it.
+        write_new_secret(path)
         log.info("wrote a new shared secret to %s", path)
     return path
 
@@ -308,8 +329,10 @@ def _prepare_dir(directory: Path) -> None:
         raise RuntimeError(f"{directory} is served by another surprise-sim-robots (pid {other})")
     # Configurations of an earlier server name dead buses: an agent started on one would only
     # fail to connect, so they go.
-    for stale in directory.glob(f"agent-{ROBOT_ID_PREFIX}*.yaml"):
-        stale.unlink()
+    for stale in directory.glob("agent-*.yaml"):
+        with contextlib.suppress(OSError):
+            if stale.read_text(encoding="utf-8").startswith(_HEADER):
+                stale.unlink()
     with contextlib.suppress(FileNotFoundError):
         (directory / ROBOTS_FILE).unlink()
 
@@ -338,6 +361,14 @@ async def serve(args: argparse.Namespace) -> int:
     (the ``robot`` extra).
     """
     overrides: dict[str, Any] = {}
+    if args.ids and args.robots is not None and args.robots != len(args.ids):
+        print(
+            f"surprise-sim-robots: --robots {args.robots} but --ids names {len(args.ids)}",
+            file=sys.stderr,
+        )
+        return 2
+    if args.ids:
+        args.robots = len(args.ids)
     if args.robots is not None:
         overrides["robots"] = args.robots
     if args.arena is not None:

@@ -49,8 +49,8 @@ from minimize_surprise.safety import SafetyConfig
 from minimize_surprise.sensors import ALL_SENSORS
 from minimize_surprise.settings import SETTINGS
 from robot_agent.config import AgentConfig
+from simulator.experiment import safety_config, world_overrides
 from simulator.scenarios import SCENARIOS, WorldConfig, scenario_config
-from simulator.settings import safety_config, world_overrides
 from studies.spec import Study
 from telemetry.config import TelemetryConfig
 

@@ -61,20 +61,22 @@ def simulation_experiment(
 ) -> ExperimentConfig:
     """The experiment of a simulated run.
 
-    Layers, each overriding the one before: the setting's defaults (``paper`` unless the file or
-    ``setting`` names another; see ``simulator.settings``), the scenario's robots and sensors, the
-    experiment file ``config_file`` (or the experiment ``data`` given), then the arguments given
-    (``arena``: the carpet's side in metres). A bad file or value raises :class:`ConfigError`
-    naming the file and key.
+    Layers, each overriding the one before: the setting's defaults (see
+    ``minimize_surprise.settings``), the scenario's robots and sensors, the experiment file
+    ``config_file`` (or the experiment ``data`` given), then the arguments given (``arena``: the
+    carpet's side in metres). The setting is ``setting`` if given, else the experiment's; an
+    experiment that names none is ``lab``, as everywhere an experiment is read, and without any
+    experiment (neither file nor data) it is ``paper``, the simulation the paper's results come
+    from. A bad file or value raises :class:`ConfigError` naming the file and key.
     """
     if data is None:
-        data = {} if config_file is None else read_yaml(config_file)
+        data = {"setting": "paper"} if config_file is None else read_yaml(config_file)
     data = dict(data)
     if scenario is not None:
         data["scenario"] = scenario
     if setting is not None:
         data["setting"] = setting
-    data.setdefault("setting", "paper")
+    data.setdefault("setting", "lab")
     if arena is not None:
         if not arena > 0:
             raise ConfigError(f"expected a positive side in metres, got {arena}", key="--arena")

@@ -61,6 +61,39 @@ def test_example_robot_ids_are_the_masters_allow_list(tmp_path):
     assert ids == allowed
 
 
+def test_the_readmes_rehearsal_runs_the_example_files_as_they_are(tmp_path):
+    """The README's rehearsal serves the robots the example master allows, with agent files of
+    their names, and runs the experiment's number of robots."""
+    import re
+
+    for name in ("master.yaml", "experiment.yaml"):
+        shutil.copy(EXAMPLES / name, tmp_path / name)
+    (tmp_path / "secret.key").write_text("s")
+    config = load_master_config(tmp_path / "master.yaml")
+    readme = (REPO / "README.md").read_text(encoding="utf-8")
+    rehearsal = readme[readme.index("To rehearse a lab day") :]
+    ids = re.search(r"--ids (\S+)", rehearsal)
+    assert ids is not None, "the README's rehearsal names no --ids"
+    served = ids.group(1).split(",")
+    assert served == config.allowed_robots and len(served) == config.experiment.robots
+    loop = re.search(
+        r"for i in ([\d ]+); do surprise-agent --config robots/agent-(\S+?)\$i", rehearsal
+    )
+    assert loop is not None
+    agents = [f"{loop.group(2)}{i}" for i in loop.group(1).split()]
+    assert agents == served
+    assert "--config master.yaml" in rehearsal
+
+
+def test_one_recipe_for_the_shared_secret():
+    pages = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
+    for page in pages:
+        text = page.read_text(encoding="utf-8")
+        for other in ("urandom", "token_hex", "openssl rand"):
+            assert other not in text, f"{page.name} makes a secret with {other}"
+    assert "surprise-master secret secret.key" in (REPO / "README.md").read_text(encoding="utf-8")
+
+
 def _stub(path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text("#!/bin/sh\n")

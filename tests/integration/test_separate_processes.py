@@ -324,16 +324,30 @@ def test_the_server_serves_each_robot_on_its_own_bus_until_sigterm(
     procs: Processes, tmp_path: Path
 ):
     robots_dir = tmp_path / "robots"
+    robots_dir.mkdir()
+    # An earlier server's configuration goes; a file of the person's own stays.
+    (robots_dir / "agent-sim-7.yaml").write_text("# Written by surprise-sim-robots (pid 1)\n")
+    (robots_dir / "agent-mine.yaml").write_text("robot_id: mine\n")
     reconnect = ("--reconnect-initial", "0.2", "--reconnect-max", "2")
-    info = start_server(procs, robots_dir, 7474, tmp_path / "absent.key", 2, "--poses", *reconnect)
+    # Named as a lab's robots (the README's rehearsal names thymio-1 ...).
+    ids = ("--ids", "thymio-1,thymio-2")
+    info = start_server(
+        procs, robots_dir, 7474, tmp_path / "absent.key", 2, "--poses", *ids, *reconnect
+    )
     assert info["pid"] == procs.pid("sim")
     daemons = children(info["pid"])
     assert len(daemons) == 2
     buses = [robot["bus"] for robot in info["robots"]]
     assert len(set(buses)) == 2
+    assert sorted(p.name for p in robots_dir.glob("agent-*.yaml")) == [
+        "agent-mine.yaml",
+        "agent-thymio-1.yaml",
+        "agent-thymio-2.yaml",
+    ]
     for index, robot in enumerate(info["robots"]):
         config = load_agent_config(robot["config"])
-        assert config.robot_id == robot["robot_id"] == f"sim-{index}"
+        assert config.robot_id == robot["robot_id"] == f"thymio-{index + 1}"
+        assert robot["config"].endswith(f"agent-thymio-{index + 1}.yaml")
         assert config.body.thymio.bus == robot["bus"]
         assert config.master.port == 7474 and config.safety.profile == "stop"
         assert (config.reconnect.initial, config.reconnect.max) == (0.2, 2.0)

@@ -167,3 +167,23 @@ def test_a_directory_served_by_a_live_process_is_refused(tmp_path, capsys):
     assert serve.main(["--dir", str(tmp_path), "--robots", "1"]) == serve.EXIT_FAILURE
     assert f"served by another surprise-sim-robots (pid {os.getppid()})" in capsys.readouterr().err
     assert not (tmp_path / "secret.key").exists()  # nothing was started
+
+
+@pytest.mark.parametrize(
+    "argv, said",
+    [
+        (["--ids", "a,a"], "the ids repeat"),
+        (["--ids", "a,b c"], "'b c' is no robot id"),
+    ],
+)
+def test_bad_robot_ids_are_usage_errors(tmp_path, capsys, argv, said):
+    with pytest.raises(SystemExit) as exit_:
+        serve.main(["--dir", str(tmp_path), *argv])
+    assert exit_.value.code == serve.EXIT_USAGE
+    assert said in capsys.readouterr().err
+
+
+def test_ids_and_a_different_robot_count_are_refused(tmp_path, capsys):
+    assert serve.main(["--dir", str(tmp_path), "--robots", "3", "--ids", "a,b"]) == 2
+    assert "--robots 3 but --ids names 2" in capsys.readouterr().err
+    assert not (tmp_path / "secret.key").exists()  # nothing was started

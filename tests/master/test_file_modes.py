@@ -11,6 +11,8 @@ from pathlib import Path
 import msgspec
 import pytest
 
+from master_service.cli import main
+from master_service.config import load_secret
 from master_service.experiments.engine_run import FastRun
 from master_service.experiments.simulation_setup import simulation_experiment
 from minimize_surprise.files import PRIVATE_MODE, write_atomic
@@ -77,6 +79,25 @@ def test_the_generated_shared_secret_is_private(tmp_path, umask):
     assert path == tmp_path / SECRET_FILE
     assert mode(path) == 0o600
     secret = path.read_text(encoding="utf-8")
-    assert len(secret.strip()) == 32
+    assert len(secret.strip()) == 64 and int(secret, 16) > 0  # 256 bits, as hex
     # An existing secret is kept, not replaced.
     assert _secret_file(None, tmp_path).read_text(encoding="utf-8") == secret
+
+
+def test_surprise_master_secret_writes_a_private_secret_and_never_replaces_one(
+    tmp_path, umask, capsys
+):
+    umask(0)
+    path = tmp_path / "secret.key"
+    assert main(["secret", str(path)]) == 0
+    assert mode(path) == 0o600
+    secret = path.read_text(encoding="utf-8")
+    assert len(secret) == 65 and secret.endswith("\n") and int(secret, 16) > 0
+    assert f"sudo deploy/install-pi.sh ROBOT_ID {path}" in capsys.readouterr().out
+    # The master reads it as the robots' agents do.
+    assert load_secret(path) == secret.strip().encode()
+    assert main(["secret", str(path)]) == 1
+    assert "exists: keep it" in capsys.readouterr().err
+    assert path.read_text(encoding="utf-8") == secret
+    other = main(["secret", str(path.with_name("second.key"))])
+    assert other == 0 and path.with_name("second.key").read_text() != secret

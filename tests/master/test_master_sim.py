@@ -16,6 +16,7 @@ import pytest
 from master_service.cli import main
 from master_service.experiments.baseline import run_baseline
 from master_service.experiments.simulate import SimulatedSwarm, simulation_experiment
+from minimize_surprise.config import load_experiment
 from minimize_surprise.errors import ConfigError
 
 
@@ -193,3 +194,21 @@ def test_sim_command_refuses_bad_options(tmp_path, capsys, argv, words):
     assert main(["sim", "--out", str(tmp_path / "run"), *argv]) == 2
     assert words in capsys.readouterr().err
     assert not (tmp_path / "run").exists()
+
+
+def test_an_experiment_without_a_setting_is_lab_for_sim_as_for_the_robots(tmp_path, capsys):
+    path = tmp_path / "exp.yaml"
+    path.write_text("robots: 3\nevolution: {evaluations: 2}\npost_evaluation_steps: 20\n")
+    # As `surprise-master run` reads it: the lab setting.
+    assert load_experiment(path).setting == "lab"
+    out = tmp_path / "run"
+    assert main(["sim", "--config", str(path), "--out", str(out)]) == 0
+    captured = capsys.readouterr()
+    assert "simulating basic (lab setting" in captured.out
+    assert f"note: {path} names no setting: lab" in captured.err
+    assert simulation_experiment(None, config_file=path).step_period == 0.1
+    # Without a file, and with --setting, no note: the command says which.
+    assert simulation_experiment("basic").setting == "paper"
+    assert main(["sim", "--config", str(path), "--setting", "paper", "--out", str(out / "p")]) == 0
+    captured = capsys.readouterr()
+    assert "paper setting" in captured.out and "note:" not in captured.err

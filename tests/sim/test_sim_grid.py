@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 
 from simulator import physics
+from simulator.experiment import world_overrides
 from simulator.physics.contacts import contact_reach
 from simulator.physics.grid import build, gather, grid_side, new_cells
 from simulator.scenarios import WorldConfig, scenario_config
-from simulator.settings import world_overrides
 from simulator.world import World
 
 NEVER = 1 << 40  # grid_robots: look at every pair whatever the number of robots
