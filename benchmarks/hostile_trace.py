@@ -5,10 +5,11 @@ msgpack). A decoder that builds the rows before checking them holds one Python l
 that checks shape and size as it decodes refuses the frame before building anything.
 
 Each figure comes from a fresh child process that feeds the frame to the master's decoder
-(``minimize_surprise.wire.FrameDecoder``, the path every received frame takes after its length
+(``transport.framing.FrameDecoder``, the path every received frame takes after its length
 header): the growth of its peak resident memory, the peak of Python allocations (tracemalloc, in a
 second child, since tracing slows decoding down) and the wall-clock time until the decoder answered
-(with messages or an error). Works on any version of the codec that has ``FrameDecoder`` and
+(with messages or an error). Works on any version of the code that has ``FrameDecoder`` (in
+``transport.framing``, or in ``minimize_surprise.wire`` before framing moved) and
 ``MAX_FRAME_SIZE``, so the same script measures before and after a change.
 
 Prints one figure a line as ``name: value unit``. Run: ``python benchmarks/hostile_trace.py``
@@ -45,7 +46,12 @@ def hostile_payload(limit: int) -> bytes:
 
 
 def _decode(queue: Any, trace_allocations: bool) -> None:
-    from minimize_surprise.wire import MAX_FRAME_SIZE, FrameDecoder
+    from minimize_surprise.wire import MAX_FRAME_SIZE
+
+    try:
+        from transport.framing import FrameDecoder
+    except ImportError:  # a version from before framing moved out of the codec
+        from minimize_surprise.wire import FrameDecoder  # type: ignore[attr-defined,no-redef]
 
     payload = hostile_payload(MAX_FRAME_SIZE)
     frame = struct.pack(">I", len(payload)) + payload

@@ -44,9 +44,9 @@ from minimize_surprise.wire import (
     Trace,
     Welcome,
     encode_payload,
-    frame,
     genome_from_bytes,
 )
+from transport.framing import frame
 from transport.stream import MessageStream
 
 __all__ = [

@@ -1,8 +1,8 @@
 """Messages over an asyncio stream pair: the transport of both the master and the agent.
 
-The bytes on the wire are :mod:`minimize_surprise.wire`'s frames. Once the handshake has established
-a session, :meth:`MessageStream.authenticate` turns on its
-:class:`~minimize_surprise.session.FrameAuth`: from then on every frame sent carries a tag, and
+The bytes on the wire are :mod:`transport.framing`'s frames of :mod:`minimize_surprise.wire`'s
+messages. Once the handshake has established a session, :meth:`MessageStream.authenticate` turns on
+its :class:`~minimize_surprise.session.FrameAuth`: from then on every frame sent carries a tag, and
 every frame received must carry the right one before it is even decoded.
 """
 
@@ -15,15 +15,9 @@ from typing import Final
 
 from minimize_surprise.errors import ConnectionClosedError, FrameTooLargeError, ProtocolError
 from minimize_surprise.session import TAG_SIZE, FrameAuth
-from minimize_surprise.wire import (
-    HEADER_SIZE,
-    MAX_FRAME_SIZE,
-    FrameDecoder,
-    Message,
-    decode_payload,
-    encode_payload,
-)
-from minimize_surprise.wire import frame as make_frame
+from minimize_surprise.wire import MAX_FRAME_SIZE, Message, decode_payload, encode_payload
+from transport.framing import HEADER_SIZE, FrameDecoder
+from transport.framing import frame as make_frame
 
 __all__ = ["CHUNK_SIZE", "MessageStream"]
 

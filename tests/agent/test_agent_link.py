@@ -44,12 +44,12 @@ from minimize_surprise.wire import (
     Refused,
     Result,
     Welcome,
-    encode,
     genome_to_bytes,
 )
 from relay import Relay, tagged_message
 from robot_agent.agent import Agent
 from robot_agent.config import BackoffConfig
+from transport.framing import encode
 from transport.stream import MessageStream
 
 LONG = 30_000  # steps of an evaluation that only ends when stopped

@@ -1,5 +1,6 @@
-"""Tests of the wire protocol: messages, genomes, framing and authentication (the TCP stream is
-tested in tests/transport)."""
+"""Tests of the wire protocol: messages, genomes, framing (:mod:`transport.framing`, tested here
+with the messages it carries) and authentication (the TCP stream is tested in tests/transport; every
+message's exact bytes are pinned in test_wire_golden.py)."""
 
 from __future__ import annotations
 
@@ -35,7 +36,6 @@ from minimize_surprise.wire import (
     Evaluate,
     EvaluationStats,
     Failed,
-    FrameDecoder,
     Hello,
     Message,
     Ping,
@@ -45,11 +45,11 @@ from minimize_surprise.wire import (
     Trace,
     Welcome,
     decode_payload,
-    encode,
     genome_from_bytes,
     genome_to_bytes,
     printable,
 )
+from transport.framing import FrameDecoder, encode
 
 FAST = settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 FEW = settings(max_examples=50, deadline=None, suppress_health_check=[HealthCheck.too_slow])

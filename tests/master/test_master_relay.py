@@ -23,10 +23,10 @@ from minimize_surprise.wire import (
     Ping,
     Pong,
     Result,
-    encode,
 )
 from relay import Relay, tagged_message
 from standins.scripted_robots import ScriptedRobot
+from transport.framing import encode
 
 
 @pytest.fixture

@@ -30,17 +30,15 @@ from minimize_surprise.wire import (
     REFUSED_VERSION_MISMATCH,
     Authenticate,
     Bye,
-    FrameDecoder,
     Hello,
     Ping,
     Pong,
     Refused,
     Welcome,
-    encode,
-    frame,
 )
 from needs import require_binary
 from standins.scripted_robots import RobotRefusedError, ScriptedRobot
+from transport.framing import FrameDecoder, encode, frame
 from transport.stream import MessageStream
 from transport.tls import ServerTlsConfig
 

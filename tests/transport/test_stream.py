@@ -29,10 +29,9 @@ from minimize_surprise.wire import (
     Result,
     Trace,
     decode_payload,
-    encode,
     encode_payload,
-    frame,
 )
+from transport.framing import encode, frame
 from transport.stream import MessageStream
 
 Handler = Callable[[asyncio.StreamReader, asyncio.StreamWriter], Awaitable[None]]
