@@ -20,10 +20,8 @@ loop over the units first). A group of 16 lanes:
    ``keep``, over the fixed ones in ``first``.
 
 The lanes whose estimate lay within a margin come back as set bits of the result (bit l: lane
-a + l); :mod:`gridworld.predictor` then computes their sums the code's way. Measured per lane
-(2026-11-27, one step of 1,008 lanes): step 1 alone 2.6 ns; the outputs lane by lane (each
-state broadcast unit by unit times a row of weights) cost 4 ns more, transposed 2.6 ns more
-(3 ns with one sum per sensor instead of two).
+a + l); :mod:`gridworld.predictor` then computes their sums the code's way. What each step costs,
+and the layouts tried, are in docs/gridworld.md ("Speed, and agreement with the authors' code").
 
 Without numba, :func:`step_lanes` and :func:`read_lanes` are plain Python of the same meaning
 (their estimate is the code's sum itself).
@@ -45,8 +43,8 @@ __all__ = ["GROUP", "UNITS", "read_lanes", "row_add", "step_lanes"]
 UNITS = 16
 #: Lanes one call steps; the predictor's lanes are padded to a multiple of it.
 GROUP = 16
-#: States whose tanh is written out step by step together (their chains interleave: 4 measured
-#: 2 % faster than 1 or 8).
+#: States whose tanh is written out step by step together, so that their chains interleave (the
+#: sizes tried: docs/gridworld.md).
 WAVE = 4
 #: Hidden units the output sums take, and sensors they predict: the most any predictor has (the
 #: full network pair of the 14-sensor model has 14 of each); a row's units 14 and 15 stay 0.

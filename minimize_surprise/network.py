@@ -218,7 +218,8 @@ def network_step_lanes(
     """
     # Each layer's sums run input by input over all its units at once (``acc``, a row per
     # unit): consecutive additions go to different sums, so none waits for the one before, which
-    # a unit-by-unit loop does through memory at every input (2.3 times slower, measured).
+    # a unit-by-unit loop does through memory at every input (docs/simulation.md, "Figures
+    # behind the code's choices").
     r = prediction.shape[0]
     n = work.shape[1]
     inputs = r + 3

@@ -1,10 +1,13 @@
-"""Compile the control step's kernels before they are needed (numba caches them on disk).
+"""Run the control step once before it is needed, so that what its first call costs is paid at
+start-up, not at the first step of the first evaluation.
 
-On a robot's Raspberry Pi a kernel the installation has not compiled yet takes seconds to
-compile on its first call. Paid at the first step of the first evaluation, that delay made a
-swarm's first round miss its deadline; the agent therefore calls :func:`warm_up_control` at
-start-up, before it joins the master (docs/robot-agent.md). The sizes do not matter: a kernel is
-compiled for the types of its arguments, which every network, safety layer and score shares.
+Where numba is installed (the laptop's simulated agents; a robot only if its lab adds numba to
+the ``robot`` extra) a kernel not compiled yet takes seconds on its first call, and paid at the
+first step that delay made a swarm's first round miss its deadline. A robot's Pi as installed
+has no numba: the kernels run as Python over numpy and the warm-up takes milliseconds
+(docs/robot-agent.md). The agent calls :func:`warm_up_control` at start-up, before it joins the
+master. The sizes do not matter: a kernel is compiled for the types of its arguments, which every
+network, safety layer and score shares.
 """
 
 from __future__ import annotations

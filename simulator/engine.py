@@ -69,7 +69,8 @@ __all__ = [
 
 #: The networks' lanes come in multiples of this: the vector loops the compiler makes of
 #: network_step_lanes run eight doubles at a time (AVX-512, or AVX2 unrolled twice) and leave a
-#: remainder to slow scalar code; ten robots padded to 16 cost less than ten (measured).
+#: remainder to slow scalar code, so padded robots cost less than a remainder (docs/simulation.md,
+#: "Figures behind the code's choices").
 _LANES = 8
 
 
@@ -459,7 +460,8 @@ def evaluate_swarms(
 
 
 #: The lists of the last batch evaluated (:func:`_world_lists`), by the identity of what is in
-#: them. Building numba's lists costs about 10 us, more than an evaluation step.
+#: them. Building numba's lists costs more than an evaluation step (docs/simulation.md, "Figures
+#: behind the code's choices").
 _last_lists: list[tuple[tuple[int, ...], tuple[Any, ...]]] = []
 
 

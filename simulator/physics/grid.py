@@ -26,11 +26,10 @@ from minimize_surprise.jit import kernel
 
 __all__ = ["GRID_ROBOTS", "Cells", "build", "gather", "grid_side", "mark_around", "new_cells"]
 
-#: From this many robots on, contacts and sensing find neighbours in the grid. Measured at the
-#: basic scenario's density (``benchmarks/scale.py``, docs/simulation.md): below about 25 robots
-#: looking at every pair is as fast as or faster than building and visiting cells; from 32 on the
-#: grid wins, by 1.3x at 50 robots and 2x at 100. The paper's swarms (4 and 10 robots) keep the
-#: all-pairs loops.
+#: From this many robots on, contacts and sensing find neighbours in the grid; below it looking at
+#: every pair is as fast or faster (measured at the basic scenario's density with
+#: ``benchmarks/scale.py``: docs/simulation.md, "Figures behind the code's choices"). The paper's
+#: swarms (4 and 10 robots) keep the all-pairs loops.
 GRID_ROBOTS = 40
 
 # Cells are this much (metres) wider than the range they serve, so that rounding in the cell

@@ -179,8 +179,7 @@ def normal_quantile(p: float) -> float:
 def gaussian(seed: int, step: int, robot: int, channel: int) -> float:
     """A standard normal number for (seed, step, robot, channel), the same on every call: the
     normal quantile (:func:`normal_quantile`) of a uniform number hashed from the four, one of
-    the 2^32 midpoints (k + 1/2) / 2^32. A quarter to a third of the cost of the Box-Muller
-    transform with its logarithm and cosine (measured in the engine): most draws call no libm
-    function."""
+    the 2^32 midpoints (k + 1/2) / 2^32. Cheaper than the Box-Muller transform with its
+    logarithm and cosine, since most draws call no libm function (docs/simulation.md)."""
     key = mix32(seed ^ mix32(step ^ mix32(robot * 64 + channel)))
     return normal_quantile((mix32(key ^ 0x9E3779B9) + 0.5) / 4294967296.0)
