@@ -475,7 +475,7 @@ def run_dashboard(
     cannot be bound, 2 without Bokeh, with a bad broker URL or prefix, or with a broker but no
     MQTT client installed.
 
-    Raises :class:`~master_service.rundir.RunDirError` when ``run_dir`` is not a directory; a
+    Raises :class:`~runfiles.schema.RunDirError` when ``run_dir`` is not a directory; a
     port that cannot be bound is one line on stderr and exit status 1.
     """
     if not run_dir.is_dir():

@@ -360,7 +360,7 @@ def evolved_summary(
 ) -> dict[str, Any]:
     """What an evolved run's summary holds, from its :class:`~master_service.experiments.
     simulation_setup.SimulatedRun` ``result``; drops the traces if the task says so."""
-    from master_service.rundir import TRACES
+    from runfiles.schema import TRACES
 
     if result is None:  # only when told to stop, and nothing here tells it to
         raise RuntimeError(f"the evolved run in {directory} stopped before its end")
