@@ -55,7 +55,6 @@ from master_service.rundir import RunDir, RunDirError
 from master_service.stopping import cancelled_by_signal, stop_flag, until_signal
 from minimize_surprise.config import ExperimentConfig, load_experiment
 from minimize_surprise.errors import ConfigError, FileWriteError
-from minimize_surprise.files import write_new_secret
 from minimize_surprise.text import plural
 from runfiles import schema
 from runfiles.schema import CONFIG_SNAPSHOT, Replay, Simulation
@@ -195,7 +194,7 @@ def _parser() -> argparse.ArgumentParser:
         metavar="FILE",
         help="where to write it, e.g. secret.key (never replaced)",
     )
-    secret.set_defaults(handler=_secret)
+    secret.set_defaults(handler=cli_lab.secret_command)
 
     status = sub.add_parser("status", help="show where a run stands")
     status.add_argument("dir", type=Path, metavar="DIR", help="the run directory")
@@ -279,23 +278,6 @@ def _os_error_text(exc: OSError) -> str:
     if exc.filename is not None and exc.strerror:
         return f"{exc.filename}: {exc.strerror}"
     return str(exc)
-
-
-def _secret(args: argparse.Namespace) -> int:
-    try:
-        path = write_new_secret(args.file)
-    except FileExistsError:
-        print(
-            f"surprise-master: {args.file} exists: keep it (the robots may hold it) or remove it "
-            "first",
-            file=sys.stderr,
-        )
-        return 1
-    print(
-        f"wrote a new shared secret to {path} (only you may read it); copy it to every robot: "
-        f"sudo deploy/install-pi.sh ROBOT_ID {path}"
-    )
-    return 0
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -433,22 +415,14 @@ async def _serve_async(master: Master) -> int:
 
 
 def _sim_experiment(args: argparse.Namespace, evaluations: int | None = None):
-    from master_service.experiments.simulation_setup import simulation_experiment
+    from master_service.experiments.simulation_setup import setting_note, simulation_experiment
 
     for name in ("robots", "evaluations", "random"):
         value = getattr(args, name, None)
         if value is not None and value < 1:
             raise ConfigError(f"expected a positive number, got {value}", key=f"--{name}")
-    if args.config is not None and args.setting is None:
-        from minimize_surprise.config import read_yaml
-
-        data = read_yaml(args.config)
-        if isinstance(data, dict) and "setting" not in data:
-            print(
-                f"note: {args.config} names no setting: lab (the real robots' numbers), as for "
-                "`surprise-master run`; `setting: paper` is the authors' Webots simulation",
-                file=sys.stderr,
-            )
+    if args.config is not None and args.setting is None and (note := setting_note(args.config)):
+        print(note, file=sys.stderr)
     return simulation_experiment(
         args.scenario,
         setting=args.setting,

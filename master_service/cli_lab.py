@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import sys
 from pathlib import Path
 
 from master_service.config import load_master_config, required_secret
@@ -18,6 +19,7 @@ __all__ = [
     "continue_command",
     "dashboard_command",
     "report_command",
+    "secret_command",
     "status_command",
     "watch_command",
 ]
@@ -126,3 +128,23 @@ def dashboard_command(args: argparse.Namespace) -> int:
         args.dir, args.host, args.port, open_browser=args.open, broker=args.broker,
         prefix=args.prefix,
     )  # fmt: skip
+
+
+def secret_command(args: argparse.Namespace) -> int:
+    """``surprise-master secret``."""
+    from minimize_surprise.files import write_new_secret
+
+    try:
+        path = write_new_secret(args.file)
+    except FileExistsError:
+        print(
+            f"surprise-master: {args.file} exists: keep it (the robots may hold it) or remove it "
+            "first",
+            file=sys.stderr,
+        )
+        return 1
+    print(
+        f"wrote a new shared secret to {path} (only you may read it); copy it to every robot: "
+        f"sudo deploy/install-pi.sh ROBOT_ID {path}"
+    )
+    return 0

@@ -29,6 +29,7 @@ __all__ = [
     "SimulatedRun",
     "read_simulation_file",
     "robot_ids",
+    "setting_note",
     "simulated_safety",
     "simulation_experiment",
     "world_config",
@@ -46,6 +47,18 @@ class SimulatedRun:
 
     summary: RunSummary
     metrics: dict[str, Any]
+
+
+def setting_note(config_file: str | Path) -> str | None:
+    """A note for a person when the experiment file names no setting (it is then ``lab``, as
+    everywhere an experiment is read); None when it names one."""
+    data = read_yaml(config_file)
+    if isinstance(data, dict) and "setting" not in data:
+        return (
+            f"note: {config_file} names no setting: lab (the real robots' numbers), as for "
+            "`surprise-master run`; `setting: paper` is the authors' Webots simulation"
+        )
+    return None
 
 
 def simulation_experiment(

@@ -66,7 +66,7 @@ return {visible: plot.visible, xs: xs, robots: robots};
 """
 
 #: An experiment short enough for a test, long enough (in real time) to watch.
-EXPERIMENT: Final = "evaluation_steps: 80\npost_evaluation_steps: 200\n"
+EXPERIMENT: Final = "setting: paper\nevaluation_steps: 80\npost_evaluation_steps: 200\n"
 
 
 @pytest.fixture(scope="module")

@@ -64,7 +64,7 @@ def test_baseline_names_the_limit_before_creating_its_directory(tmp_path, capsys
 
 def test_a_file_names_its_robots_key(tmp_path, capsys):
     experiment = tmp_path / "experiment.yaml"
-    experiment.write_text("robots: 500\n", encoding="utf-8")
+    experiment.write_text("setting: paper\nrobots: 500\n", encoding="utf-8")
     line = one_line_error(
         capsys, ["sim", "--config", str(experiment), "--out", str(tmp_path / "r")]
     )
