@@ -90,8 +90,8 @@ def _world_steps(
     # ``steps`` steps: commands (steps // HOLD + 1, N, 2), each held for HOLD steps.
     for t in range(steps):
         physics.clamp_commands(commands[t // HOLD], cmd)
-        physics.step_world(g, pose, cmd, force, boxes, pending, sn.need_force)
-        physics.sense(sn, pose, force, t + 1, values, work)
+        physics.step_world(g, pose, cmd, force, boxes, pending, 0, len(boxes), sn.need_force, True)
+        physics.sense(sn, pose, force, t + 1, values, work, True)
 
 
 def time_world(robots: int, steps: int, seed: int = 1) -> float:

@@ -496,7 +496,7 @@ def _run_simulation(
 ) -> tuple[SimulatedRun | None, float]:
     """The simulated run behind :func:`_simulate` with its display; the run (None when stopped
     by a signal, which ``received`` names) and when it started (``time.perf_counter``)."""
-    from master_service.experiments.simulate import SimulatedSwarm, quiet_agents
+    from master_service.experiments.simulate import SimulatedSwarm, print_if_compiling, quiet_agents
 
     mode = "real time" if realtime else "lockstep"
     with display, quiet_agents():
@@ -508,6 +508,7 @@ def _run_simulation(
             f"{experiment.evaluation_steps} steps of {experiment.step_period:g} s, seed "
             f"{experiment.seed}" + (f", {mode}" if engine == "agents" else "")
         )
+        print_if_compiling(engine)
         started = time.perf_counter()
         if engine == "fast":
             from master_service.experiments.engine_run import FastRun

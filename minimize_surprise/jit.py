@@ -34,7 +34,15 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any, Literal, TypeVar
 
-__all__ = ["JIT", "BorrowError", "borrow", "kernel", "typed_list"]
+__all__ = [
+    "JIT",
+    "BorrowError",
+    "borrow",
+    "cache_directory",
+    "compiled_on_disk",
+    "kernel",
+    "typed_list",
+]
 
 F = TypeVar("F", bound=Callable[..., Any])
 T = TypeVar("T")
@@ -153,6 +161,24 @@ def kernel(
     return _numba.njit(
         cache=_CACHE, nogil=True, error_model=error_model, inline="always" if inline else "never"
     )(function)
+
+
+def compiled_on_disk(function: Any) -> bool | None:
+    """Whether ``function`` (a :func:`kernel`) has compiled code in the on-disk cache, so that
+    its first call loads it instead of compiling; None when there is no telling (no numba, no
+    cache, or numba's cache keeps its files elsewhere than this version of numba did)."""
+    if _numba is None or not _CACHE:
+        return None
+    try:
+        index = function._cache._cache_file._index_path
+    except AttributeError:
+        return None
+    return os.path.exists(index)
+
+
+def cache_directory() -> str | None:
+    """Where compiled kernels are kept on disk (None: not cached)."""
+    return str(_numba.config.CACHE_DIR) if _numba is not None and _CACHE else None
 
 
 def _members(tuple_type: Any) -> tuple[Any, ...]:

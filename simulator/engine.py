@@ -94,15 +94,16 @@ class Arenas(NamedTuple):
     and its live arrays, stacked (``pose`` (B, N, 3), ``cmd`` (B, N, 2), ``force`` (B, N),
     ``clock`` (B) the worlds' step counts) or, for the boxes, of which each world has its own
     number, one after the other (world b's in rows ``box_start[b]`` to ``box_start[b + 1] - 1`` of
-    ``boxes`` and ``pending``); all updated in place."""
+    ``boxes`` and ``pending``); all updated in place. A batch without any box has None for
+    ``boxes`` and ``pending``, and the kernel is compiled without the box physics."""
 
     geometry: Sequence[Geometry]
     sensing: Sequence[Sensing]
     pose: np.ndarray
     cmd: np.ndarray
     force: np.ndarray
-    boxes: np.ndarray
-    pending: np.ndarray
+    boxes: np.ndarray | None
+    pending: np.ndarray | None
     box_start: np.ndarray
     clock: np.ndarray
 
@@ -182,6 +183,7 @@ def evaluate(
     interventions: np.ndarray,
     record: bool,
     recs: Sequence[Recording],
+    grid: bool | None,
 ) -> None:
     """One evaluation on each of B arenas of N robots at once, each arena with its own genome
     (lanes of ``net``: arena b's robots in lanes b N .. b N + N - 1), from each world's step
@@ -189,7 +191,8 @@ def evaluate(
     ``fitness`` (B, N) receives the fitnesses, ``interventions`` (B, N, reasons) the safety
     counts and, with ``record``, ``recs[b]`` arena b's trace. ``columns``: the network's sensors
     among the world's. An arena's results do not depend on the others in the batch: each of its
-    numbers is computed as in a batch of one."""
+    numbers is computed as in a batch of one. ``grid``: None for arenas of fewer robots than their
+    ``grid_robots`` (:func:`~simulator.physics.grid_choice`), so that no grid is compiled."""
     # Everything borrowed (jit.borrow): the robots' loops below take views of these arrays at
     # every step, and an owned view costs a reference count taken and dropped, atomically.
     arenas, safety, net, scratch = borrow(arenas), borrow(safety), borrow(net), borrow(scratch)
@@ -213,10 +216,11 @@ def evaluate(
     for t in range(steps):
         for b in range(b_count):
             if record and t % recs[b].box_every == 0 and box_start[b + 1] > box_start[b]:
-                recs[b].boxes[t // recs[b].box_every, :, :] = boxes[box_start[b] : box_start[b + 1]]
+                frame = t // recs[b].box_every
+                _record_boxes(recs[b], frame, boxes, box_start[b], box_start[b + 1])
             sensing = borrow(sensings[b])  # its list, an argument, holds it
             arrays = SenseWork(full[b], bodies[b], cos_sin[b], candidates[b], near[b])
-            physics.sense(sensing, poses[b], forces[b], clock[b], values[b], arrays)
+            physics.sense(sensing, poses[b], forces[b], clock[b], values[b], arrays, grid)
             for i in range(n):
                 lane = b * n + i
                 for k in range(r):
@@ -246,25 +250,36 @@ def evaluate(
                     recs[b].reasons[t, i] = code
             if record:
                 _record(recs[b], t, b * n, poses[b], work, predictions, action, cmd)
-            first, last = box_start[b], box_start[b + 1]
             physics.step_world(
-                geometries[b], poses[b], cmd, forces[b], boxes[first:last], pending[first:last],
-                need_force[b],
+                geometries[b], poses[b], cmd, forces[b], boxes, pending, box_start[b],
+                box_start[b + 1], need_force[b], grid,
             )  # fmt: skip
             clock[b] += 1
     # Every robot stops; the lockstep counts that as everybody's command for one more step.
     cmds[:, :, :] = 0.0
     for b in range(b_count):
-        first, last = box_start[b], box_start[b + 1]
         physics.step_world(
-            geometries[b], poses[b], cmds[b], forces[b], boxes[first:last], pending[first:last],
-            need_force[b],
+            geometries[b], poses[b], cmds[b], forces[b], boxes, pending, box_start[b],
+            box_start[b + 1], need_force[b], grid,
         )  # fmt: skip
         clock[b] += 1
     scored = steps - 1
     for b in range(b_count):
         for i in range(n):
             fitness[b, i] = total[b, i] / scored if scored > 0 else 0.0
+
+
+@kernel
+def _record_boxes(
+    rec: Recording, frame: int, boxes: np.ndarray | None, first: int, last: int
+) -> None:
+    # The boxes of one arena into frame ``frame`` of its trace, element by element: a slice
+    # assignment would compile numba's shape checks and their messages.
+    if boxes is None:
+        return
+    for j in range(last - first):
+        rec.boxes[frame, j, 0] = boxes[first + j, 0]
+        rec.boxes[frame, j, 1] = boxes[first + j, 1]
 
 
 @kernel
@@ -277,8 +292,9 @@ def _record(
     r = predictions.shape[0]
     for i in range(pose.shape[0]):
         lane = first + i
-        rec.sensors[t, i, :] = work[:r, lane]
-        rec.predictions[t, i, :] = predictions[:, lane]
+        for k in range(r):  # element by element: see _record_boxes
+            rec.sensors[t, i, k] = work[k, lane]
+            rec.predictions[t, i, k] = predictions[k, lane]
         rec.actions[t, i, 0] = action[0, lane]
         rec.actions[t, i, 1] = action[1, lane]
         rec.commands[t, i, 0] = cmd[i, 0]
@@ -415,8 +431,8 @@ def evaluate_swarms(
         pose=np.stack([state[0] for state in states]),
         cmd=np.stack([state[1] for state in states]),
         force=np.stack([state[2] for state in states]),
-        boxes=np.concatenate([state[3] for state in states]),
-        pending=np.concatenate([state[4] for state in states]),
+        boxes=np.concatenate([state[3] for state in states]) if box_start[-1] else None,
+        pending=np.concatenate([state[4] for state in states]) if box_start[-1] else None,
         box_start=box_start,
         clock=np.array([world.steps for world in worlds], dtype=np.int64),
     )
@@ -433,17 +449,23 @@ def evaluate_swarms(
         [world.kernel_constants[1] for world in worlds], n, net, len(first._columns),
         first.spec.initial_action,
     )  # fmt: skip
+    # Below every world's grid_robots, None: the kernel is compiled without the grid (each world
+    # still decides at every step where it is compiled with it).
+    # (Read from the worlds, not from the typed lists: indexing those from Python compiles.)
+    limits = [limit for world in worlds for limit in _grid_limits(world)]
+    grid = physics.grid_choice(n, min(limits))
     evaluate(
         arenas, safety, net, arrays, first._columns, steps, fitness, interventions, record,
-        recs if not record else typed_list(recs),
+        recs if not record else typed_list(recs), grid,
     )  # fmt: skip
     results = []
     for b, (swarm, world, state) in enumerate(zip(swarms, worlds, states, strict=True)):
         state[0][:] = arenas.pose[b]
         state[1][:] = arenas.cmd[b]
         state[2][:] = arenas.force[b]
-        state[3][:] = arenas.boxes[box_start[b] : box_start[b + 1]]
-        state[4][:] = arenas.pending[box_start[b] : box_start[b + 1]]
+        if arenas.boxes is not None and arenas.pending is not None:
+            state[3][:] = arenas.boxes[box_start[b] : box_start[b + 1]]
+            state[4][:] = arenas.pending[box_start[b] : box_start[b + 1]]
         swarm.safety[:] = safety.state[b]
         world.advance_to(int(arenas.clock[b]))
         counts = [
@@ -457,6 +479,11 @@ def evaluate_swarms(
         trace = (rec.sensors, rec.predictions, rec.actions, rec.commands, rec.reasons, rec.poses)
         results.append(EvaluationRecord(fitness[b].copy(), counts, *trace, boxes=rec.boxes))
     return results
+
+
+def _grid_limits(world: World) -> tuple[int, int]:
+    geometry, sensing = world.kernel_constants
+    return geometry.grid_robots, sensing.grid_robots
 
 
 #: The lists of the last batch evaluated (:func:`_world_lists`), by the identity of what is in

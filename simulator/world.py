@@ -553,14 +553,18 @@ class World:
 
     def step(self) -> None:
         """Advance the world by one step of ``dt`` with the current commands."""
+        has_boxes = len(self._boxes) > 0  # none: no box physics compiled (step_world)
         physics.step_world(
             self._geometry,
             self._pose,
             self._cmd,
             self._force,
-            self._boxes,
-            self._pending,
+            self._boxes if has_boxes else None,
+            self._pending if has_boxes else None,
+            0,
+            len(self._boxes),
             self._need_force,
+            physics.grid_choice(self._n, self._geometry.grid_robots),
         )
         self._steps += 1
         self._cache = None
@@ -576,8 +580,9 @@ class World:
         order; computed once per step for all robots."""
         if self._cache is None:
             out = np.empty((self._n, len(self.config.sensors)))
+            grid = physics.grid_choice(self._n, self._sensing.grid_robots)
             physics.sense(
-                self._sensing, self._pose, self._force, self._steps, out, self._sense_work
+                self._sensing, self._pose, self._force, self._steps, out, self._sense_work, grid
             )
             out.flags.writeable = False
             self._cache = out

@@ -54,6 +54,7 @@ __all__ = [
     "SCENARIOS",
     "SimulatedRun",
     "SimulatedSwarm",
+    "print_if_compiling",
     "quiet_agents",
     "robot_ids",
     "simulated_loop",
@@ -293,3 +294,18 @@ def quiet_agents() -> Iterator[None]:
         yield
     finally:
         logger.setLevel(level)
+
+
+def print_if_compiling(engine: str) -> None:
+    """Say so when this run compiles the simulator first (the first run on a machine, or after
+    an update: docs/simulation.md, "The first run"), before the progress sits still for it."""
+    from minimize_surprise import jit
+    from simulator import physics
+    from simulator.engine import evaluate
+
+    if jit.compiled_on_disk(evaluate if engine == "fast" else physics.step_world) is False:
+        print(
+            "compiling the simulator for this machine: once, 10 to 30 s; later runs load it "
+            f"from {jit.cache_directory()}",
+            flush=True,
+        )

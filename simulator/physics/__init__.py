@@ -43,7 +43,7 @@ Everything public is here too: ``physics.sense``, ``physics.step_world``, ...
 
 from __future__ import annotations
 
-from simulator.physics.grid import GRID_ROBOTS
+from simulator.physics.grid import GRID_ROBOTS, grid_choice
 from simulator.physics.ir import IR_CONE, IR_RAY
 from simulator.physics.model import (
     GROUND_POSITIONS,
@@ -68,6 +68,7 @@ __all__ = [
     "Sensing",
     "clamp_commands",
     "gaussian",
+    "grid_choice",
     "ir_reach",
     "sense",
     "sense_work",

@@ -196,8 +196,9 @@ def _grown(pairs: np.ndarray, shares: np.ndarray) -> tuple[np.ndarray, np.ndarra
     # The pair scratch of _box_box twice as long, the pairs so far kept.
     more_pairs = np.empty((2 * pairs.shape[0], 2), dtype=np.int64)
     more_shares = np.empty((2 * pairs.shape[0], 2))
-    more_pairs[: pairs.shape[0]] = pairs
-    more_shares[: pairs.shape[0]] = shares
+    for k in range(pairs.shape[0]):  # element by element: no slice's shape checks to compile
+        more_pairs[k, 0], more_pairs[k, 1] = pairs[k, 0], pairs[k, 1]
+        more_shares[k, 0], more_shares[k, 1] = shares[k, 0], shares[k, 1]
     return more_pairs, more_shares
 
 

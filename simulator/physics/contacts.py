@@ -67,11 +67,12 @@ def contact_reach(g: Geometry) -> float:
 
 
 @kernel
-def _separate_robots(g: Geometry, pose: np.ndarray) -> bool:
+def _separate_robots(g: Geometry, pose: np.ndarray, grid: bool | None) -> bool:
     # Whether any robot moved. From g.grid_robots robots on, a robot looks for the robots it
-    # touches among its neighbours in a grid (.grid), below among every other robot.
+    # touches among its neighbours in a grid (.grid), below among every other robot; ``grid``
+    # None (fewer robots: grid.grid_choice) compiles only the latter.
     n = pose.shape[0]
-    if n >= g.grid_robots:
+    if grid is not None and n >= g.grid_robots:
         side = grid_side(g.wall_half, contact_reach(g), n)
         if side > 1:
             cells = new_cells(n, side)

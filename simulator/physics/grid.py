@@ -24,13 +24,30 @@ import numpy as np
 
 from minimize_surprise.jit import kernel
 
-__all__ = ["GRID_ROBOTS", "Cells", "build", "gather", "grid_side", "mark_around", "new_cells"]
+__all__ = [
+    "GRID_ROBOTS",
+    "Cells",
+    "build",
+    "gather",
+    "grid_choice",
+    "grid_side",
+    "mark_around",
+    "new_cells",
+]
 
 #: From this many robots on, contacts and sensing find neighbours in the grid; below it looking at
 #: every pair is as fast or faster (measured at the basic scenario's density with
 #: ``benchmarks/scale.py``: docs/simulation.md, "Figures behind the code's choices"). The paper's
 #: swarms (4 and 10 robots) keep the all-pairs loops.
 GRID_ROBOTS = 40
+
+
+def grid_choice(robots: int, grid_robots: int) -> bool | None:
+    """The ``grid`` argument of the kernels that look for neighbours (``sense``, ``step_world``)
+    for an arena of ``robots``: None below ``grid_robots``, where they look at every pair and
+    need compile nothing else, True from it on, where they decide at each call."""
+    return None if robots < grid_robots else True
+
 
 # Cells are this much (metres) wider than the range they serve, so that rounding in the cell
 # index never puts two robots within range two cells apart.

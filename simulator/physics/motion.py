@@ -68,10 +68,33 @@ def clamp_commands(commands: np.ndarray, cmd: np.ndarray) -> None:
 
 @kernel
 def step_world(
-    g: Geometry, pose: np.ndarray, cmd: np.ndarray, force: np.ndarray, boxes: np.ndarray,
-    pending: np.ndarray, need_force: bool,
+    g: Geometry, pose: np.ndarray, cmd: np.ndarray, force: np.ndarray,
+    boxes: np.ndarray | None, pending: np.ndarray | None, first: int, last: int,
+    need_force: bool, grid: bool | None,
 ) -> None:  # fmt: skip
-    """Advance one arena by one step of ``g.dt`` with the commands ``cmd``."""
+    """Advance one arena by one step of ``g.dt`` with the commands ``cmd``; its boxes are rows
+    ``first`` to ``last - 1`` of ``boxes`` and ``pending`` (a batch's boxes, one arena after
+    the other).
+
+    An arena without boxes passes None for ``boxes`` and ``pending``, and one of fewer robots
+    than ``g.grid_robots`` None for ``grid`` (:func:`~simulator.physics.grid.grid_choice`):
+    numba then compiles neither the box physics nor the grid (the branches are pruned by
+    type), what a small swarm without boxes never runs; the steps taken are the same."""
+    if boxes is None or pending is None:
+        _move(g, pose, cmd)
+        force[:] = 0.0
+        _separate_robots(g, pose, grid)
+    else:
+        _step_with_boxes(
+            g, pose, cmd, force, boxes[first:last], pending[first:last], need_force, grid
+        )
+
+
+@kernel
+def _step_with_boxes(
+    g: Geometry, pose: np.ndarray, cmd: np.ndarray, force: np.ndarray, boxes: np.ndarray,
+    pending: np.ndarray, need_force: bool, grid: bool | None,
+) -> None:  # fmt: skip
     # Where the robots were, for the boxes to send one back to (no copy without boxes).
     start = pose.copy() if boxes.shape[0] > 0 else pose
     _move(g, pose, cmd)
@@ -79,7 +102,7 @@ def step_world(
     for round_ in range(_CONTACT_ROUNDS):
         # Robots part first, then boxes give way to them; a robot the boxes moved (backed off
         # or sent back) may touch another robot again, hence another round.
-        parted = _separate_robots(g, pose)
+        parted = _separate_robots(g, pose, grid)
         if (round_ > 0 and not parted) or boxes.shape[0] == 0:
             break
         before = pose.copy()

@@ -89,13 +89,18 @@ def sense_work(robots: int) -> SenseWork:
 @kernel
 def sense(
     sn: Sensing, pose: np.ndarray, force: np.ndarray, step: int, out: np.ndarray,
-    work: SenseWork,
+    work: SenseWork, grid: bool | None,
 ) -> None:  # fmt: skip
     """Every robot's sensor values for the arena as it is at ``step`` into ``out`` (N, R), in
     the order of ``sn.columns``; ``work`` the working arrays (:func:`sense_work`). From
     ``sn.grid_robots`` robots on, a robot's IR looks only at the robots in the cells of a grid
-    around its own (.grid)."""
+    around its own (.grid). ``grid`` None says the arena has fewer robots than that
+    (:func:`~simulator.physics.grid.grid_choice`): numba then compiles only the all-pairs
+    sensing, pruned by type."""
     n = pose.shape[0]
+    if grid is None:
+        _sense(sn, pose, force, step, out, work, None)
+        return
     if sn.need_ir and n >= sn.grid_robots:
         side = grid_side(sn.wall_half, sn.ir_reach, n)
         if side > 1:

@@ -111,3 +111,36 @@ def test_with_no_writable_place_kernels_are_not_cached(tmp_path, monkeypatch):
     numba = fake_numba()
     assert not jit._use_fingerprinted_cache(numba)
     assert numba.config.CACHE_DIR == ""
+
+
+def test_a_fresh_cache_says_a_kernel_is_not_compiled_until_it_is(tmp_path):
+    # What `surprise-master sim` asks before it says "compiling the simulator ...".
+    env = {**os.environ, "XDG_CACHE_HOME": str(tmp_path / "cache")}
+    env.pop("NUMBA_CACHE_DIR", None)
+    env.pop("SURPRISE_NO_JIT", None)
+    script = textwrap.dedent(
+        """
+        import numpy as np
+        import minimize_surprise.jit as jit
+        from minimize_surprise.fitness import step_score
+        print(jit.compiled_on_disk(step_score))
+        step_score(np.zeros(2), np.ones(2))
+        print(jit.compiled_on_disk(step_score), jit.cache_directory())
+        """
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script], env=env, capture_output=True, text=True, check=True
+    )
+    before, after, directory = done.stdout.split()
+    assert (before, after) == ("False", "True")
+    assert directory.startswith(str(tmp_path / "cache"))
+
+
+def test_the_simulated_run_says_when_it_compiles(monkeypatch, capsys):
+    from master_service.experiments.simulate import print_if_compiling
+
+    for answer, said in ((False, True), (True, False), (None, False)):
+        monkeypatch.setattr(jit, "compiled_on_disk", lambda kernel, answer=answer: answer)
+        print_if_compiling("fast")
+        out = capsys.readouterr().out
+        assert ("compiling the simulator for this machine: once" in out) == said

@@ -51,9 +51,9 @@ def step_swarm(config: WorldConfig, steps: int, *, grid: bool, seed: int = 3) ->
     work = physics.sense_work(n)
     out: dict[str, list[np.ndarray]] = {"pose": [], "values": [], "boxes": [], "force": []}
     for t in range(steps):
-        physics.sense(sn, pose, force, t, values, work)
+        physics.sense(sn, pose, force, t, values, work, True)
         physics.clamp_commands(commands[t // 10], cmd)
-        physics.step_world(g, pose, cmd, force, boxes, pending, sn.need_force)
+        physics.step_world(g, pose, cmd, force, boxes, pending, 0, len(boxes), sn.need_force, True)
         for key, array in (("pose", pose), ("values", values), ("boxes", boxes), ("force", force)):
             out[key].append(array.copy())
     return {key: np.stack(arrays) for key, arrays in out.items()}
@@ -137,7 +137,9 @@ def test_a_robot_pushed_into_a_cell_beside_a_still_one_pushes_it_in_the_next_pas
     for grid, limit in ((True, 4), (False, NEVER)):
         p = pose.copy()
         cmd[:] = 0.0
-        physics.step_world(g._replace(grid_robots=limit), p, cmd, force, boxes, pending, False)
+        physics.step_world(
+            g._replace(grid_robots=limit), p, cmd, force, boxes, pending, 0, len(boxes), False, True
+        )
         stepped[grid] = p
     assert np.array_equal(stepped[True], stepped[False])
     # B and A parted in the first pass, A and C in the second: C moved, the far robot did not.
