@@ -553,19 +553,13 @@ class World:
 
     def step(self) -> None:
         """Advance the world by one step of ``dt`` with the current commands."""
-        has_boxes = len(self._boxes) > 0  # none: no box physics compiled (step_world)
+        g, boxes, pending = self._geometry, self._boxes, self._pending
+        some = len(boxes) > 0  # none: no box physics compiled (step_world)
         physics.step_world(
-            self._geometry,
-            self._pose,
-            self._cmd,
-            self._force,
-            self._boxes if has_boxes else None,
-            self._pending if has_boxes else None,
-            0,
-            len(self._boxes),
-            self._need_force,
-            physics.grid_choice(self._n, self._geometry.grid_robots),
-        )
+            g, self._pose, self._cmd, self._force, boxes if some else None,
+            pending if some else None, 0, len(boxes), self._need_force,
+            physics.grid_choice(self._n, g.grid_robots),
+        )  # fmt: skip
         self._steps += 1
         self._cache = None
         if self._recording is not None:

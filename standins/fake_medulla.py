@@ -525,6 +525,12 @@ async def serve_fake_medulla(
             await asyncio.sleep(0)
         if not keep_vm:
             fake.vm.close()
+        # The name released and its release confirmed before hanging up: a call sent right after
+        # then finds no medulla at once, as when medulla is gone, instead of racing the daemon's
+        # handling of the disconnect (a call routed to the closing connection times out).
+        with contextlib.suppress(Exception):
+            async with asyncio.timeout(DAEMON_TIMEOUT):
+                await bus.release_name(ASEBA_SERVICE)
         bus.disconnect()
         with contextlib.suppress(Exception):
             await bus.wait_for_disconnect()
