@@ -91,10 +91,7 @@ def low_batteries(
 def read_pause(run_dir: RunDir) -> PauseFile | None:
     """``pause.json`` while the run waits, else None (also for a file this version cannot read:
     the pause is then the master's to tell, and ``continue`` still removes the file)."""
-    try:
-        return schema.read(run_dir.path, PauseFile)
-    except RunDirError:
-        return None
+    return schema.read_if_readable(run_dir.path, PauseFile)
 
 
 def request_continue(run_dir: RunDir) -> PauseFile | None:

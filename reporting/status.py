@@ -7,7 +7,7 @@ from pathlib import Path
 
 from minimize_surprise.text import format_duration, plural
 from runfiles import schema
-from runfiles.schema import Checkpoint, Live, PauseFile, PostEvaluation, RunDirError, master_alive
+from runfiles.schema import Checkpoint, Live, PauseFile, PostEvaluation, master_alive
 
 __all__ = ["running_master", "status_text"]
 
@@ -15,10 +15,7 @@ __all__ = ["running_master", "status_text"]
 def running_master(path: str | Path) -> Live | None:
     """``live.json`` of the master serving the run in ``path`` now; None when none does (never
     started, stopped, silent for too long, or a file this version cannot read)."""
-    try:
-        live = schema.read(path, Live)
-    except RunDirError:
-        return None
+    live = schema.read_if_readable(path, Live)
     return live if master_alive(live, time.time()) else None
 
 
@@ -57,10 +54,7 @@ def status_text(path: str | Path) -> str:
         )
         if live.time_left_s is not None:
             lines.append(f"time left: ~{format_duration(live.time_left_s)}")
-        try:
-            pause = schema.read(path, PauseFile)
-        except RunDirError:
-            pause = None
+        pause = schema.read_if_readable(path, PauseFile)
         if pause is not None:
             lines.append(f"paused: {pause.reason}; then: surprise-master continue {path}")
         batteries = [

@@ -85,6 +85,7 @@ __all__ = [
     "master_alive",
     "read",
     "read_config",
+    "read_if_readable",
     "read_rows",
     "robot_stat_columns",
     "write",
@@ -394,6 +395,15 @@ def read(run_dir: str | Path, kind: type[_F]) -> _F | None:
     except OSError as exc:
         raise RunDirError(f"{path} cannot be read: {exc}") from None
     return decode(kind, raw, name=str(path))
+
+
+def read_if_readable(run_dir: str | Path, kind: type[_F]) -> _F | None:
+    """:func:`read` for a reader that only shows what it finds: None also for a file this
+    version cannot decode (a newer format, a file copied in by hand)."""
+    try:
+        return read(run_dir, kind)
+    except RunDirError:
+        return None
 
 
 def read_config(run_dir: str | Path) -> RunConfig:
