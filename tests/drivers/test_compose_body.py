@@ -72,7 +72,7 @@ async def test_a_part_failing_to_open_closes_everything(
 async def test_a_failing_part_fails_the_read(
     medulla: FakeMedulla, i2c: FakeI2C, thymio_config: ConfigFactory
 ):
-    body = _full(i2c, thymio_config(timeout=0.05))
+    body = _full(i2c, thymio_config(timeout=0.25))
     async with body:
         del i2c.bus(1).devices[0x48]  # the ADC falls off the bus
         with pytest.raises(HardwareError, match="Remote I/O error"):
