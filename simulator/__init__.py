@@ -1,7 +1,11 @@
 """The simulator: a kinematic arena of Thymio II robots, and the swarm's compiled engine.
 
+* :mod:`simulator.arenas` - arenas as files (``Arena``: floor, rim, walls, boxes, start, light)
+  and the shipped ones (``basic``, ``boxes``, ``gradient``, ``real-objects``): ``load_arena``;
 * :mod:`simulator.scenarios` - every world parameter (``WorldConfig``) and the named scenarios of
-  the paper (``basic``, ``boxes``, ``gradient``) with overrides: ``scenario_config(name, ...)``;
+  the paper (``basic``, ``boxes``, ``gradient``: an arena and its robots) with overrides:
+  ``scenario_config(name, ...)``;
+* :mod:`simulator.placement` - where robots and boxes start at a reset;
 * :mod:`simulator.experiment` - an experiment's world and safety layer in simulation: its
   scenario in its setting (``minimize_surprise.settings`` holds what each setting gives);
 * :mod:`simulator.physics` - motion, contacts, boxes and sensors as compiled kernels;

@@ -13,10 +13,12 @@ from minimize_surprise.config import ExperimentConfig, Strict, decode
 from minimize_surprise.errors import ConfigError
 from minimize_surprise.safety import SafetyConfig
 from minimize_surprise.settings import SETTINGS, setting_defaults
-from simulator.scenarios import SCENARIOS, WorldConfig, scenario_config
+from simulator.arenas import Arena, load_arena
+from simulator.scenarios import SCENARIOS, WorldConfig, scenario_arena, scenario_config
 
 __all__ = [
     "check_setting",
+    "experiment_arena",
     "safety_config",
     "scenario_world",
     "simulated_safety",
@@ -36,11 +38,13 @@ def check_setting(setting: object, file: str | Path | None = None) -> None:
         )
 
 
-def world_overrides(setting: str, scenario: str) -> dict[str, Any]:
-    """What ``setting`` changes in ``scenario``'s world (the ``lab`` setting: nothing)."""
+def world_overrides(setting: str, arena: str) -> dict[str, Any]:
+    """What ``setting`` changes in the world of the arena named ``arena`` (the ``lab`` setting:
+    nothing; the ``paper`` setting: Webots' sensors everywhere, and the authors' layouts in the
+    shipped arenas they stand for)."""
     check_setting(setting)
     given = setting_defaults(setting)
-    return {**given.world, **given.scenario_world.get(scenario, {})}
+    return {**given.world, **given.scenario_world.get(arena, {})}
 
 
 def safety_config(
@@ -64,11 +68,29 @@ class _SafetyDocument(Strict, frozen=True):
     safety: SafetyConfig
 
 
+def experiment_arena(
+    scenario: str, arena: str | None, file: str | Path | None = None
+) -> Arena | None:
+    """The arena an experiment runs in: its ``arena`` (a shipped name or a file's path), else
+    its scenario's own; None for an unknown scenario (left for the caller to reject by name)."""
+    if arena is not None:
+        return load_arena(arena, file=file)
+    if scenario not in SCENARIOS:
+        return None
+    return load_arena(scenario_arena(scenario))
+
+
 def scenario_world(
-    setting: Any, scenario: str, overrides: Any, file: str | Path | None = None
+    setting: Any,
+    scenario: str,
+    overrides: Any,
+    file: str | Path | None = None,
+    *,
+    arena: str | None = None,
 ) -> WorldConfig:
-    """Scenario ``scenario`` in ``setting`` with the world parameters ``overrides`` (an
-    experiment file's ``simulation`` section); a ConfigError names ``file`` and the key."""
+    """Scenario ``scenario`` in ``setting`` and in ``arena`` (default: the scenario's own), with
+    the world parameters ``overrides`` (an experiment file's ``simulation`` section); a
+    ConfigError names ``file`` (or the arena file) and the key."""
     check_setting(setting, file)
     if overrides is not None and not isinstance(overrides, dict):
         raise ConfigError(
@@ -78,8 +100,13 @@ def scenario_world(
         )
     if scenario not in SCENARIOS:
         return scenario_config(scenario, file=file)  # raises, naming the scenario
+    chosen = experiment_arena(scenario, arena, file)
+    assert chosen is not None
     return scenario_config(
-        scenario, {**world_overrides(setting, scenario), **(overrides or {})}, file=file
+        scenario,
+        {**world_overrides(setting, chosen.name), **(overrides or {})},
+        file=file,
+        arena=chosen,
     )
 
 
@@ -99,7 +126,9 @@ def world_config(experiment: ExperimentConfig, *, file: str | Path | None = None
         "robots": experiment.robots,
         "dt": experiment.step_period,
     }
-    return scenario_world(experiment.setting, experiment.scenario, overrides, file)
+    return scenario_world(
+        experiment.setting, experiment.scenario, overrides, file, arena=experiment.arena
+    )
 
 
 def simulated_safety(

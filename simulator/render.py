@@ -66,24 +66,22 @@ def draw_arena(ax: Any, config: WorldConfig, world: World | None = None) -> Any:
     Returns the light's image (for a colour bar) or None.
     """
     _, _, patches, _ = _matplotlib()
-    half = config.arena_side / 2
-    wall = config.wall_half
+    hx, hy = config.carpet_width / 2, config.carpet_height / 2
+    wx, wy = config.wall_hx, config.wall_hy
     ax.set_aspect("equal")
-    lim = wall + 0.03
-    ax.set_xlim(-lim, lim)
-    ax.set_ylim(-lim, lim)
+    ax.set_xlim(-wx - 0.03, wx + 0.03)
+    ax.set_ylim(-wy - 0.03, wy + 0.03)
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
-    ax.add_patch(patches.Rectangle((-wall, -wall), 2 * wall, 2 * wall, color=_BEYOND, zorder=0))
+    ax.add_patch(patches.Rectangle((-wx, -wy), 2 * wx, 2 * wy, color=_BEYOND, zorder=0))
     image = None
     if config.light:
         if world is None:
             world = World(config)
-        grid = np.linspace(-wall, wall, 200)
-        gx, gy = np.meshgrid(grid, grid)
+        gx, gy = np.meshgrid(np.linspace(-wx, wx, 200), np.linspace(-wy, wy, 200))
         image = ax.imshow(
             world.light_at(gx, gy),
-            extent=(-wall, wall, -wall, wall),
+            extent=(-wx, wx, -wy, wy),
             origin="lower",
             cmap="inferno",
             vmin=0.0,
@@ -92,18 +90,18 @@ def draw_arena(ax: Any, config: WorldConfig, world: World | None = None) -> Any:
             zorder=1,
         )
     else:
-        ax.add_patch(patches.Rectangle((-half, -half), 2 * half, 2 * half, color=_CARPET, zorder=1))
+        ax.add_patch(patches.Rectangle((-hx, -hy), 2 * hx, 2 * hy, color=_CARPET, zorder=1))
     # The carpet's edge, which the ground sensors see, and the walls beyond it.
     ax.add_patch(
         patches.Rectangle(
-            (-half, -half), 2 * half, 2 * half, fill=False, ec="white", lw=1.5, ls="--", zorder=2
+            (-hx, -hy), 2 * hx, 2 * hy, fill=False, ec="white", lw=1.5, ls="--", zorder=2
         )
     )
     ax.add_patch(
         patches.Rectangle(
-            (-wall, -wall),
-            2 * wall,
-            2 * wall,
+            (-wx, -wy),
+            2 * wx,
+            2 * wy,
             fill=False,
             ec=_WALL,
             # Thick walls are the ones the IR sensors see.

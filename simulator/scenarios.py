@@ -30,11 +30,16 @@ from minimize_surprise.sensors import (
     LIGHT_SENSORS,
     check_sensor_names,
 )
+from simulator.arenas import Arena, load_arena
 
 Positive = Annotated[float, msgspec.Meta(gt=0.0)]
 NonNegative = Annotated[float, msgspec.Meta(ge=0.0)]
 Unit = Annotated[float, msgspec.Meta(ge=0.0, le=1.0)]
 Point = tuple[float, float]
+#: (x0, y0, x1, y1): a rectangle in the arena's frame, x0 < x1 and y0 < y1
+Region = tuple[float, float, float, float]
+#: (x, y, heading in degrees counter-clockwise from the x axis): a robot's pose
+Pose = tuple[float, float, float]
 
 
 class WorldConfig(Strict, frozen=True):
@@ -47,8 +52,10 @@ class WorldConfig(Strict, frozen=True):
     """
 
     # --- arena -------------------------------------------------------------------------------
-    #: side of the square carpet
+    #: the carpet's extent along x (its side, for a square carpet)
     arena_side: Positive = 1.0
+    #: the carpet's extent along y (``None``: ``arena_side``, a square)
+    arena_height: Positive | None = None
     #: distance from the carpet's edge out to the walls
     wall_margin: NonNegative = 0.1
     #: whether the horizontal IR sensors see the walls (the paper's basic arenas: low walls, no)
@@ -64,8 +71,13 @@ class WorldConfig(Strict, frozen=True):
     #: length of one step (in an experiment its ``step_period``: the world steps once per control
     #: step; a value given here must equal it)
     dt: Positive = 0.1
-    #: "random": seeded, non-overlapping poses on the carpet; "centre": fixed ring at the centre
-    start: Literal["random", "centre"] = "random"
+    #: "random": seeded, non-overlapping poses on the carpet (or in ``start_region``); "centre":
+    #: fixed ring at the centre; "fixed": the poses ``start_poses``
+    start: Literal["random", "centre", "fixed"] = "random"
+    #: "random" start: the rectangle the robots' bodies start in (``None``: the whole carpet)
+    start_region: Region | None = None
+    #: "fixed" start: one (x, y, heading in degrees) per robot, the point between its wheels
+    start_poses: tuple[Pose, ...] = ()
     #: "centre" start: distance of the wheel axes from the centre (``None``: neighbours just
     #: apart); every robot faces outwards
     start_ring: NonNegative | None = None
@@ -119,6 +131,14 @@ class WorldConfig(Strict, frozen=True):
     boxes: bool = False
     #: fraction of the carpet covered by boxes (paper: about 14 %, 220 boxes per square metre)
     box_coverage: Annotated[float, msgspec.Meta(ge=0.0, le=0.4)] = 0.14
+    #: number of boxes, instead of ``box_coverage`` ("random" layout)
+    box_number: Annotated[int, msgspec.Meta(ge=0)] | None = None
+    #: "random" layout: the rectangle the boxes are scattered in (``None``: the whole carpet);
+    #: ``box_coverage`` is then of this rectangle's area
+    box_region: Region | None = None
+    #: a box's mass in kg (the Playground's boxes; the kinematic simulator's boxes move with
+    #: whatever pushes them)
+    box_mass: Positive = 0.01
     #: side of a (cubic) box
     box_size: Positive = 0.025
     #: "random": uniformly scattered to ``box_coverage``; "grid": the authors' Webots layout,
@@ -134,13 +154,16 @@ class WorldConfig(Strict, frozen=True):
     #: at most this many relaxation passes per step when boxes push each other
     box_iterations: Annotated[int, msgspec.Meta(ge=1)] = 12
     # --- light -------------------------------------------------------------------------------
-    #: a light above the centre (gradient arena); otherwise the light is uniform
+    #: a light above the carpet (gradient arena); otherwise the light is uniform
     light: bool = False
+    #: the point under the lamp
+    light_position: Point = (0.0, 0.0)
     #: light value under the lamp: the value is ``light_centre * (h^2 / (h^2 +
     #: r^2))^light_exponent`` at a distance r from the point under the lamp, h fixed by the corner
     #: value
     light_centre: Unit = 1.0
-    #: light value at the carpet's corners
+    #: light value at the carpet's corners, or for a lamp not above the centre, at the distance
+    #: of the corners from the centre
     light_corner: Unit = 0.1
     #: how the light falls off (1: inverse square; 1.5: inverse square on a sensor facing up)
     light_exponent: Annotated[float, msgspec.Meta(gt=0.0, le=3.0)] = 1.0
@@ -158,8 +181,25 @@ class WorldConfig(Strict, frozen=True):
             raise ValueError("`sensors`: at least one sensor is needed")
         if self.light and self.light_corner >= self.light_centre:
             raise ValueError("`light_corner`: must be below light_centre")
-        if self.box_size >= self.arena_side:
+        if self.box_size >= min(self.carpet_width, self.carpet_height):
             raise ValueError("`box_size`: must be smaller than the arena")
+        half_w, half_h = self.carpet_width / 2, self.carpet_height / 2
+        for key, region in (("start_region", self.start_region), ("box_region", self.box_region)):
+            if region is None:
+                continue
+            x0, y0, x1, y1 = region
+            if not (x0 < x1 and y0 < y1):
+                raise ValueError(f"`{key}`: expected x0 < x1 and y0 < y1, got {list(region)}")
+            if x0 < -half_w or x1 > half_w or y0 < -half_h or y1 > half_h:
+                raise ValueError(
+                    f"`{key}`: {list(region)} reaches beyond the carpet "
+                    f"({self.carpet_width} x {self.carpet_height} m around the centre)"
+                )
+        if self.start == "fixed" and len(self.start_poses) != self.robots:
+            raise ValueError(
+                f"`start_poses`: {len(self.start_poses)} poses for {self.robots} robots; a "
+                "fixed start needs one per robot"
+            )
         distances = [d for d, _ in self.ir_table]
         if len(distances) < 2 or any(b <= a for a, b in itertools.pairwise(distances)):
             raise ValueError("`ir_table`: at least two rows, distances strictly increasing")
@@ -172,42 +212,63 @@ class WorldConfig(Strict, frozen=True):
         return "force" in self.sensors
 
     @property
-    def wall_half(self) -> float:
-        """Distance from the centre to each wall."""
+    def carpet_width(self) -> float:
+        """The carpet's extent along x."""
+        return self.arena_side
+
+    @property
+    def carpet_height(self) -> float:
+        """The carpet's extent along y."""
+        return self.arena_side if self.arena_height is None else self.arena_height
+
+    @property
+    def wall_hx(self) -> float:
+        """Distance from the centre to the walls left and right."""
         return self.arena_side / 2 + self.wall_margin
+
+    @property
+    def wall_hy(self) -> float:
+        """Distance from the centre to the walls above and below."""
+        return self.carpet_height / 2 + self.wall_margin
+
+    @property
+    def wall_half(self) -> float:
+        """Distance from the centre to the farther walls (to every wall on a square carpet)."""
+        return max(self.wall_hx, self.wall_hy)
+
+    @property
+    def box_area(self) -> float:
+        """The area the boxes are scattered over: ``box_region``'s or the carpet's."""
+        if self.box_region is not None:
+            x0, y0, x1, y1 = self.box_region
+            return (x1 - x0) * (y1 - y0)
+        if self.arena_height is None:
+            return self.arena_side**2
+        return self.arena_side * self.arena_height
 
     @property
     def box_count(self) -> int:
         """Number of boxes for the configured coverage of the carpet (0 without boxes)."""
         if not self.boxes:
             return 0
-        return round(self.box_coverage * self.arena_side**2 / self.box_size**2)
+        if self.box_number is not None:
+            return self.box_number
+        return round(self.box_coverage * self.box_area / self.box_size**2)
 
 
 _OBJECT_SENSORS = IR_SENSORS + GROUND_SENSORS + FORCE_SENSORS
 
-#: The named scenarios: only what differs from :class:`WorldConfig`'s defaults.
+#: The named scenarios: each an arena (simulator/arenas/NAME.yaml) and its robots: how many and
+#: what they carry.
 _SCENARIOS: dict[str, dict[str, Any]] = {
-    # Paper Sec. V-B: 10 Thymios, carpet edge seen by the ground sensors, walls invisible to IR.
-    "basic": {"robots": 10, "arena_side": 1.0, "start": "random"},
-    # Paper Sec. V-C: 4 extended Thymios from the centre, 2.5 cm boxes at 14 % coverage; the walls
-    # trigger the robots' escape behaviour, so the IR sees them.
-    "boxes": {
-        "robots": 4,
-        "arena_side": 1.1,
-        "start": "centre",
-        "boxes": True,
-        "walls_visible_to_ir": True,
-        "sensors": list(_OBJECT_SENSORS),
-    },
-    # As "boxes" with a lamp above the centre and the two light sensors.
+    # Paper Sec. V-B: 10 Thymios with 7 IR and 2 ground sensors.
+    "basic": {"arena": "basic", "robots": 10},
+    # Paper Sec. V-C: 4 extended Thymios with the blade and its force sensor.
+    "boxes": {"arena": "boxes", "robots": 4, "sensors": list(_OBJECT_SENSORS)},
+    # As "boxes" with the two light sensors.
     "gradient": {
+        "arena": "gradient",
         "robots": 4,
-        "arena_side": 1.1,
-        "start": "centre",
-        "boxes": True,
-        "walls_visible_to_ir": True,
-        "light": True,
         "sensors": list(_OBJECT_SENSORS + LIGHT_SENSORS),
     },
 }
@@ -224,13 +285,24 @@ class _Document(Strict, frozen=True):
     simulation: WorldConfig
 
 
+def scenario_arena(name: str) -> str:
+    """The name of scenario ``name``'s own arena (``KeyError`` for an unknown scenario)."""
+    return str(_SCENARIOS[name]["arena"])
+
+
 def scenario_config(
-    name: str, overrides: dict[str, Any] | None = None, *, file: str | Path | None = None
+    name: str,
+    overrides: dict[str, Any] | None = None,
+    *,
+    file: str | Path | None = None,
+    arena: Arena | None = None,
 ) -> WorldConfig:
     """The world of scenario ``name`` with ``overrides`` (field name to value) applied.
 
-    Raises :class:`~minimize_surprise.errors.ConfigError` for an unknown scenario (key ``scenario``)
-    or a bad override (key ``simulation.<field>``); ``file`` is named in the error.
+    The world is the scenario's robots in ``arena`` (default: the scenario's own), then the
+    overrides. Raises :class:`~minimize_surprise.errors.ConfigError` for an unknown scenario
+    (key ``scenario``) or a bad override (key ``simulation.<field>``); ``file`` is named in the
+    error.
     """
     if name not in _SCENARIOS:
         raise ConfigError(
@@ -244,5 +316,8 @@ def scenario_config(
             file=str(file) if file else None,
             key="simulation",
         )
-    merged = {**_SCENARIOS[name], **(overrides or {})}
+    robots = {k: v for k, v in _SCENARIOS[name].items() if k != "arena"}
+    if arena is None:
+        arena = load_arena(scenario_arena(name))
+    merged = {**robots, **arena.world(), **(overrides or {})}
     return decode({"simulation": merged}, _Document, file=file).simulation

@@ -2,21 +2,19 @@
 
 :class:`World` holds the state of one arena and steps it with the compiled kernels of
 :mod:`simulator.physics` (where the models are described); it knows nothing of asyncio, and
-:mod:`simulator.body` drives it in lockstep or in real time. Placing robots and boxes at a reset is
-done here, with numpy generators seeded by ``seed``; sensor noise comes from the kernels'
-counter-based generator, keyed by the same seed. The same seed and the same commands give the
-same trajectories bit for bit.
+:mod:`simulator.body` drives it in lockstep or in real time. At a reset it places robots and boxes
+(:mod:`simulator.placement`) with numpy generators seeded by ``seed``; sensor noise comes from the
+kernels' counter-based generator, keyed by the same seed. The same seed and the same commands
+give the same trajectories bit for bit.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 
 import numpy as np
 
 from drivers.body import clamp_unit
-from minimize_surprise.errors import ConfigError
 from minimize_surprise.sensors import ALL_SENSORS
 from simulator import physics
 from simulator.physics import (
@@ -27,6 +25,14 @@ from simulator.physics import (
     Sensing,
     ir_reach,
     sense_work,
+)
+from simulator.placement import (
+    REAR,
+    TooManyRobotsError,
+    body_reach,
+    place_boxes,
+    place_robots,
+    wrap_angle,
 )
 from simulator.scenarios import WorldConfig
 
@@ -48,32 +54,6 @@ __all__ = [
 BOX_FRAME_PERIOD = 0.1
 
 _TWO_PI = 2.0 * math.pi
-# The Thymio II's flat rear is 3 cm behind its wheel axis (docs/simulation.md).
-_REAR = 0.03
-# Placement draws candidate positions in batches of _BATCH, gives up on one robot after
-# _MAX_TRIES candidates and on the arena after _PLACEMENT_RESTARTS fresh starts.
-_BATCH = 64
-_MAX_TRIES = 4_096
-_PLACEMENT_RESTARTS = 20
-
-
-class TooManyRobotsError(ConfigError):
-    """More robots than fit at the start: ``robots`` were asked for, at most ``fit`` fit
-    ``where`` (e.g. "on a 1.0 m carpet"; ``approximate`` when the random start found that many,
-    not a formula); ``larger`` is the world parameter that makes room (``arena_side`` or
-    ``start_ring``)."""
-
-    def __init__(self, robots: int, fit: int, where: str, *, larger: str, approximate: bool):
-        self.robots = robots
-        self.fit = fit
-        self.where = where
-        self.larger = larger
-        self.approximate = approximate
-        about = "about " if approximate else ""
-        super().__init__(
-            f"at most {about}{fit} robots fit {where} ({robots} asked for)",
-            key="simulation.robots",
-        )
 
 
 def box_frame_steps(dt: float) -> int:
@@ -86,44 +66,13 @@ def box_frames(steps: int, every: int) -> int:
     return (steps + every - 1) // every
 
 
-def wrap_angle(theta: np.ndarray | float) -> np.ndarray | float:
-    """Angles wrapped to [-pi, pi)."""
-    return (theta + math.pi) % _TWO_PI - math.pi
-
-
-def _ring(gap: float, n: int) -> float:
-    # Radius of the ring on which n points stand gap apart from their neighbours.
-    return 0.0 if n == 1 else gap / (2 * math.sin(math.pi / n))
-
-
-def _chord(radius: float, n: int) -> float:
-    # Distance between neighbours of n points evenly spread on a ring of that radius.
-    return math.inf if n == 1 else 2 * radius * math.sin(math.pi / n)
-
-
-def _ring_capacity(n: int, fits: Callable[[int], bool]) -> int:
-    # The most robots, up to n, that a ring takes; fits(m) is monotone (m robots fit, fewer do).
-    return next((m for m in range(n, 0, -1) if fits(m)), 0)
-
-
-def body_reach(config: WorldConfig) -> float:
-    """How far a robot's shapes (body, blade) reach from its body's centre."""
-    reach = config.robot_radius
-    if config.has_blade:
-        rr = config.blade_thickness / 2
-        hy = max(config.blade_width / 2 - rr, 0.0) + rr
-        off = np.array([-_REAR, config.blade_x + rr]) - config.body_offset
-        reach = max(reach, float(np.hypot(off, hy).max()))
-    return reach
-
-
 def compile_world(config: WorldConfig, seed: int) -> tuple[Geometry, Sensing]:
     """The constants of ``config`` as the kernels take them (noise keyed by ``seed``)."""
     rr = config.blade_thickness / 2
     hw = config.blade_width / 2
     reach = config.body_offset + config.robot_radius
     if config.has_blade:
-        hx = np.array([-_REAR, config.blade_x + rr])
+        hx = np.array([-REAR, config.blade_x + rr])
         reach = max(reach, float(np.hypot(hx, max(hw - rr, 0.0) + rr).max()))
     rb = config.box_size / 2
     geometry = Geometry(
@@ -133,12 +82,14 @@ def compile_world(config: WorldConfig, seed: int) -> tuple[Geometry, Sensing]:
         robot_radius=config.robot_radius,
         body_offset=config.body_offset,
         wall_half=config.wall_half,
+        wall_hx=config.wall_hx,
+        wall_hy=config.wall_hy,
         blade=config.has_blade,
         blade_x=config.blade_x,
         blade_width=config.blade_width,
         hw=hw,
         tb=rr,
-        hull_x0=rr - _REAR,
+        hull_x0=rr - REAR,
         hull_x1=config.blade_x,
         hull_hy=max(hw - rr, 0.0),
         hull_rr=rr,
@@ -152,7 +103,10 @@ def compile_world(config: WorldConfig, seed: int) -> tuple[Geometry, Sensing]:
     aperture = math.radians(config.ir_aperture)
     lamp_h2 = 0.0
     if config.light:
-        corner2 = 2 * (config.arena_side / 2) ** 2
+        if config.arena_height is None:
+            corner2 = 2 * (config.arena_side / 2) ** 2
+        else:
+            corner2 = (config.carpet_width / 2) ** 2 + (config.carpet_height / 2) ** 2
         q = (config.light_corner / config.light_centre) ** (1.0 / config.light_exponent)
         lamp_h2 = corner2 * q / (1.0 - q)
     table = np.array(config.ir_table, dtype=float).reshape(-1, 2)
@@ -173,14 +127,19 @@ def compile_world(config: WorldConfig, seed: int) -> tuple[Geometry, Sensing]:
         ir_wall_reflectance=config.ir_wall_reflectance,
         walls_visible=config.walls_visible_to_ir,
         wall_half=config.wall_half,
+        wall_hx=config.wall_hx,
+        wall_hy=config.wall_hy,
         robot_radius=config.robot_radius,
         body_offset=config.body_offset,
-        arena_half=config.arena_side / 2,
+        arena_hx=config.carpet_width / 2,
+        arena_hy=config.carpet_height / 2,
         ground_carpet=config.ground_carpet,
         ground_outside=config.ground_outside,
         ground_noise=config.ground_noise,
         light=config.light,
         light_centre=config.light_centre,
+        light_x=config.light_position[0],
+        light_y=config.light_position[1],
         light_exponent=config.light_exponent,
         lamp_h2=lamp_h2,
         light_uniform=config.light_uniform,
@@ -229,8 +188,8 @@ class World:
         self._cmd[:] = 0.0
         self._force[:] = 0.0
         self._steps = 0
-        self._place_robots(np.random.default_rng(start_ss))
-        self._boxes = self._place_boxes(np.random.default_rng(box_ss))
+        place_robots(self.config, np.random.default_rng(start_ss), self._pose)
+        self._boxes = place_boxes(self.config, np.random.default_rng(box_ss), self._pose)
         self._box_start = self._boxes.copy()
         self._box_start.flags.writeable = False
         self._pending = np.zeros(len(self._boxes), dtype=bool)
@@ -238,158 +197,6 @@ class World:
         if self._recording is not None:
             self._recording = [self._pose.copy()]
             self._box_recording = [self._boxes.copy()]
-
-    def _place_robots(self, rng: np.random.Generator) -> None:
-        cfg = self.config
-        n = self._n
-        rp = self._body_reach
-        half = cfg.arena_side / 2
-        if cfg.start == "centre":
-            # A fixed ring around the centre, each robot facing outwards; without a given ring,
-            # neighbours just apart.
-            phi = _TWO_PI * np.arange(n) / n + math.radians(cfg.start_ring_phase)
-            if cfg.start_ring is not None:
-                axle = cfg.start_ring
-                if axle + cfg.body_offset + rp > half:
-                    raise ConfigError(
-                        "the start ring does not fit in the arena", key="simulation.start_ring"
-                    )
-                # Bodies must not overlap; blades may reach past each other's circle, as in the
-                # authors' layout, since they point outwards.
-                body = cfg.robot_radius
-                fit = _ring_capacity(n, lambda m: _chord(axle + cfg.body_offset, m) >= 2 * body)
-                if fit < n:
-                    raise TooManyRobotsError(
-                        n,
-                        fit,
-                        f"on the start ring {axle} m around the centre",
-                        larger="start_ring",
-                        approximate=False,
-                    )
-            else:
-                gap = 2 * rp + cfg.start_clearance
-                fit = _ring_capacity(n, lambda m: _ring(gap, m) + rp <= half)
-                if fit == 0:
-                    raise ConfigError(
-                        "the arena is too small for a robot", key="simulation.arena_side"
-                    )
-                if fit < n:
-                    raise TooManyRobotsError(
-                        n,
-                        fit,
-                        f"around the centre of a {cfg.arena_side} m carpet",
-                        larger="arena_side",
-                        approximate=False,
-                    )
-                axle = _ring(gap, n) - cfg.body_offset
-            self._pose[:, 0] = axle * np.cos(phi)
-            self._pose[:, 1] = axle * np.sin(phi)
-            self._pose[:, 2] = wrap_angle(phi)
-            return
-        # Random: bodies wholly on the carpet, apart by the clearance, in seeded order. Robots
-        # placed one by one can box themselves in on a crowded carpet; then all start afresh.
-        lim = half - rp
-        if lim <= 0:
-            raise ConfigError("the arena is too small for a robot", key="simulation.arena_side")
-        min_d2 = (2 * rp + cfg.start_clearance) ** 2
-        most = 0
-        for _ in range(_PLACEMENT_RESTARTS):
-            centres, placed = self._random_centres(rng, n, lim, min_d2)
-            if placed == n:
-                break
-            most = max(most, placed)
-        else:
-            # The most any start placed: with this seed that many would have been placed (a
-            # start draws the same candidates whatever the number asked for), with another
-            # seed about as many.
-            raise TooManyRobotsError(
-                n, most, f"on a {cfg.arena_side} m carpet", larger="arena_side", approximate=True
-            )
-        theta = rng.uniform(-math.pi, math.pi, size=n)
-        self._pose[:, 0] = centres[:, 0] - cfg.body_offset * np.cos(theta)
-        self._pose[:, 1] = centres[:, 1] - cfg.body_offset * np.sin(theta)
-        self._pose[:, 2] = theta
-
-    @staticmethod
-    def _random_centres(
-        rng: np.random.Generator, n: int, lim: float, min_d2: float
-    ) -> tuple[np.ndarray, int]:
-        # Body centres in [-lim, lim]^2, pairwise at least sqrt(min_d2) apart, and how many
-        # were placed before one found no room (n when all were).
-        placed = np.empty((n, 2))
-        for i in range(n):
-            for _ in range(_MAX_TRIES // _BATCH):
-                cand = rng.uniform(-lim, lim, size=(_BATCH, 2))
-                d2 = ((cand[:, None, :] - placed[None, :i, :]) ** 2).sum(axis=2)
-                ok = np.flatnonzero((d2 >= min_d2).all(axis=1))
-                if ok.size:
-                    placed[i] = cand[ok[0]]
-                    break
-            else:
-                return placed, i
-        return placed, n
-
-    def _place_boxes(self, rng: np.random.Generator) -> np.ndarray:
-        cfg = self.config
-        if not cfg.boxes:
-            return np.zeros((0, 2))
-        if cfg.box_layout == "grid":
-            return self._grid_boxes(rng)
-        count = cfg.box_count
-        if count == 0:
-            return np.zeros((0, 2))
-        rb = cfg.box_size / 2
-        lim = cfg.arena_side / 2 - rb
-        rp = self._body_reach
-        th = self._pose[:, 2]
-        rcx = self._pose[:, 0] + cfg.body_offset * np.cos(th)
-        rcy = self._pose[:, 1] + cfg.body_offset * np.sin(th)
-        away2 = (rp + rb + cfg.start_clearance) ** 2
-        apart2 = (cfg.box_size + 0.001) ** 2
-        clear = cfg.box_clear_centre / 2
-        out = np.empty((count, 2))
-        k = 0
-        tries = 0
-        while k < count:
-            if tries >= 50 * count + _MAX_TRIES:
-                raise ConfigError(
-                    f"cannot place {count} boxes apart on the carpet", key="simulation.box_coverage"
-                )
-            cand = rng.uniform(-lim, lim, size=(4 * _BATCH, 2))
-            tries += len(cand)
-            d2 = (cand[:, 0, None] - rcx) ** 2 + (cand[:, 1, None] - rcy) ** 2
-            keep = (d2 >= away2).all(axis=1) & ~(np.abs(cand) < clear).all(axis=1)
-            cand = cand[keep]
-            # Accept in order, each against every box accepted so far (a one-off cost at set-up).
-            for c in cand:
-                if k and (((out[:k] - c) ** 2).sum(axis=1) < apart2).any():
-                    continue
-                out[k] = c
-                k += 1
-                if k == count:
-                    break
-        return out
-
-    def _grid_boxes(self, rng: np.random.Generator) -> np.ndarray:
-        # The authors' Webots layout: rows box_grid_pitch apart; along a row each box
-        # pitch .. pitch + jitter after the last, up to jitter above the row; every coordinate
-        # rounded to 1 cm; none in the central clear square. About 270 boxes on 1.1 m.
-        cfg = self.config
-        pitch, jitter = cfg.box_grid_pitch, cfg.box_grid_jitter
-        edge = cfg.arena_side / 2 - cfg.box_size * 0.72  # 1.8 cm in from the carpet's edge
-        clear = cfg.box_clear_centre / 2
-        boxes = []
-        row = -edge
-        x = -edge
-        while row <= edge:
-            while x <= edge:
-                y = round(rng.uniform(row, row + jitter), 2)
-                if not (abs(x) < clear and abs(y) < clear) and abs(y) <= edge:
-                    boxes.append((x, y))
-                x = round(rng.uniform(x + pitch, x + pitch + jitter), 2)
-            row += pitch
-            x = round(rng.uniform(-edge, -edge + pitch), 2)
-        return np.array(boxes, dtype=float).reshape(-1, 2)
 
     # --- state ---------------------------------------------------------------------------------
 
@@ -594,4 +401,7 @@ class World:
         if not self.config.light:
             return np.full(np.broadcast(x, y).shape, self.config.light_uniform)
         h2 = self._sensing.lamp_h2
-        return self.config.light_centre * (h2 / (h2 + x * x + y * y)) ** self.config.light_exponent
+        dx, dy = x - self.config.light_position[0], y - self.config.light_position[1]
+        return (
+            self.config.light_centre * (h2 / (h2 + dx * dx + dy * dy)) ** self.config.light_exponent
+        )

@@ -232,7 +232,8 @@ def _relax(
     # walls and every box they touch leaves them and is held.
     n = pose.shape[0]
     nb = boxes.shape[0]
-    lo_w, hi_w = g.rb - g.wall_half, g.wall_half - g.rb
+    lo_x, hi_x = g.rb - g.wall_hx, g.wall_hx - g.rb
+    lo_y, hi_y = g.rb - g.wall_hy, g.wall_hy - g.rb
     cells = max(1, int(2 * g.wall_half / g.box_size) + 1)
     cell = np.empty(nb, dtype=np.int64)
     heads = np.empty(cells * cells, dtype=np.int64)
@@ -361,8 +362,8 @@ def _relax(
             if moved[b]:
                 any_moved = True
                 x, y = boxes[b, 0], boxes[b, 1]
-                cx = min(max(x, lo_w), hi_w)
-                cy = min(max(y, lo_w), hi_w)
+                cx = min(max(x, lo_x), hi_x)
+                cy = min(max(y, lo_y), hi_y)
                 if cx != x or cy != y:
                     boxes[b, 0] = cx
                     boxes[b, 1] = cy

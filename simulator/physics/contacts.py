@@ -25,24 +25,24 @@ _ROBOT_PASSES = 8
 @kernel
 def _wall_shift(g: Geometry, x: float, y: float, c: float, s: float) -> tuple[float, float]:
     # Translation that brings a robot's body (and blade) back inside the walls.
-    wall = g.wall_half
+    wx, wy = g.wall_hx, g.wall_hy
     r = g.robot_radius
     cx = x + g.body_offset * c
     cy = y + g.body_offset * s
-    lo_x = r - wall - cx
-    hi_x = cx - (wall - r)
-    lo_y = r - wall - cy
-    hi_y = cy - (wall - r)
+    lo_x = r - wx - cx
+    hi_x = cx - (wx - r)
+    lo_y = r - wy - cy
+    hi_y = cy - (wy - r)
     if g.blade:
         ax = x + g.blade_x * c - g.hw * s
         ay = y + g.blade_x * s + g.hw * c
         bx = ax + 2 * g.hw * s
         by = ay - 2 * g.hw * c
         tb = g.tb
-        lo_x = max(lo_x, tb - wall - ax, tb - wall - bx)
-        hi_x = max(hi_x, ax - (wall - tb), bx - (wall - tb))
-        lo_y = max(lo_y, tb - wall - ay, tb - wall - by)
-        hi_y = max(hi_y, ay - (wall - tb), by - (wall - tb))
+        lo_x = max(lo_x, tb - wx - ax, tb - wx - bx)
+        hi_x = max(hi_x, ax - (wx - tb), bx - (wx - tb))
+        lo_y = max(lo_y, tb - wy - ay, tb - wy - by)
+        hi_y = max(hi_y, ay - (wy - tb), by - (wy - tb))
     return max(lo_x, 0.0) - max(hi_x, 0.0), max(lo_y, 0.0) - max(hi_y, 0.0)
 
 

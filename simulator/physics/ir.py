@@ -51,7 +51,8 @@ def ir_readings(
     robots' body circles it may see (its neighbours; the nearest is the same in any order)."""
     # The model's numbers into locals once: the sensors below then call helpers of plain
     # numbers, a call with the whole Sensing costing more than a sensor's arithmetic (measured).
-    r, ir_range, walls, wall = sn.robot_radius, sn.ir_range, sn.walls_visible, sn.wall_half
+    r, ir_range, walls = sn.robot_radius, sn.ir_range, sn.walls_visible
+    wall_x, wall_y = sn.wall_hx, sn.wall_hy
     # The table's arrays too: each read of an array from the tuple takes a reference (atomic).
     table_d, table_v = sn.ir_table_d, sn.ir_table_v
     reach2 = (ir_range + r) ** 2
@@ -64,12 +65,14 @@ def ir_readings(
         sp = s * _IR_COS[k] + c * _IR_SIN[k]
         if sn.ir_model == IR_CONE:
             ca, sa = sn.ir_ca, sn.ir_sa
-            best = _cone_nearest(bodies, n, sx, sy, cp, sp, r, reach2, ca, sa, walls, wall)
+            best = _cone_nearest(
+                bodies, n, sx, sy, cp, sp, r, reach2, ca, sa, walls, wall_x, wall_y
+            )
             out[row, k] = 0.0 if best >= ir_range else sn.ir_c / (best * best + sn.ir_c)
             continue
         best = _ray_nearest(
-            bodies, n, sx, sy, cp, sp, r, reach2, sn.ir_robot_reflectance, walls, wall,
-            sn.ir_wall_reflectance,
+            bodies, n, sx, sy, cp, sp, r, reach2, sn.ir_robot_reflectance, walls, wall_x,
+            wall_y, sn.ir_wall_reflectance,
         )  # fmt: skip
         if best >= ir_range:
             out[row, k] = 0.0
@@ -94,7 +97,7 @@ def ir_noise(sn: Sensing, step: int, out: np.ndarray) -> None:
 @kernel(inline=True)
 def _cone_nearest(
     bodies: np.ndarray, n: int, sx: float, sy: float, cp: float, sp: float, r: float,
-    reach2: float, ca: float, sa: float, walls: bool, wall: float,
+    reach2: float, ca: float, sa: float, walls: bool, wall_x: float, wall_y: float,
 ) -> float:  # fmt: skip
     # The nearest body or visible wall within the cone of the sensor at (sx, sy) facing
     # (cp, sp), half angle with cosine and sine (ca, sa); inf if none.
@@ -127,13 +130,13 @@ def _cone_nearest(
     if walls:
         for k in range(4):
             if k == 0:
-                cosn, sinn, gap = cp, abs(sp), wall - sx
+                cosn, sinn, gap = cp, abs(sp), wall_x - sx
             elif k == 1:
-                cosn, sinn, gap = -cp, abs(sp), wall + sx
+                cosn, sinn, gap = -cp, abs(sp), wall_x + sx
             elif k == 2:
-                cosn, sinn, gap = sp, abs(cp), wall - sy
+                cosn, sinn, gap = sp, abs(cp), wall_y - sy
             else:
-                cosn, sinn, gap = -sp, abs(cp), wall + sy
+                cosn, sinn, gap = -sp, abs(cp), wall_y + sy
             eff = 1.0 if cosn >= ca else cosn * ca + sinn * sa
             if eff > 1e-9:
                 d = max(gap, 0.0) / eff
@@ -145,7 +148,8 @@ def _cone_nearest(
 @kernel(inline=True)
 def _ray_nearest(
     bodies: np.ndarray, n: int, sx: float, sy: float, cp: float, sp: float, r: float,
-    reach2: float, robot_reflectance: float, walls: bool, wall: float, wall_reflectance: float,
+    reach2: float, robot_reflectance: float, walls: bool, wall_x: float, wall_y: float,
+    wall_reflectance: float,
 ) -> float:  # fmt: skip
     # The first body or visible wall on the axis of the sensor at (sx, sy) facing (cp, sp), at
     # its distance divided by its reflectance; inf if none.
@@ -169,13 +173,13 @@ def _ray_nearest(
     if walls:
         d = np.inf
         if cp > 1e-12:
-            d = min(d, max(wall - sx, 0.0) / cp)
+            d = min(d, max(wall_x - sx, 0.0) / cp)
         elif cp < -1e-12:
-            d = min(d, max(wall + sx, 0.0) / -cp)
+            d = min(d, max(wall_x + sx, 0.0) / -cp)
         if sp > 1e-12:
-            d = min(d, max(wall - sy, 0.0) / sp)
+            d = min(d, max(wall_y - sy, 0.0) / sp)
         elif sp < -1e-12:
-            d = min(d, max(wall + sy, 0.0) / -sp)
+            d = min(d, max(wall_y + sy, 0.0) / -sp)
         d /= wall_reflectance
         if d < best:
             best = d

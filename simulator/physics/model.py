@@ -51,7 +51,11 @@ class Geometry(NamedTuple):
     vmax_over_base: float
     robot_radius: float
     body_offset: float
+    #: the larger of the walls' half extents: the neighbour grids' square spans it
     wall_half: float
+    #: the walls' half extents along x and y (the walls are a rectangle around the centre)
+    wall_hx: float
+    wall_hy: float
     blade: bool
     blade_x: float
     blade_width: float
@@ -89,15 +93,22 @@ class Sensing(NamedTuple):
     ir_robot_reflectance: float
     ir_wall_reflectance: float
     walls_visible: bool
-    wall_half: float
+    wall_half: float  # as Geometry's: the grids'
+    wall_hx: float
+    wall_hy: float
     robot_radius: float
     body_offset: float
-    arena_half: float
+    #: the carpet's half extents along x and y
+    arena_hx: float
+    arena_hy: float
     ground_carpet: float
     ground_outside: float
     ground_noise: float
     light: bool
     light_centre: float
+    #: the point under the lamp
+    light_x: float
+    light_y: float
     light_exponent: float
     lamp_h2: float
     light_uniform: float

@@ -146,12 +146,12 @@ def _sense(
             m = _within(bodies, i, candidates, m, reach, near)
             ir_readings(sn, near, m, x, y, c, s, full, i)
         if sn.need_ground:
-            half = sn.arena_half
+            half_x, half_y = sn.arena_hx, sn.arena_hy
             for k in range(2):
                 px, py = GROUND_POSITIONS[k, 0], GROUND_POSITIONS[k, 1]
                 gx = x + c * px - s * py
                 gy = y + s * px + c * py
-                on = abs(gx) <= half and abs(gy) <= half
+                on = abs(gx) <= half_x and abs(gy) <= half_y
                 full[i, _GROUND0 + k] = sn.ground_carpet if on else sn.ground_outside
         if sn.need_force:
             full[i, _FORCE] = force[i]
@@ -159,8 +159,8 @@ def _sense(
             for k in range(2):
                 if sn.light:
                     px, py = sn.light_offsets[k, 0], sn.light_offsets[k, 1]
-                    lx = x + c * px - s * py
-                    ly = y + s * px + c * py
+                    lx = x + c * px - s * py - sn.light_x
+                    ly = y + s * px + c * py - sn.light_y
                     h2 = sn.lamp_h2
                     ratio = h2 / (h2 + lx * lx + ly * ly)
                     full[i, _LIGHT0 + k] = sn.light_centre * ratio**sn.light_exponent
