@@ -502,7 +502,7 @@ def _run_simulation(
     with display, quiet_agents():
         what = f"replaying {replay.path} for" if replay is not None else "simulating"
         print(
-            f"{'resuming' if resume else what} {experiment.scenario} "
+            f"{'resuming' if resume else what} {experiment.place} "
             f"({experiment.setting} setting, {engine} engine): {experiment.robots} robots, "
             f"{plural(experiment.evolution.evaluations, 'evaluation')} of "
             f"{experiment.evaluation_steps} steps of {experiment.step_period:g} s, seed "

@@ -32,6 +32,7 @@ from minimize_surprise.config import (
     decode,
     load_experiment,
     read_yaml,
+    resolve_arena,
     with_setting,
 )
 from minimize_surprise.errors import ConfigError
@@ -181,8 +182,9 @@ def load_master_config(path: str | Path) -> MasterConfig:
     path = Path(path)
     raw = read_yaml(path)
     if isinstance(raw.get("experiment"), dict):
-        # An inline experiment takes what it leaves out from its setting, as a file does.
-        raw["experiment"] = with_setting(raw["experiment"])
+        # An inline experiment takes what it leaves out from its setting, as a file does, and
+        # names an arena file relative to this one.
+        raw["experiment"] = with_setting(resolve_arena(raw["experiment"], path.resolve().parent))
     config = decode(raw, MasterConfig, file=path)
     base = path.resolve().parent
     experiment = config.experiment

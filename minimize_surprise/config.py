@@ -121,8 +121,9 @@ class NetworkConfig(Strict, frozen=True):
 class EvolutionConfig(Strict, frozen=True):
     """(1+1) online evolution with re-evaluation (paper Sec. V-A)."""
 
-    #: counted evaluations of a run before the post-evaluation (failed rounds do not count)
-    evaluations: PositiveInt = 1000
+    #: counted evaluations of a run before the post-evaluation (failed rounds do not count; the
+    #: paper: 1000 in simulation, 350 on real robots, the lab setting's default)
+    evaluations: PositiveInt = 350
     #: probability that a round evaluates the current best again instead of an offspring
     reevaluation_probability: Probability = 0.2
     #: weight of the new fitness in F = w f + (1 - w) F when the best is re-evaluated
@@ -179,6 +180,10 @@ class ExperimentConfig(Strict, frozen=True):
     step_period: Annotated[float, msgspec.Meta(gt=0.0, le=MAX_STEP_PERIOD)] = 0.1
     #: the simulated arena: ``basic``, ``boxes`` or ``gradient`` (docs/simulation.md)
     scenario: str = "basic"
+    #: the arena (docs/arenas.md): a shipped arena's name (``basic``, ``boxes``, ``gradient``,
+    #: ``real-objects``) or an arena file's path, relative to the experiment file; left out,
+    #: the scenario's own. Simulation runs in it; a real run's report draws it
+    arena: str | None = None
     #: robots in the swarm, all evaluating the same genome at once (a simulated run defaults to
     #: its scenario's number)
     robots: PositiveInt = 10
@@ -189,6 +194,20 @@ class ExperimentConfig(Strict, frozen=True):
     #: overrides of the simulated robots' safety layer; real robots ignore it (theirs is in each
     #: robot's agent file)
     safety: dict[str, Any] = msgspec.field(default_factory=dict)
+
+    @property
+    def arena_name(self) -> str:
+        """The arena as a person names it: the shipped arena's name or the arena file's stem;
+        the scenario's name when the experiment names no arena."""
+        if self.arena is None:
+            return self.scenario
+        return Path(self.arena).stem if self.arena.endswith((".yaml", ".yml")) else self.arena
+
+    @property
+    def place(self) -> str:
+        """The scenario and the arena it runs in, as a person reads it: ``boxes in
+        real-objects``, or only the scenario when the experiment names no arena."""
+        return self.scenario + (f" in {self.arena_name}" if self.arena else "")
 
     def __post_init__(self) -> None:
         if not self.sensors:
@@ -250,8 +269,25 @@ def with_setting(data: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def resolve_arena(data: Any, base: str | Path) -> Any:
+    """Experiment data with an ``arena`` given as a relative file path made absolute against
+    ``base`` (the experiment file's directory); a shipped arena's name is left as it is."""
+    if not isinstance(data, dict):
+        return data
+    arena = data.get("arena")
+    if not isinstance(arena, str) or not ("/" in arena or arena.endswith((".yaml", ".yml"))):
+        return data
+    path = Path(arena).expanduser()
+    if not path.is_absolute():
+        path = Path(base) / path
+    return {**data, "arena": str(path.resolve())}
+
+
 def decode_experiment(data: Any, *, file: str | Path | None = None) -> ExperimentConfig:
-    """Decode experiment data, taking what it leaves out from its setting (:func:`with_setting`)."""
+    """Decode experiment data, taking what it leaves out from its setting (:func:`with_setting`);
+    an arena file's relative path is taken relative to ``file``'s directory."""
+    if file is not None:
+        data = resolve_arena(data, Path(file).resolve().parent)
     return decode(with_setting(data or {}), ExperimentConfig, file=file)
 
 

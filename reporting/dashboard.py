@@ -309,7 +309,7 @@ class _Page:
         self.curve = ColumnDataSource({"evaluation": [], "fitness": [], "best_fitness": []})
         self.paths = ColumnDataSource({"xs": [], "ys": [], "robot": [], "colour": []})
         self.ends = ColumnDataSource({"x": [], "y": [], "robot": [], "colour": []})
-        self.arena = ColumnDataSource({"x": [], "y": [], "side": []})
+        self.arena = ColumnDataSource({"x": [], "y": [], "side": [], "height": []})
         fitness = figure(
             name="fitness",
             title="fitness over the evaluations",
@@ -342,7 +342,7 @@ class _Page:
             visible=False,
         )
         plot = self.paths_plot
-        plot.rect("x", "y", "side", "side", source=self.arena, fill_alpha=0, line_dash="dashed",
+        plot.rect("x", "y", "side", "height", source=self.arena, fill_alpha=0, line_dash="dashed",
                   line_color="#555")  # fmt: skip
         plot.multi_line("xs", "ys", source=self.paths, line_color="colour", line_width=1.5)
         plot.scatter("x", "y", source=self.ends, color="colour", size=8)
@@ -425,8 +425,11 @@ class _Page:
             "colour": colours,
         }
         side = trajectories.arena_side
+        height = trajectories.arena_height or side
         self.arena.data = (
-            {"x": [0.0], "y": [0.0], "side": [side]} if side else {"x": [], "y": [], "side": []}
+            {"x": [0.0], "y": [0.0], "side": [side], "height": [height]}
+            if side
+            else {"x": [], "y": [], "side": [], "height": []}
         )
 
 

@@ -164,6 +164,8 @@ class Trajectories:
     steps: int
     arena_side: float | None
     signature: tuple[Any, ...]
+    #: the carpet's extent along y when it is not square
+    arena_height: float | None = None
 
 
 @dataclass(frozen=True)
@@ -438,7 +440,8 @@ class RunReader:
         stats = [(e.name, e.stat()) for e in entries]
         simulation: Simulation | None = self._simulation.value
         side = None if simulation is None else simulation.world.arena_side
-        key = (*((n, s.st_size, s.st_mtime_ns) for n, s in stats), side)
+        height = None if simulation is None else simulation.world.arena_height
+        key = (*((n, s.st_size, s.st_mtime_ns) for n, s in stats), side, height)
         if key == self._traces_key:
             return self._trajectories
         xs: dict[str, list[float]] = {}
@@ -457,7 +460,9 @@ class RunReader:
             ys[name.removesuffix(".npz")] = path[:, 1].tolist()
         self._traces_key = key
         self._trajectories = (
-            Trajectories(xs, ys, steps, _number(side), signature=key) if xs else None
+            Trajectories(xs, ys, steps, _number(side), signature=key, arena_height=_number(height))
+            if xs
+            else None
         )
         return self._trajectories
 

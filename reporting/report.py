@@ -443,7 +443,7 @@ def baseline_text(comparison: dict[str, Any]) -> str:
 def _title(data: _Run, metrics: dict[str, Any]) -> str:
     experiment = data.experiment
     where = f"{experiment.setting} setting" if data.simulation is not None else "robots"
-    return f"{experiment.scenario} ({where}), run {metrics['run_id']}"
+    return f"{experiment.place} ({where}), run {metrics['run_id']}"
 
 
 def _arena(data: _Run) -> pictures.Arena | None:

@@ -280,12 +280,22 @@ class PostEvaluation(RunFile, frozen=True, kw_only=True):
     robots: dict[str, PostRobot]
 
 
-class SimulatedWorld(msgspec.Struct, frozen=True, kw_only=True):
-    """The simulated world of a run: the carpet's side (metres), robots and boxes."""
+class SimulatedWorld(msgspec.Struct, frozen=True, kw_only=True, omit_defaults=True):
+    """The simulated world of a run: the carpet's side (metres; its extent along x), robots and
+    boxes; ``arena_height`` the carpet's extent along y when it is not square (written only
+    then, so a square world's file reads as before), ``arena`` the arena's name when the
+    experiment named one."""
 
     arena_side: float
     robots: int
     boxes: int
+    arena_height: float | None = None
+    arena: str | None = None
+
+    @property
+    def carpet(self) -> tuple[float, float]:
+        """The carpet's (width, height), metres."""
+        return self.arena_side, self.arena_side if self.arena_height is None else self.arena_height
 
 
 class BoxesMoved(msgspec.Struct, frozen=True, kw_only=True):

@@ -8,6 +8,8 @@ would be, in tests, rehearsals and the simulated swarm's separate processes.
 * :mod:`standins.fake_i2c` - emulated I2C chips (light sensors, force-sensor ADC, multiplexer);
 * :mod:`standins.playground` - the real asebamedulla and Aseba Playground, started and stopped
   for a rehearsal;
+* :mod:`standins.playground_world` - Playground's world file for an arena (size, carpet, walls,
+  boxes, start poses);
 * :mod:`standins.serve` - ``surprise-sim-robots``: simulated robots served as separate
   processes behind either medulla;
 * :mod:`standins.scripted_robots` - robots that speak the protocol over TCP from a script, for

@@ -25,15 +25,12 @@ import asyncio
 import contextlib
 import ctypes
 import logging
-import math
 import os
 import signal
 import socket
-import struct
 import subprocess
 import sys
 import time
-import zlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,6 +39,7 @@ from typing import IO, Final
 from drivers.config import PROGRAM_NODE
 from drivers.thymio import ASEBA_INTERFACE, ASEBA_PATH, ASEBA_SERVICE
 from simulator.scenarios import WorldConfig
+from standins.playground_world import Arena
 
 __all__ = [
     "ENKI_UNIT_SPEED",
@@ -96,41 +94,10 @@ PLAYGROUND_UNIT_SPEED: Final = 0.000327
 #: (``simulation.max_speed``) at full speed: 324.2 units, where a real Thymio needs 265.
 PLAYGROUND_SPEED_SCALE: Final = round(WorldConfig().max_speed / PLAYGROUND_UNIT_SPEED, 1)
 
-#: Grey of the carpet in the ground texture: Enki's ground sensors read it 409-442 of 1023
-#: (0.40-0.43), the lab's carpet (``simulation.ground_carpet`` 0.4).
-CARPET_GREY: Final = 102
-#: Grey beyond the carpet: read 923-948 (0.90-0.93), like the lab's bright boundary (0.95); both
-#: lie on their side of the safety layer's ground threshold (0.55).
-BOUNDARY_GREY: Final = 255
-#: Texture pixels per metre: 1 cm pixels, finer than a ground sensor's footprint.
-TEXTURE_PIXELS_PER_M: Final = 100
-#: Enki's Thymio II has its IR sensors 3.4 cm above the floor and sees only what is at least that
-#: high: walls of 5 cm are seen, walls of 2 cm are not (``simulation.walls_visible_to_ir``).
-VISIBLE_WALL_HEIGHT: Final = 0.05
-LOW_WALL_HEIGHT: Final = 0.02
-WALL_THICKNESS: Final = 0.01
-#: Floor beyond the walls to the world's own boundary, which every IR sensor sees whatever the
-#: walls' height: more than the sensors' 14 cm range, so a robot at a low wall does not see it.
-BEYOND_WALLS: Final = 0.15
 #: The node name of a Playground Thymio, as of a real one.
 NODE: Final = PROGRAM_NODE
 #: The programs this module runs, all from Debian's ``aseba`` package but the daemon.
 PROGRAMS: Final = ("asebaplayground", "asebamedulla", "dbus-daemon")
-
-_WORLD = """<!DOCTYPE aseba-playground>
-<aseba-playground>
-  <color name="wall" r="0.9" g="0.9" b="0.9" />
-  <world w="{side}" h="{side}" color="wall" groundTexture="{texture}"/>
-{walls}
-{robots}
-</aseba-playground>
-"""
-_WALL = '  <wall x="{x:.2f}" y="{y:.2f}" l1="{l1:.2f}" l2="{l2:.2f}" h="{h:.2f}" color="wall"/>'
-_ROBOT = (
-    '  <robot type="thymio2" x="{x:.2f}" y="{y:.2f}" angle="{angle:.5f}" port="{port}" '
-    'name="T{index}"/>'
-)
-_CM = 100.0  # Playground's lengths are centimetres
 
 
 def free_port() -> int:
@@ -210,86 +177,6 @@ def listening(port: int) -> bool:
 
 
 # --------------------------------------------------------------------------- the world
-
-
-@dataclass(frozen=True)
-class Arena:
-    """The arena of a :class:`~simulator.scenarios.WorldConfig` in Playground (lengths in metres,
-    origin at the carpet's centre, as in :mod:`simulator.scenarios`)."""
-
-    #: side of the square carpet
-    side: float
-    #: from the carpet's edge out to the walls
-    wall_margin: float
-    #: whether the IR sensors see the walls (their height, see :data:`LOW_WALL_HEIGHT`)
-    walls_visible_to_ir: bool
-    #: each robot's wheel axis (x, y) and heading (radians)
-    poses: tuple[tuple[float, float, float], ...]
-
-    @classmethod
-    def of(cls, config: WorldConfig, seed: int) -> Arena:
-        """The arena of ``config`` with its robots where :class:`World` places them for
-        ``seed`` (the same start poses as ``--backend sim`` with that seed)."""
-        # Imported here: the world's module loads numba, which --help of the server does without.
-        from simulator.world import World
-
-        poses = tuple((float(x), float(y), float(t)) for x, y, t in World(config, seed).poses)
-        return cls(config.arena_side, config.wall_margin, config.walls_visible_to_ir, poses)
-
-    @property
-    def world_side(self) -> float:
-        """The side of Playground's square world: walls and the floor beyond them."""
-        return 2 * (self.side / 2 + self.wall_margin + WALL_THICKNESS + BEYOND_WALLS)
-
-    def world_xml(self, ports: list[int], texture: str) -> str:
-        """Playground's world file: robot ``i`` serves Aseba on TCP port ``ports[i]``."""
-        if len(ports) != len(self.poses):
-            raise ValueError(f"{len(ports)} ports for {len(self.poses)} robots")
-        centre = self.world_side / 2 * _CM
-        inner = (self.side / 2 + self.wall_margin) * _CM
-        t = WALL_THICKNESS * _CM
-        length = 2 * (inner + t)
-        height = (VISIBLE_WALL_HEIGHT if self.walls_visible_to_ir else LOW_WALL_HEIGHT) * _CM
-        walls = [
-            _WALL.format(x=centre + sx * (inner + t / 2), y=centre, l1=t, l2=length, h=height)
-            for sx in (-1, 1)
-        ] + [
-            _WALL.format(x=centre, y=centre + sy * (inner + t / 2), l1=length, l2=t, h=height)
-            for sy in (-1, 1)
-        ]
-        robots = [
-            _ROBOT.format(x=centre + x * _CM, y=centre + y * _CM, angle=a, port=port, index=i)
-            for i, ((x, y, a), port) in enumerate(zip(self.poses, ports, strict=True))
-        ]
-        return _WORLD.format(
-            side=f"{self.world_side * _CM:.2f}",
-            texture=texture,
-            walls="\n".join(walls),
-            robots="\n".join(robots),
-        )
-
-    def ground_png(self) -> bytes:
-        """The floor as a greyscale PNG: the carpet dark, the rest bright."""
-        pixels = math.ceil(self.world_side * TEXTURE_PIXELS_PER_M)
-        size = self.world_side / pixels
-        # Whether the i-th column (or row) of pixels lies over the carpet; the carpet is centred.
-        over = [abs((i + 0.5) * size - self.world_side / 2) < self.side / 2 for i in range(pixels)]
-        carpet_row = bytes(CARPET_GREY if inside else BOUNDARY_GREY for inside in over)
-        bright_row = bytes([BOUNDARY_GREY]) * pixels
-        # Each row starts with PNG's filter byte 0 (none).
-        raw = b"".join(b"\0" + (carpet_row if inside else bright_row) for inside in over)
-
-        def chunk(kind: bytes, data: bytes) -> bytes:
-            crc = zlib.crc32(kind + data) & 0xFFFFFFFF
-            return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", crc)
-
-        header = struct.pack(">IIBBBBB", pixels, pixels, 8, 0, 0, 0, 0)  # 8-bit greyscale
-        return (
-            b"\x89PNG\r\n\x1a\n"
-            + chunk(b"IHDR", header)
-            + chunk(b"IDAT", zlib.compress(raw))
-            + chunk(b"IEND", b"")
-        )
 
 
 # --------------------------------------------------------------------------- the processes

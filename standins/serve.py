@@ -64,6 +64,7 @@ from minimize_surprise.errors import ConfigError
 from minimize_surprise.files import write_atomic, write_new_secret
 from minimize_surprise.sensors import GROUND_SENSORS, IR_SENSORS
 from minimize_surprise.wire import DEFAULT_PORT
+from simulator.arenas import load_arena
 from simulator.scenarios import SCENARIOS, WorldConfig, scenario_config
 from standins.playground import PLAYGROUND_SPEED_SCALE, speed_scale_for
 
@@ -130,6 +131,14 @@ def _positive(text: str) -> float:
     return value
 
 
+def _arena(text: str) -> float | str:
+    # A number is the square carpet's side (as before arenas were files); else a name or a path.
+    try:
+        return _positive(text)
+    except ValueError:
+        return text
+
+
 def _count(text: str) -> int:
     value = int(text)
     if value < 1:
@@ -181,9 +190,10 @@ def _parser() -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--arena",
-        type=_positive,
-        metavar="METRES",
-        help="side of the square carpet in metres (default: the scenario's, 1.0)",
+        type=_arena,
+        metavar="ARENA",
+        help="the arena: a shipped one's name (e.g. real-objects), an arena file, or the side "
+        "of the scenario's square carpet in metres (default: the scenario's own)",
     )
     parser.add_argument("--seed", type=int, default=0, help="the world's seed (default: 0)")
     parser.add_argument(
@@ -371,10 +381,13 @@ async def serve(args: argparse.Namespace) -> int:
         args.robots = len(args.ids)
     if args.robots is not None:
         overrides["robots"] = args.robots
-    if args.arena is not None:
+    arena = None
+    if isinstance(args.arena, float):
         overrides["arena_side"] = args.arena
     try:
-        config = scenario_config(args.scenario, overrides)
+        if isinstance(args.arena, str):
+            arena = load_arena(args.arena)
+        config = scenario_config(args.scenario, overrides, arena=arena)
     except ConfigError as exc:
         print(f"surprise-sim-robots: {exc}", file=sys.stderr)
         return EXIT_USAGE
@@ -412,6 +425,7 @@ async def serve(args: argparse.Namespace) -> int:
                 "scenario": args.scenario,
                 "seed": args.seed,
                 "dt": config.dt,
+                "arena": None if arena is None else arena.name,
                 "arena_side": config.arena_side,
                 "speed_scale": args.speed_scale,
                 "master": {"host": args.master_host, "port": args.master_port},
@@ -425,7 +439,8 @@ async def serve(args: argparse.Namespace) -> int:
             text = json.dumps(info, indent=2) + "\n"
             write_atomic(directory / ROBOTS_FILE, text.encode("utf-8"), durable=False)
             announced = True
-            _announce(args, info["robots"], args.scenario)
+            place = args.scenario + (f" in {arena.name}" if arena is not None else "")
+            _announce(args, info["robots"], place)
             if lab is None:
                 await asyncio.Event().wait()  # until a signal cancels this task
                 return EXIT_OK  # not reached: the wait ends only by cancellation

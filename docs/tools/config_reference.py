@@ -49,6 +49,7 @@ from minimize_surprise.safety import SafetyConfig
 from minimize_surprise.sensors import ALL_SENSORS
 from minimize_surprise.settings import SETTINGS
 from robot_agent.config import AgentConfig
+from simulator.arenas import Arena, shipped_arenas
 from simulator.experiment import safety_config, world_overrides
 from simulator.scenarios import SCENARIOS, WorldConfig, scenario_config
 from studies.spec import Study
@@ -177,9 +178,9 @@ def type_text(tp: Any, hex_: bool = False) -> str:
     if origin is typing.Literal:
         return " or ".join(f"`{_yaml(a)}`" for a in args)
     if origin in (typing.Union, types.UnionType):
-        present = [a for a in args if a is not type(None)]
+        present = [a for a in args if a not in (type(None), msgspec.UnsetType)]
         text = " or ".join(type_text(a, hex_) for a in present)
-        return f"{text} or `null`" if len(present) < len(args) else text
+        return f"{text} or `null`" if type(None) in args else text
     if origin is tuple and not (len(args) == 2 and args[1] is Ellipsis):
         text = "[" + ", ".join(type_text(a, hex_) for a in args) + "]"
     elif origin in (list, tuple):
@@ -283,6 +284,8 @@ def _default_text(value: Any, source_hex: bool) -> str:
         return "required"
     if value is None:
         return "`null`"
+    if value is msgspec.UNSET:
+        return "*unset*"
     if isinstance(value, msgspec.Struct):
         return "(section)"
     if isinstance(value, int) and not isinstance(value, bool) and source_hex:
@@ -472,6 +475,21 @@ def documents() -> list[Document]:
                 "centre. The defaults below are the structure's own; the experiment's `scenario` "
                 "and `setting` change some of them (listed after the table), and the section "
                 "overrides both."
+            ),
+        ),
+        Document(
+            title="The arena file",
+            anchor="the-arena-file",
+            root=Arena,
+            intro=(
+                "`simulator.arenas.Arena`, with `Floor` under `floor`, `Walls` under `walls`, "
+                "`BoxField` under `boxes`, `Start` under `start` and `Light` under `light`: one "
+                "arena, named by an experiment's `arena` key (a shipped arena's name: "
+                + ", ".join(f"`{name}`" for name in shipped_arenas())
+                + "; or a file's path). Metres, degrees, the origin at the floor's centre, x along "
+                "its width (docs/arenas.md). A key marked *unset* takes the setting's or the "
+                "simulation section's default; the experiment's `simulation:` section overrides "
+                "what the arena gives."
             ),
         ),
         Document(

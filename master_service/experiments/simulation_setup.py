@@ -15,7 +15,12 @@ from typing import Any, Final
 import numpy as np
 
 from master_service.evaluation import RunSummary
-from minimize_surprise.config import ExperimentConfig, decode_experiment, read_yaml
+from minimize_surprise.config import (
+    ExperimentConfig,
+    decode_experiment,
+    read_yaml,
+    resolve_arena,
+)
 from minimize_surprise.errors import ConfigError
 from runfiles import schema
 from runfiles.schema import BOX_TRACK, BoxesMoved, SimulatedWorld, Simulation, write_atomic
@@ -94,8 +99,19 @@ def simulation_experiment(
         if not arena > 0:
             raise ConfigError(f"expected a positive side in metres, got {arena}", key="--arena")
         data["simulation"] = {**(data.get("simulation") or {}), "arena_side": arena}
+    if config_file is not None:
+        data = resolve_arena(data, Path(config_file).resolve().parent)
     name = data.get("scenario", "basic")
-    world = scenario_world(data.get("setting"), name, data.get("simulation"), config_file)
+    arena_name = data.get("arena")
+    if arena_name is not None and not isinstance(arena_name, str):
+        raise ConfigError(
+            f"expected an arena's name or an arena file's path, got {arena_name!r}",
+            file=str(config_file) if config_file else None,
+            key="arena",
+        )
+    world = scenario_world(
+        data.get("setting"), name, data.get("simulation"), config_file, arena=arena_name
+    )
     robots_in_file = "robots" in data
     data.setdefault("robots", world.robots)
     data.setdefault("sensors", list(world.sensors))
@@ -195,6 +211,8 @@ def write_simulation_file(
             arena_side=world.config.arena_side,
             robots=world.config.robots,
             boxes=len(world.box_positions),
+            arena_height=world.config.arena_height,
+            arena=experiment.arena_name if experiment.arena else None,
         ),
         post_evaluation_boxes=boxes,
         post_evaluation_safety=safety_before,

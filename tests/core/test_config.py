@@ -14,10 +14,11 @@ def write(tmp_path, text: str):
     return path
 
 
-def test_empty_file_gives_the_papers_simulation_defaults(tmp_path):
+def test_empty_file_gives_the_lab_settings_defaults(tmp_path):
     cfg = load_experiment(write(tmp_path, ""))
     assert cfg == ExperimentConfig()
-    assert cfg.evolution.evaluations == 1000 and cfg.evaluation_steps == 100
+    # The paper's real-robot runs: 350 evaluations of 100 steps at 10 Hz.
+    assert cfg.evolution.evaluations == 350 and cfg.evaluation_steps == 100
     assert cfg.evolution.reevaluation_probability == 0.2
     assert cfg.evolution.mutation_probability == 0.1 and cfg.evolution.mutation_range == 0.4
     assert cfg.post_evaluation_steps == 1000 and len(cfg.sensors) == 9
