@@ -24,6 +24,7 @@ from minimize_surprise.safety import SafetyConfig, SafetyLayer
 from minimize_surprise.wire import (
     MAX_BATTERY_V,
     CheckReport,
+    EscapeReply,
     Evaluate,
     EvaluationStats,
     Failed,
@@ -33,6 +34,7 @@ from minimize_surprise.wire import (
 from robot_agent.bounded import finish
 from robot_agent.checkup import check_body
 from robot_agent.config import MAX_PERIOD, LoopConfig
+from robot_agent.led import StartFlash
 from robot_agent.loop import (
     FAILED_UNREACHABLE,
     ControlLoop,
@@ -47,6 +49,8 @@ if TYPE_CHECKING:
     from robot_agent.health import RobotHealth
 
 __all__ = [
+    "ESCAPE_IDLE",
+    "ESCAPE_PROFILE",
     "FAILED_GENOME",
     "FAILED_HARDWARE",
     "FAILED_INTERNAL",
@@ -75,6 +79,11 @@ FAILED_STEPS = "steps"
 FAILED_HARDWARE = "hardware"
 #: a bug (an unexpected exception); the log holds the traceback
 FAILED_INTERNAL = "internal"
+#: Escape refusals start with one of these words (then ": " and the details).
+#: the robot's safety profile has no escape behaviour
+ESCAPE_PROFILE = "profile"
+#: no evaluation runs: the motors are stopped, and nothing would run the escape
+ESCAPE_IDLE = "idle"
 #: Seconds the battery read after an evaluation may take: a present robot answers one
 #: ``GetVariable`` within a sensor period (0.1 s). An unread battery is reported unknown and
 #: never fails the evaluation (the motor stop's read-back already proved the robot is there).
@@ -182,6 +191,8 @@ class EvaluationRunner:
             return failed
         network, index = prepared
         async with self._lock:
+            # An experimenter's escape asked for during an earlier evaluation does not carry over.
+            self.loop.escape_requested = False
             self.running = msg.evaluation_id
             # A new genome: no escape manoeuvre carries over (the network was just built fresh).
             state = self.layer.reset(self.safety_state)
@@ -201,6 +212,8 @@ class EvaluationRunner:
             if telemetry is not None:
                 sampler = telemetry.sampler(msg.evaluation_id, msg.spec.sensors, msg.step_period)
             started = self.clock.now()
+            # The post-evaluation's start flash, for an overhead camera (robot_agent.led).
+            flash = StartFlash(self.body, self.clock) if msg.post_evaluation else None
             if self.watchdog is not None:
                 self.watchdog.arm()
             try:
@@ -212,6 +225,7 @@ class EvaluationRunner:
                     period=msg.step_period,
                     record=msg.record,
                     sink=None if sampler is None else sampler.sample,
+                    flash=flash,
                 )
             except RobotUnreachableError as exc:
                 unreachable = str(exc)
@@ -222,6 +236,7 @@ class EvaluationRunner:
                 failure = f"{FAILED_INTERNAL}: {exc!r}"
             finally:
                 self.running = None
+                self.loop.escape_requested = False
                 # The stop is confirmed by the robot itself; a robot that does not confirm it
                 # is unreachable, whatever the evaluation looked like (the master must know).
                 stop_error = await stop_motors(self.body, self.config.stop_timeout)
@@ -232,6 +247,9 @@ class EvaluationRunner:
                         unreachable = unreachable or f"the motor stop: {stop_error}"
                 if self.watchdog is not None:
                     self.watchdog.disarm()
+                if flash is not None:
+                    # After the motors: an LED never delays a stop. Bounded; never raises.
+                    await flash.finish()
 
         if outcome is not None:
             self.safety_state = outcome.safety_state
@@ -275,6 +293,29 @@ class EvaluationRunner:
         )
         self._summarise(msg, result, stats, duration)
         return result
+
+    def request_escape(self, seq: int) -> EscapeReply:
+        """The experimenter asks for the safety layer's escape now (``surprise-master escape``):
+        accepted while an evaluation runs in the ``escape`` profile (the layer starts it at the
+        next step with a usable reading), refused otherwise with a reason starting with
+        :data:`ESCAPE_PROFILE` or :data:`ESCAPE_IDLE`. Only asks; the layer decides the motors."""
+        if self.layer.config.profile != "escape":
+            return EscapeReply(
+                seq=seq,
+                accepted=False,
+                reason=f"{ESCAPE_PROFILE}: this robot's safety layer runs the "
+                f"{self.layer.config.profile!r} profile, which has no escape behaviour (paper "
+                "Sec. V-B): move the robot by hand",
+            )
+        running = self.running
+        if running is None:
+            return EscapeReply(
+                seq=seq,
+                accepted=False,
+                reason=f"{ESCAPE_IDLE}: no evaluation runs, the motors are stopped",
+            )
+        self.loop.escape_requested = True
+        return EscapeReply(seq=seq, accepted=True, evaluation_id=running)
 
     async def check(self, seq: int) -> CheckReport:
         """A preflight check's report (:mod:`robot_agent.checkup`); ``busy`` while an
