@@ -40,7 +40,7 @@ async def test_a_robot_without_leds_top_is_named_at_once(
     thymio = ThymioBase(thymio_config())
     await thymio.open()
     try:
-        with pytest.raises(DBusReplyError, match="has no leds.top variable"):
+        with pytest.raises(DBusReplyError, match=r"has no leds\.top variable"):
             await thymio.set_top_led(0.0, 1.0, 0.0)
         await thymio.set_speeds(0.5, 0.5)  # the robot drives on as before
         await thymio.is_connected()
