@@ -21,6 +21,9 @@ drives the wheels. Facts about the real medulla that shape this code:
   reply, so the program is loaded expecting one and medulla's own reason is reported.
 
 ``dbus-fast`` is imported inside the methods so that importing ``drivers`` does not need it.
+
+Why one file of over 600 lines: every call goes through one bounded D-Bus helper and depends on
+one state, the medulla attached to and its program, which the facts above shape together.
 """
 
 from __future__ import annotations

@@ -28,6 +28,9 @@ fields it does not know, so a newer peer may add optional fields without breakin
 incompatible changes bump :data:`PROTOCOL_VERSION`, which the master checks in Hello. A message
 an older peer of the same version would not decode goes only to a robot whose Hello lists its
 feature (:data:`FEATURES`): such a peer would close the session on it.
+
+Why one file of over 600 lines: the protocol is its one union of messages, their bounds and their
+one codec, read together whenever it changes, and the golden bytes are enumerated from this union.
 """
 
 from __future__ import annotations
