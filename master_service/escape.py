@@ -32,6 +32,7 @@ from typing import Final
 from master_service.rundir import RunDir, RunDirError
 from master_service.server import RobotServer, Session
 from minimize_surprise.wire import (
+    ESCAPE_REFUSED_IDLE,
     FEATURE_ESCAPE,
     Escape,
     EscapeReply,
@@ -80,9 +81,7 @@ def _request_path(run_dir: Path, token: str) -> Path:
     return run_dir / REQUESTS / f"{stem}-{token}.json"
 
 
-def request_escape(
-    run_dir: RunDir, robot: str, *, timeout: float = ANSWER_TIMEOUT, now: float | None = None
-) -> Event:
+def request_escape(run_dir: RunDir, robot: str, *, timeout: float = ANSWER_TIMEOUT) -> Event:
     """Ask the master running ``run_dir`` to make ``robot`` escape now; its answer (an
     ``escape`` event: ``accepted``, or why not in ``detail``).
 
@@ -92,7 +91,7 @@ def request_escape(
     """
     path = run_dir.path
     live = schema.read_if_readable(path, Live)
-    if not master_alive(live, time.time() if now is None else now):
+    if not master_alive(live, time.time()):
         raise RunDirError(
             f"no master is running {path}: the experimenter's escape reaches robots only "
             "during a run"
@@ -149,8 +148,11 @@ class EscapeDesk:
         """Answer requests until cancelled, one after the other in the order they came."""
         folder = self.run_dir.path / REQUESTS
         while True:
-            for path in await asyncio.to_thread(_pending, folder):
-                await self._take(path)
+            try:
+                for path in await asyncio.to_thread(_pending, folder):
+                    await self._take(path)
+            except Exception:  # a bug must cost one request, never the desk or the run
+                self.log.exception("the experimenter's escape: a request failed")
             await asyncio.sleep(POLL_INTERVAL)
 
     def on_reply(self, session: Session, msg: EscapeReply) -> None:
@@ -234,7 +236,7 @@ class EscapeDesk:
                     return True, reply.evaluation_id, ""
                 # Between the check and the answer its evaluation may have ended: try again
                 # while there is time; any other refusal is the robot's last word.
-                if not reply.reason.startswith("idle"):
+                if not reply.reason.startswith(f"{ESCAPE_REFUSED_IDLE}:"):
                     return False, None, f"{robot} refused: {printable(reply.reason)}"
             if asyncio.get_running_loop().time() >= deadline:
                 return (

@@ -50,6 +50,8 @@ from minimize_surprise.session import NONCE_SIZE, PROOF_SIZE
 __all__ = [
     "DEAD_AFTER_HEARTBEATS",
     "DEFAULT_PORT",
+    "ESCAPE_REFUSED_IDLE",
+    "ESCAPE_REFUSED_PROFILE",
     "FEATURES",
     "FEATURE_ESCAPE",
     "HANDSHAKE_MAX_FRAME_SIZE",
@@ -143,6 +145,11 @@ LOGGED_TEXT_LIMIT: Final = 200
 FEATURE_ESCAPE: Final = "escape"
 #: Every feature this code offers, as its agent announces them.
 FEATURES: Final = (FEATURE_ESCAPE,)
+#: An :class:`EscapeReply`'s refusal starts with one of these words (then ": " and the details):
+#: the robot's safety profile has no escape behaviour (``stop``) ...
+ESCAPE_REFUSED_PROFILE: Final = "profile"
+#: ... or no evaluation runs, the motors are stopped (the master may ask again in a moment).
+ESCAPE_REFUSED_IDLE: Final = "idle"
 #: The most features a Hello may list (it arrives before authentication: bounded).
 MAX_FEATURES: Final = 16
 
@@ -531,8 +538,8 @@ class Escape(_Message, tag="escape", frozen=True):
 class EscapeReply(_Message, tag="escape-reply", frozen=True):
     """Robot -> master: the answer to :class:`Escape` ``seq``. ``accepted``: the escape starts at
     the next control step of evaluation ``evaluation_id``; otherwise ``reason`` says why not,
-    starting with a word (``profile``: its safety layer has no escape behaviour; ``idle``: no
-    evaluation runs, so the motors are stopped)."""
+    starting with a word (:data:`ESCAPE_REFUSED_PROFILE`: its safety layer has no escape
+    behaviour; :data:`ESCAPE_REFUSED_IDLE`: no evaluation runs, so the motors are stopped)."""
 
     seq: _NonNegative
     accepted: bool

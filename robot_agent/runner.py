@@ -22,6 +22,8 @@ from minimize_surprise.errors import HardwareError, ProtocolError, RobotUnreacha
 from minimize_surprise.network import NetworkPair
 from minimize_surprise.safety import SafetyConfig, SafetyLayer
 from minimize_surprise.wire import (
+    ESCAPE_REFUSED_IDLE,
+    ESCAPE_REFUSED_PROFILE,
     MAX_BATTERY_V,
     CheckReport,
     EscapeReply,
@@ -49,8 +51,6 @@ if TYPE_CHECKING:
     from robot_agent.health import RobotHealth
 
 __all__ = [
-    "ESCAPE_IDLE",
-    "ESCAPE_PROFILE",
     "FAILED_GENOME",
     "FAILED_HARDWARE",
     "FAILED_INTERNAL",
@@ -79,11 +79,6 @@ FAILED_STEPS = "steps"
 FAILED_HARDWARE = "hardware"
 #: a bug (an unexpected exception); the log holds the traceback
 FAILED_INTERNAL = "internal"
-#: Escape refusals start with one of these words (then ": " and the details).
-#: the robot's safety profile has no escape behaviour
-ESCAPE_PROFILE = "profile"
-#: no evaluation runs: the motors are stopped, and nothing would run the escape
-ESCAPE_IDLE = "idle"
 #: Seconds the battery read after an evaluation may take: a present robot answers one
 #: ``GetVariable`` within a sensor period (0.1 s). An unread battery is reported unknown and
 #: never fails the evaluation (the motor stop's read-back already proved the robot is there).
@@ -298,12 +293,13 @@ class EvaluationRunner:
         """The experimenter asks for the safety layer's escape now (``surprise-master escape``):
         accepted while an evaluation runs in the ``escape`` profile (the layer starts it at the
         next step with a usable reading), refused otherwise with a reason starting with
-        :data:`ESCAPE_PROFILE` or :data:`ESCAPE_IDLE`. Only asks; the layer decides the motors."""
+        ``ESCAPE_REFUSED_PROFILE`` or ``ESCAPE_REFUSED_IDLE`` (:mod:`minimize_surprise.wire`).
+        Only asks; the layer decides the motors."""
         if self.layer.config.profile != "escape":
             return EscapeReply(
                 seq=seq,
                 accepted=False,
-                reason=f"{ESCAPE_PROFILE}: this robot's safety layer runs the "
+                reason=f"{ESCAPE_REFUSED_PROFILE}: this robot's safety layer runs the "
                 f"{self.layer.config.profile!r} profile, which has no escape behaviour (paper "
                 "Sec. V-B): move the robot by hand",
             )
@@ -312,7 +308,7 @@ class EvaluationRunner:
             return EscapeReply(
                 seq=seq,
                 accepted=False,
-                reason=f"{ESCAPE_IDLE}: no evaluation runs, the motors are stopped",
+                reason=f"{ESCAPE_REFUSED_IDLE}: no evaluation runs, the motors are stopped",
             )
         self.loop.escape_requested = True
         return EscapeReply(seq=seq, accepted=True, evaluation_id=running)

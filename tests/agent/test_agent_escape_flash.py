@@ -14,10 +14,16 @@ from agent_fakes import FakeBody, FakeClock, genome, spec
 
 from minimize_surprise.errors import HardwareError
 from minimize_surprise.safety import REASON_ESCAPE, REASON_EXPERIMENTER, SafetyConfig
-from minimize_surprise.wire import Evaluate, Result, genome_to_bytes
+from minimize_surprise.wire import (
+    ESCAPE_REFUSED_IDLE,
+    ESCAPE_REFUSED_PROFILE,
+    Evaluate,
+    Result,
+    genome_to_bytes,
+)
 from robot_agent.config import LoopConfig
 from robot_agent.led import FLASH_COLOUR, LED_TIMEOUT, OFF
-from robot_agent.runner import ESCAPE_IDLE, ESCAPE_PROFILE, EvaluationRunner
+from robot_agent.runner import EvaluationRunner
 
 
 def evaluate(steps: int, *, record: bool = False, post: bool = False) -> Evaluate:
@@ -84,11 +90,11 @@ async def test_an_escape_is_refused_in_the_stop_profile_and_while_idle():
     outcome = await runner.run(evaluate(10))
     assert isinstance(outcome, Result) and REASON_EXPERIMENTER not in outcome.stats.interventions
     (refused,) = replies
-    assert not refused.accepted and refused.reason.startswith(f"{ESCAPE_PROFILE}: ")
+    assert not refused.accepted and refused.reason.startswith(f"{ESCAPE_REFUSED_PROFILE}: ")
     assert "'stop' profile" in refused.reason
 
     idle = runner_for(FakeBody(0.0, clock=clock), clock).request_escape(2)
-    assert not idle.accepted and idle.reason.startswith(f"{ESCAPE_IDLE}: ")
+    assert not idle.accepted and idle.reason.startswith(f"{ESCAPE_REFUSED_IDLE}: ")
 
 
 async def test_an_escape_never_carries_over_into_the_next_evaluation():
