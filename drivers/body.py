@@ -95,6 +95,13 @@ class Body(ABC):
     async def stop(self) -> None:
         """Set both wheel speeds to zero."""
 
+    async def set_top_led(self, red: float, green: float, blue: float) -> None:
+        """Light the top LED in this colour, each channel normalised to [0, 1] (clamped; all 0
+        is off). A signal for a camera, never a safety part: callers bound it and go on when it
+        fails. Raises ``NotImplementedError`` for a body without one, ``HardwareError`` when
+        the robot refuses or does not answer."""
+        raise NotImplementedError(f"{type(self).__name__} has no top LED")
+
     async def __aenter__(self) -> Self:
         await self.open()
         return self
@@ -112,6 +119,13 @@ def describe_error(exc: BaseException) -> str:
     """An exception in one line for a person: its message, or its type when it has none."""
     text = str(exc)
     return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
+def led_level(value: float) -> float:
+    """An LED channel clamped to [0, 1]; NaN is off."""
+    if value != value:  # NaN
+        return 0.0
+    return 0.0 if value < 0.0 else 1.0 if value > 1.0 else float(value)
 
 
 def clamp_unit(value: float) -> float:

@@ -133,6 +133,10 @@ class RobotBody(Body):
         """Set both wheel speeds to zero."""
         await self.thymio.stop()
 
+    async def set_top_led(self, red: float, green: float, blue: float) -> None:
+        """The Thymio's top LED (:meth:`ThymioBase.set_top_led`)."""
+        await self.thymio.set_top_led(red, green, blue)
+
 
 async def _settle(*awaitables: Awaitable[None]) -> list[BaseException | None]:
     """Await all; each one's exception, or ``None`` where it succeeded."""

@@ -21,6 +21,9 @@ drives the wheels. Facts about the real medulla that shape this code:
   reply, so the program is loaded expecting one and medulla's own reason is reported.
 
 ``dbus-fast`` is imported inside the methods so that importing ``drivers`` does not need it.
+
+Why one file of over 600 lines: every call goes through one bounded D-Bus helper and depends on
+one state, the medulla attached to and its program, which the facts above shape together.
 """
 
 from __future__ import annotations
@@ -38,7 +41,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 from xml.sax.saxutils import quoteattr
 
-from drivers.body import clamp_unit
+from drivers.body import clamp_unit, led_level
 from drivers.config import CALL_TIMEOUT, PROGRAM_NODE, ThymioConfig
 from drivers.parts import gather_all
 from minimize_surprise.errors import (
@@ -67,6 +70,10 @@ DBUS_PATH = "/org/freedesktop/DBus"
 PROX_HORIZONTAL = "prox.horizontal"
 MOTOR_LEFT = "motor.left.target"
 MOTOR_RIGHT = "motor.right.target"
+#: The top RGB LED: three values 0..LED_MAX (the firmware's scale). Aseba Playground's Thymio
+#: does not declare it (docs/thymio.md).
+LEDS_TOP = "leds.top"
+LED_MAX = 32
 #: Raw horizontal IR of an obstacle in contact; larger readings clip to 1.
 IR_MAX = 4500.0
 #: Full scale of the ground sensors' 10-bit readings.
@@ -320,6 +327,31 @@ class ThymioBase:
         """
         await self._stop_through(ASEBA_SERVICE)
         self.last_targets = (0, 0)
+
+    async def set_top_led(self, red: float, green: float, blue: float) -> None:
+        """Light the top LED: each channel in [0, 1] becomes 0..32 of ``leds.top``.
+
+        Unlike the motors' writes this one asks medulla for its answer: medulla then says at once
+        when the robot has no such variable (Aseba Playground's Thymio), which a no-reply write
+        would swallow. It never waits for the robot (medulla answers a write itself).
+        :class:`DBusReplyError` names a robot without ``leds.top``.
+        """
+        values = [round(led_level(c) * LED_MAX) for c in (red, green, blue)]
+        try:
+            await self._call(
+                "SetVariable",
+                "ssan",
+                [self.config.node, LEDS_TOP, values],
+                to=self._attached_medulla(),
+            )
+        except DBusReplyError as exc:
+            if exc.name == UNKNOWN_VARIABLE_ERROR:
+                raise DBusReplyError(
+                    f"Thymio: the robot has no {LEDS_TOP} variable (Aseba Playground's Thymio "
+                    "has none): no LED signal",
+                    exc.name,
+                ) from exc
+            raise
 
     async def is_connected(self) -> bool:
         """Whether the attached medulla sees the robot; also a barrier for earlier writes.

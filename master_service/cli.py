@@ -11,6 +11,7 @@ Subcommands::
     surprise-master check CONFIG [--json]           preflight: is every robot fit for a run?
     surprise-master continue DIR                    let a paused run go on (a battery swapped,
                                                     the robots placed: --pause-before-post)
+    surprise-master escape DIR ROBOT                make a robot of a running run escape now
     surprise-master sim [--scenario S] [--robots N] [--evaluations N] [--seed S] [--out DIR]
                         [--realtime] [--config FILE]
                                                     a whole experiment on a simulated swarm
@@ -107,11 +108,7 @@ def _parser() -> argparse.ArgumentParser:
     check.add_argument("--json", action="store_true", help="print the rows as JSON")
     check.set_defaults(handler=cli_lab.check_command)
 
-    go_on = sub.add_parser(
-        "continue", help="let a paused run go on (after a battery swap, or the robots placed)"
-    )
-    go_on.add_argument("dir", type=Path, metavar="DIR", help="the run directory")
-    go_on.set_defaults(handler=cli_lab.continue_command)
+    cli_lab.add_hand_commands(sub)  # continue, escape
 
     report = sub.add_parser("report", help="write metrics.json and plots of a run")
     report.add_argument("dir", type=Path, metavar="DIR", help="the run directory")

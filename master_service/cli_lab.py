@@ -1,6 +1,8 @@
 """The handlers of ``surprise-master``'s commands around a run: ``report``, ``status``,
-``check`` (the preflight), ``continue`` (after a pause), ``watch`` and ``dashboard``; the parser
-and the commands that run experiments are in :mod:`master_service.cli`."""
+``check`` (the preflight), ``continue`` (after a pause), ``escape`` (the experimenter's hand),
+``watch`` and ``dashboard``, and the parsers of a person's actions on a running run
+(:func:`add_hand_commands`); the rest of the parser and the commands that run experiments are in
+:mod:`master_service.cli`."""
 
 from __future__ import annotations
 
@@ -15,9 +17,11 @@ from master_service.rundir import RunDir, RunDirError
 from minimize_surprise.text import plural
 
 __all__ = [
+    "add_hand_commands",
     "check_command",
     "continue_command",
     "dashboard_command",
+    "escape_command",
     "report_command",
     "secret_command",
     "status_command",
@@ -103,6 +107,49 @@ def continue_command(args: argparse.Namespace) -> int:
     reason = "no reason given" if pause is None else pause.reason
     print(f"continuing {args.dir} (it was paused: {reason})")
     return 0
+
+
+def escape_command(args: argparse.Namespace) -> int:
+    """``surprise-master escape``: 0 when the robot's safety layer starts its escape, 1 with one
+    line when the master or the robot refused it (a RunDirError, exit 2, when no master runs)."""
+    from master_service.escape import request_escape
+
+    event = request_escape(RunDir(args.dir), args.robot, timeout=args.timeout)
+    if not event.accepted:
+        print(f"surprise-master: escape of {args.robot}: {event.detail}", file=sys.stderr)
+        return 1
+    print(
+        f"{args.robot} escapes now: its safety layer starts the escape at its next step of "
+        f"evaluation {event.evaluation_id} (logged in {args.dir}/events.jsonl)"
+    )
+    return 0
+
+
+def add_hand_commands(sub: argparse._SubParsersAction) -> None:
+    """Add the commands by which a person acts on a running run: ``continue`` and ``escape``."""
+    from master_service.escape import ANSWER_TIMEOUT
+
+    go_on = sub.add_parser(
+        "continue", help="let a paused run go on (after a battery swap, or the robots placed)"
+    )
+    go_on.add_argument("dir", type=Path, metavar="DIR", help="the run directory")
+    go_on.set_defaults(handler=continue_command)
+
+    escape = sub.add_parser(
+        "escape",
+        help="make a robot of a running run escape now (paper Sec. V-C: force it back into the "
+        "arena)",
+    )
+    escape.add_argument("dir", type=Path, metavar="DIR", help="the run directory")
+    escape.add_argument("robot", metavar="ROBOT", help="the robot's id")
+    escape.add_argument(
+        "--timeout",
+        type=float,
+        default=ANSWER_TIMEOUT,
+        metavar="S",
+        help=f"seconds to wait for the master's answer (default: {ANSWER_TIMEOUT:g})",
+    )
+    escape.set_defaults(handler=escape_command)
 
 
 def status_command(args: argparse.Namespace) -> int:

@@ -69,7 +69,8 @@ class Evaluation:
     :class:`~minimize_surprise.wire.Result` for a recorded attempt (its trace). ``seconds`` is
     the attempt's duration, ``safety_share`` the share of the robots' steps the safety layer drove.
     ``stats`` are the robots' own statistics in the order of ``robots`` (overruns, read failures,
-    battery), empty where the evaluator has none to report (the compiled engine).
+    battery), empty where the evaluator has none to report (the compiled engine). ``started_at``
+    is the wall-clock time the attempt went out to the robots (None: no robots to tell).
     """
 
     evaluation_id: int
@@ -80,6 +81,7 @@ class Evaluation:
     safety_share: float = 0.0
     results: dict[str, Result] | None = None
     stats: Sequence[EvaluationStats] = ()
+    started_at: float | None = None
 
 
 class Evaluator(Protocol):

@@ -329,7 +329,12 @@ class EvolutionRun:
         results = {robot: attempt.results[robot] for robot in attempt.robots}
         await self._flush()
         await asyncio.to_thread(
-            self.run_dir.write_post_evaluation, evaluation_id, opt.best_fitness, steps, results
+            self.run_dir.write_post_evaluation,
+            evaluation_id,
+            opt.best_fitness,
+            steps,
+            results,
+            started_at=attempt.started_at,
         )
         await self.evaluator.after_post_evaluation(self.run_dir)
         self.log.info(

@@ -44,24 +44,24 @@ from typing import Any, Final
 import numpy as np
 
 from master_service.config import MasterConfig, build_ssl_context
+from master_service.escape import EscapeDesk
 from master_service.evaluation import Evaluation, Progress, RunSummary
 from master_service.evolution_run import EvolutionRun
 from master_service.replay import ReplaySource, write_replay_file
 from master_service.rounds import RoundRunner
 from master_service.rundir import FILE_ONLY, RunDir, RunState
-from master_service.server import RobotServer, Session
+from master_service.server import Answer, RobotServer, Session
 from minimize_surprise.errors import ConfigError
 from minimize_surprise.network import GenomeLayout, spec_from_config
 from minimize_surprise.session import TAG_SIZE
 from minimize_surprise.wire import (
     REFUSED_UNKNOWN_ROBOT,
     CheckReport,
+    EscapeReply,
     Evaluate,
-    Failed,
-    Result,
     encode_payload,
 )
-from runfiles.schema import LIVE_INTERVAL, Live
+from runfiles.schema import EVENT_POST_EVALUATION, LIVE_INTERVAL, Event, Live, append_event
 from telemetry.config import require_client_library
 from telemetry.payloads import RunStatus, master_status_suffix, now, run_status_suffix
 from telemetry.publisher import TelemetryPublisher
@@ -179,6 +179,16 @@ class Master:
             logger=self.log,
         )
         self.rounds = RoundRunner(self.server, config.round_margin, self.log)
+        #: the experimenter's escapes (``surprise-master escape``), asked through the run dir
+        self.escapes = EscapeDesk(
+            self.run_dir,
+            self.server,
+            self.log,
+            members=self._members,
+            paused=self._paused,
+            evaluating=self._evaluating,
+        )
+        self._escape_task: asyncio.Task[None] | None = None
         self._swarm_changed = asyncio.Event()
         self._waiting = False
         self._live_task: asyncio.Task[None] | None = None
@@ -205,6 +215,7 @@ class Master:
         # live.json announces the port: only once the socket accepts connections.
         self._write_live()
         self._live_task = asyncio.create_task(self._refresh_live(), name="live.json")
+        self._escape_task = asyncio.create_task(self.escapes.run(), name="escapes")
         optimizer = self._require_state().optimizer
         self.log.info(
             "%s run %s: listening on %s:%d%s; %d/%d evaluations done, swarm of %d robots",
@@ -223,11 +234,12 @@ class Master:
 
     async def close(self) -> None:
         """Finish pending writes, say Bye to the robots, close the connections and the log."""
-        if self._live_task is not None:
-            self._live_task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await self._live_task
-            self._live_task = None
+        for task in (self._live_task, self._escape_task):
+            if task is not None:
+                task.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await task
+        self._live_task = self._escape_task = None
         await self.server.close()
         await self.evolution.close()
         self.run_dir.close()
@@ -337,6 +349,8 @@ class Master:
         """One round: ``genome`` out to every robot of the swarm, their answers back."""
         state = self._require_state()
         assert state.roster is not None, "swarm() fixes the swarm first"
+        # The loop records only the post-evaluation (a replay's too): its robots flash.
+        post = record
         attempt = await self.rounds.run(
             evaluation_id=evaluation_id,
             genome=genome,
@@ -345,6 +359,8 @@ class Master:
             step_period=self.experiment.step_period,
             record=record,
             robots=state.roster,
+            post_evaluation=post,
+            on_sent=self._post_evaluation_sent if post else None,
         )
         if not attempt.ok:
             return Evaluation(evaluation_id, attempt.robots, attempt.failure or "failed")
@@ -364,7 +380,20 @@ class Master:
             safety_share=attempt.safety_share(),
             results=dict(attempt.results) if record else None,
             stats=tuple(attempt.results[robot].stats for robot in attempt.robots),
+            started_at=attempt.sent_at,
         )
+
+    def _post_evaluation_sent(self, evaluation_id: int, sent_at: float) -> None:
+        # Every attempt: a camera filming sees each one's flash, and only the counted one's time
+        # goes into post_evaluation.json. A line appended, in the event loop, once per attempt.
+        self.log.info("post-evaluation attempt %d went out: the robots flash", evaluation_id)
+        try:
+            append_event(
+                self.run_dir.path,
+                Event(time=sent_at, kind=EVENT_POST_EVALUATION, evaluation_id=evaluation_id),
+            )
+        except OSError as exc:
+            self.log.warning("the post-evaluation's start could not be logged: %s", exc)
 
     async def before_post_evaluation(self) -> None:
         """The ``before_post_evaluation`` hook, if any (a simulator resets its arena)."""
@@ -404,12 +433,36 @@ class Master:
         self._swarm_changed.set()
         self.evolution.emit()
 
-    def _on_message(self, session: Session, msg: Result | Failed | CheckReport) -> None:
+    def _on_message(self, session: Session, msg: Answer) -> None:
         if isinstance(msg, CheckReport):
             # Only `surprise-master check` asks for one; a robot sending it unasked is ignored.
             self.log.debug("robot %s: an unasked check report ignored", session.robot_id)
             return
+        if isinstance(msg, EscapeReply):
+            self.escapes.on_reply(session, msg)
+            return
         self.rounds.on_message(session, msg)
+
+    def _members(self) -> list[str]:
+        """The run's robots: its swarm once fixed, else those it admits (allowed or here)."""
+        state = self.state
+        if state is not None and state.roster is not None:
+            return list(state.roster)
+        return list(self.config.allowed_robots or self.connected_robots)
+
+    def _evaluating(self, robot: str) -> bool:
+        """Whether ``robot`` runs an evaluation of the current attempt it has not answered."""
+        attempt = self.rounds.current
+        return (
+            attempt is not None
+            and not attempt.finished.is_set()
+            and robot in attempt.members
+            and robot not in attempt.results
+        )
+
+    def _paused(self) -> str | None:
+        pause = self.evolution.pauses.current
+        return None if pause is None else pause.text
 
     # -- progress ----------------------------------------------------------------------------
 

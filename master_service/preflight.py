@@ -29,15 +29,13 @@ from typing import Any, Final
 
 import minimize_surprise
 from master_service.config import MasterConfig
-from master_service.server import RobotServer, Session
+from master_service.server import Answer, RobotServer, Session
 from minimize_surprise.wire import (
     REFUSED_UNKNOWN_ROBOT,
     Check,
     CheckReport,
-    Failed,
     Ping,
     Pong,
-    Result,
     encode_payload,
 )
 
@@ -145,7 +143,7 @@ class _Checker:
             return REFUSED_UNKNOWN_ROBOT, f"{robot_id} is not among the allowed robots"
         return None
 
-    def _on_message(self, session: Session, msg: Result | Failed | CheckReport) -> None:
+    def _on_message(self, session: Session, msg: Answer) -> None:
         if isinstance(msg, CheckReport):
             future = self._reports.get((session.robot_id, msg.seq))
             if future is not None and not future.done():

@@ -16,7 +16,7 @@ import asyncio
 import collections
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Final
 
 import numpy as np
@@ -45,7 +45,7 @@ class Attempt:
 
     ``failure`` is None while running and after success; otherwise why the attempt failed.
     ``started`` and ``completed`` are ``time.perf_counter()`` values (the Evaluate written to
-    every robot; the last Result in).
+    every robot; the last Result in); ``sent_at`` is the wall-clock time of the first.
     """
 
     def __init__(self, evaluation_id: int, robots: Sequence[str], record: bool) -> None:
@@ -60,6 +60,7 @@ class Attempt:
         self.finished = asyncio.Event()
         self.started = 0.0
         self.completed = 0.0
+        self.sent_at: float | None = None
 
     @property
     def ok(self) -> bool:
@@ -166,8 +167,14 @@ class RoundRunner:
         step_period: float,
         record: bool,
         robots: Sequence[str],
+        post_evaluation: bool = False,
+        on_sent: Callable[[int, float], None] | None = None,
     ) -> Attempt:
-        """Send one Evaluate to ``robots`` and wait for the outcome; abort everywhere on failure."""
+        """Send one Evaluate to ``robots`` and wait for the outcome; abort everywhere on failure.
+
+        ``post_evaluation`` marks it so (the robots flash); ``on_sent(evaluation_id, sent_at)``
+        is told the wall-clock time it went out.
+        """
         attempt = Attempt(evaluation_id, robots, record)
         message = Evaluate(
             evaluation_id=evaluation_id,
@@ -176,6 +183,7 @@ class RoundRunner:
             steps=steps,
             step_period=step_period,
             record=record,
+            post_evaluation=post_evaluation,
         )
         # One encoding for the whole swarm: every robot gets the same bytes, tagged per session.
         payload = encode_payload(message)
@@ -183,6 +191,9 @@ class RoundRunner:
         try:
             missed = self.server.send(robots, payload)
             attempt.started = time.perf_counter()
+            attempt.sent_at = time.time()
+            if on_sent is not None:
+                on_sent(evaluation_id, attempt.sent_at)
             if self._previous_completed is not None:
                 self.overheads.append(attempt.started - self._previous_completed)
             self._previous_completed = None

@@ -356,8 +356,11 @@ class RunDir:
         genome_fitness: float | None,
         steps: int,
         results: dict[str, Result],
+        *,
+        started_at: float | None = None,
     ) -> None:
-        """Write every robot's trace to ``traces/<robot>.npz`` and the summary JSON."""
+        """Write every robot's trace to ``traces/<robot>.npz`` and the summary JSON
+        (``started_at``: when the counted attempt went out, for an overhead camera)."""
         traces = self.file(TRACES)
         with writing(traces):
             traces.mkdir(exist_ok=True)
@@ -376,6 +379,7 @@ class RunDir:
             genome_fitness=genome_fitness,
             swarm_fitness=float(np.mean(fitnesses)) if fitnesses else None,
             robots=robots,
+            started_at=started_at,
         )
         schema.write(self.path, summary)
 

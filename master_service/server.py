@@ -54,6 +54,7 @@ from minimize_surprise.wire import (
     Challenge,
     CheckReport,
     Error,
+    EscapeReply,
     Failed,
     Hello,
     Message,
@@ -67,7 +68,7 @@ from minimize_surprise.wire import (
 )
 from transport.stream import MessageStream
 
-__all__ = ["RobotServer", "Session"]
+__all__ = ["Answer", "RobotServer", "Session"]
 
 #: Bytes a session may have queued unsent before we call the peer stuck and drop it. Far above
 #: anything the master sends in one go (an Evaluate is a few kB), far below hurting memory.
@@ -80,6 +81,8 @@ CLOSE_TIMEOUT: Final = 2.0
 LISTEN_BACKLOG: Final = 1024
 
 Admit = Callable[[str], tuple[str, str] | None]
+#: What a robot sends the owner of a session: an evaluation's outcome, or an answer it asked for.
+Answer = Result | Failed | CheckReport | EscapeReply
 
 
 class _Refusal(Exception):
@@ -185,7 +188,8 @@ class RobotServer:
     one more arrives). ``admit(robot_id)`` returns None or a ``(code, reason)``
     refusal; it is asked after the secret was verified. ``on_join(session)`` and
     ``on_leave(session, reason)`` are called once per session; ``on_message(session, msg)`` gets
-    every Result, Failed and CheckReport, ``on_pong(session, pong)`` (optional) every Pong.
+    every Result, Failed, CheckReport and EscapeReply (:data:`Answer`), ``on_pong(session,
+    pong)`` (optional) every Pong.
     Callbacks run in the event loop and must not block.
     """
 
@@ -205,7 +209,7 @@ class RobotServer:
         admit: Admit,
         on_join: Callable[[Session], None],
         on_leave: Callable[[Session, str], None],
-        on_message: Callable[[Session, Result | Failed | CheckReport], None],
+        on_message: Callable[[Session, Answer], None],
         logger: logging.Logger,
         on_pong: Callable[[Session, Pong], None] | None = None,
     ) -> None:
@@ -578,7 +582,7 @@ class RobotServer:
             if session.closed:
                 return session.close_reason or "closed"
             session.last_received = loop.time()
-            if isinstance(msg, Result | Failed | CheckReport):
+            if isinstance(msg, Result | Failed | CheckReport | EscapeReply):
                 self._on_message(session, msg)
             elif isinstance(msg, Ping):
                 self._write(session, encode_payload(Pong(seq=msg.seq)))

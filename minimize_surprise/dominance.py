@@ -27,6 +27,7 @@ from typing import Final, NamedTuple
 from minimize_surprise.safety import (
     REASON_BACKWARD_LIMIT,
     REASON_ESCAPE,
+    REASON_EXPERIMENTER,
     REASON_FORCE,
     REASON_FRONT,
     REASON_GROUND,
@@ -65,6 +66,9 @@ _OUTCOME: Final[dict[str, str]] = {
     "boundary and the layer turns them away",
     REASON_BACKWARD_LIMIT: "mostly at the backward limit: the networks reverse for long "
     "stretches and the layer cuts them short",
+    # Each is one step (the manoeuvre's others count as escape); only a test would get here.
+    REASON_EXPERIMENTER: "mostly starting escapes the experimenter asked for "
+    "(surprise-master escape)",
 }
 
 

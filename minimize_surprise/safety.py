@@ -39,7 +39,10 @@ Two profiles, chosen by :attr:`SafetyConfig.profile`:
     ``backward_limit_steps`` consecutive backward commands stop the robot until the network
     commands otherwise. With ``escape_looks_ahead`` (ours, the lab's default) a drive phase that
     meets an obstacle in its own direction turns at once, and an escape never drives into a
-    known obstacle. Call :meth:`SafetyLayer.reset` when a new genome arrives.
+    known obstacle. The experimenter may start the front obstacle's escape by hand
+    (``escape_now``, paper Sec. V-C: forcing a robot back into the arena); it starts the same
+    bounded manoeuvre and cannot command the motors otherwise. Call :meth:`SafetyLayer.reset`
+    when a new genome arrives.
 
 Always, in both profiles: a non-finite command (NaN, inf) becomes a stop, commands are clamped to
 [-1, 1], stale or non-finite sensor data stop the robot, and a rule whose sensors the layout lacks
@@ -75,11 +78,13 @@ REASON_GROUND = "ground"  #: a ground sensor saw the arena boundary
 REASON_FORCE = "force"  #: the pushing force is above the limit
 REASON_ESCAPE = "escape"  #: a step of an escape manoeuvre that began on an earlier step
 REASON_BACKWARD_LIMIT = "backward-limit"  #: driven backward for too long
+REASON_EXPERIMENTER = "experimenter"  #: the experimenter started an escape (paper Sec. V-C)
 
 #: Every reason, for the evaluation runner's counters. When several apply in one step the first
-#: that decides the applied command is reported: stale data, then the sensor rules and escapes,
-#: then the backward limit, then the repair of the command itself. A reason's position here is
-#: its code in the kernels (0: none).
+#: that decides the applied command is reported: stale data, then the experimenter's escape, the
+#: sensor rules and escapes, then the backward limit, then the repair of the command itself. A
+#: reason's position here is its code in the kernels (0: none); the experimenter's comes last only
+#: because it came last.
 REASONS: tuple[str, ...] = (
     REASON_STALE,
     REASON_SENSOR,
@@ -91,10 +96,13 @@ REASONS: tuple[str, ...] = (
     REASON_BACKWARD_LIMIT,
     REASON_INVALID,
     REASON_CLAMP,
+    REASON_EXPERIMENTER,
 )
+# Appended last, so every older reason keeps its code (and a recorded engine run its meaning).
 _NONE, _STALE, _SENSOR, _FRONT, _REAR, _FORCE, _GROUND, _ESCAPE, _BACKWARD, _INVALID, _CLAMP = (
     range(11)
 )
+_EXPERIMENTER = 11
 #: The reason of each kernel code (code 0 is no intervention).
 REASON_OF_CODE: tuple[str | None, ...] = (None, *REASONS)
 
@@ -240,6 +248,9 @@ class SafetyInput(NamedTuple):
     right: float  # the intended right wheel command
     fresh: bool  # False: the values are not a new reading (a failed or timed-out read)
     age: float  # the reading's age in seconds; -inf: unknown (only ``fresh`` counts)
+    # The experimenter asked for an escape now (``surprise-master escape``); the escape profile
+    # starts its own manoeuvre, the stop profile has none and ignores it.
+    escape_now: bool = False
 
 
 def safety_params(config: SafetyConfig) -> SafetyParams:
@@ -487,6 +498,15 @@ def safety_step(
     # What makes a straight drive ahead unsafe; the first hit names the reason.
     ahead = _FRONT if obstacle_front else (_FORCE if pushing else (_GROUND if boundary else 0))
 
+    if inputs.escape_now:
+        # The experimenter's hand (paper Sec. V-C): the escape a front obstacle starts, reverse
+        # then turn, whatever runs now; the same manoeuvre, bounded as the layer's own. A robot
+        # that left the arena drove out forward, so reversing brings it back in.
+        if p.escape_looks_ahead and obstacle_rear:
+            sl, sr = _begin_turn(p, state)
+        else:
+            sl, sr = _begin_drive(p, state, -1)
+        return sl, sr, _EXPERIMENTER
     if state[0] != _IDLE:
         if p.escape_looks_ahead and state[0] == _DRIVE:
             blocked = ahead if state[2] > 0 else (_REAR if obstacle_rear else 0)
@@ -608,13 +628,17 @@ class SafetyLayer:
         *,
         fresh: bool = True,
         age: float | None = None,
+        escape_now: bool = False,
     ) -> Decision:
         """Decide the command to apply for one control step.
 
         ``values`` are the normalised sensor values in the order of :attr:`sensors`; ``command`` is
         the network's intended (left, right), not trusted in any way; ``fresh`` is False when the
         caller knows the values are not a new reading (a failed or timed-out read); ``age`` is how
-        old the reading is in seconds (``None``: unknown, only ``fresh`` counts). Raises
+        old the reading is in seconds (``None``: unknown, only ``fresh`` counts). ``escape_now``:
+        the experimenter asked for an escape; in the ``escape`` profile this step starts the
+        manoeuvre a front obstacle starts (reason ``experimenter``) unless the data is stale or
+        broken (then the caller asks again next step), the ``stop`` profile ignores it. Raises
         ``ValueError`` if ``values`` does not match the sensor layout (a programming error).
         """
         v = np.asarray(values, dtype=np.float64)
@@ -631,6 +655,7 @@ class SafetyLayer:
             right=right,
             fresh=bool(fresh),
             age=-math.inf if age is None else float(age),
+            escape_now=bool(escape_now),
         )
         sl, sr, code = safety_step(self.params, self.groups, inputs, array)
         changed = (array != state.to_array()).any()

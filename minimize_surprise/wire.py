@@ -18,12 +18,19 @@ A session (``docs/protocol.md``)::
     master -> Welcome(run_id, heartbeat_interval) or Refused(code, reason), then close
               -- from Welcome on, every frame in both directions carries a tag --
     master -> Evaluate(...)  robot -> Result(...) | Failed(...);   master -> Abort(...) at any time
+    master -> Check(seq)     robot -> CheckReport(seq, ...)        (between evaluations)
+    master -> Escape(seq)    robot -> EscapeReply(seq, ...)        (only if its Hello offers it)
     either -> Ping / Pong / Error / Bye
 
 Everything that can arrive before authentication is bounded in its type, so decoding refuses it
 (and a small frame limit, :data:`HANDSHAKE_MAX_FRAME_SIZE`, bounds it first). Decoding ignores
 fields it does not know, so a newer peer may add optional fields without breaking an older one;
-incompatible changes bump :data:`PROTOCOL_VERSION`, which the master checks in Hello.
+incompatible changes bump :data:`PROTOCOL_VERSION`, which the master checks in Hello. A message
+an older peer of the same version would not decode goes only to a robot whose Hello lists its
+feature (:data:`FEATURES`): such a peer would close the session on it.
+
+Why one file of over 600 lines: the protocol is its one union of messages, their bounds and their
+one codec, read together whenever it changes, and the golden bytes are enumerated from this union.
 """
 
 from __future__ import annotations
@@ -43,9 +50,14 @@ from minimize_surprise.session import NONCE_SIZE, PROOF_SIZE
 __all__ = [
     "DEAD_AFTER_HEARTBEATS",
     "DEFAULT_PORT",
+    "ESCAPE_REFUSED_IDLE",
+    "ESCAPE_REFUSED_PROFILE",
+    "FEATURES",
+    "FEATURE_ESCAPE",
     "HANDSHAKE_MAX_FRAME_SIZE",
     "LOGGED_TEXT_LIMIT",
     "MAX_BATTERY_V",
+    "MAX_FEATURES",
     "MAX_FRAME_SIZE",
     "MAX_HEARTBEAT_INTERVAL",
     "MAX_NAME_LENGTH",
@@ -69,6 +81,8 @@ __all__ = [
     "Check",
     "CheckReport",
     "Error",
+    "Escape",
+    "EscapeReply",
     "Evaluate",
     "EvaluationStats",
     "Failed",
@@ -124,6 +138,20 @@ MAX_REASON_LENGTH: Final = 512
 MAX_BATTERY_V: Final = 10.0
 #: How many characters of a text a peer sent (a reason, a message) go into a log line.
 LOGGED_TEXT_LIMIT: Final = 200
+
+#: The features a robot may offer in its Hello (:attr:`Hello.features`): messages added to
+#: version 2 after robots of that version were deployed, which such a robot would not decode.
+#: ``escape``: it handles :class:`Escape` (``surprise-master escape``).
+FEATURE_ESCAPE: Final = "escape"
+#: Every feature this code offers, as its agent announces them.
+FEATURES: Final = (FEATURE_ESCAPE,)
+#: An :class:`EscapeReply`'s refusal starts with one of these words (then ": " and the details):
+#: the robot's safety profile has no escape behaviour (``stop``) ...
+ESCAPE_REFUSED_PROFILE: Final = "profile"
+#: ... or no evaluation runs, the motors are stopped (the master may ask again in a moment).
+ESCAPE_REFUSED_IDLE: Final = "idle"
+#: The most features a Hello may list (it arrives before authentication: bounded).
+MAX_FEATURES: Final = 16
 
 #: Version of this protocol; sent in Hello. Bump it for any change an older peer cannot decode.
 #: 2: mutual authentication and tagged frames; the step period in Evaluate; packed traces.
@@ -231,7 +259,9 @@ class Hello(_Message, tag="hello", frozen=True):
     ``nonce`` (:func:`minimize_surprise.session.new_nonce`) the master's proof must cover.
 
     ``nonce`` may only be missing in a Hello of another protocol version (so that such a robot is
-    told about the version, not about a missing field).
+    told about the version, not about a missing field). ``features`` lists the later additions to
+    this version the robot handles (:data:`FEATURES`); a robot older than them sends none, and
+    the master sends it none of their messages.
     """
 
     robot_id: _RobotId
@@ -239,6 +269,7 @@ class Hello(_Message, tag="hello", frozen=True):
     protocol_version: int
     sensors: Annotated[tuple[_Name, ...], msgspec.Meta(max_length=MAX_SENSORS)]
     nonce: _Nonce | None = None
+    features: Annotated[tuple[_Name, ...], msgspec.Meta(max_length=MAX_FEATURES)] = ()
 
 
 class Challenge(_Message, tag="challenge", frozen=True):
@@ -276,6 +307,9 @@ class Evaluate(_Message, tag="eval", frozen=True):
     Failed).
 
     With ``record`` (post-evaluation) the robot returns the full :class:`Trace` in its Result.
+    ``post_evaluation``: this is the run's post-evaluation (or a replay's); the robot flashes its
+    top LED at its start, for an overhead camera to find (docs/robot-agent.md). A robot older
+    than the field ignores it and does not flash.
     """
 
     evaluation_id: _NonNegative
@@ -284,6 +318,7 @@ class Evaluate(_Message, tag="eval", frozen=True):
     steps: _Positive
     step_period: _StepPeriod
     record: bool = False
+    post_evaluation: bool = False
 
     def __post_init__(self) -> None:
         # Reject a malformed genome where it enters, not deep inside the robot's control loop.
@@ -490,6 +525,28 @@ class CheckReport(_Message, tag="check-report", frozen=True):
                 raise ProtocolError(f"check report: {part.part} holds a value that is not finite")
 
 
+class Escape(_Message, tag="escape", frozen=True):
+    """Master -> robot (``surprise-master escape``): the experimenter asks for the safety layer's
+    escape manoeuvre now (paper Sec. V-C: forcing a robot back into the arena). The robot's layer
+    starts it at the next control step of the running evaluation, bounded as its own escapes; the
+    message carries no command. Sent only to a robot offering :data:`FEATURE_ESCAPE`; it answers
+    an :class:`EscapeReply` with the same ``seq``."""
+
+    seq: _NonNegative
+
+
+class EscapeReply(_Message, tag="escape-reply", frozen=True):
+    """Robot -> master: the answer to :class:`Escape` ``seq``. ``accepted``: the escape starts at
+    the next control step of evaluation ``evaluation_id``; otherwise ``reason`` says why not,
+    starting with a word (:data:`ESCAPE_REFUSED_PROFILE`: its safety layer has no escape
+    behaviour; :data:`ESCAPE_REFUSED_IDLE`: no evaluation runs, so the motors are stopped)."""
+
+    seq: _NonNegative
+    accepted: bool
+    evaluation_id: _NonNegative | None = None
+    reason: Annotated[str, msgspec.Meta(max_length=MAX_REASON_LENGTH)] = ""
+
+
 class Ping(_Message, tag="ping", frozen=True):
     """Either way: liveness probe; the peer answers with a Pong of the same ``seq``."""
 
@@ -528,6 +585,8 @@ Message = (
     | Abort
     | Check
     | CheckReport
+    | Escape
+    | EscapeReply
     | Ping
     | Pong
     | Error

@@ -4,8 +4,8 @@ The conversation is fixed by ``docs/protocol.md``::
 
     Hello(nonce) -> (Challenge(nonce, proof) | Refused) -> Authenticate(proof)
     -> (Welcome | Refused); then, every frame tagged:
-    Evaluate -> Result | Failed;  Abort;  Check -> CheckReport;  Ping -> Pong;
-    Bye / Error close the session
+    Evaluate -> Result | Failed;  Abort;  Check -> CheckReport;  Escape -> EscapeReply;
+    Ping -> Pong;  Bye / Error close the session
 
 The robot trusts nothing from a master that has not proved the shared secret: it checks the
 Challenge's proof before it sends anything else, and from then on accepts only frames tagged with
@@ -13,7 +13,8 @@ the session's key, so neither an impostor nor a relay can make it drive. It also
 a genuine master may ask: frames before the Welcome are small (``HANDSHAKE_MAX_FRAME_SIZE``), the
 heartbeat interval lies within the protocol's bounds (checked as the Welcome is decoded), an
 evaluation is at most ``loop.max_steps`` long (the runner refuses longer ones) and a master's text
-is cut and cleaned before it is logged.
+is cut and cleaned before it is logged. An Escape only asks the safety layer to start its own
+bounded escape manoeuvre (:meth:`EvaluationRunner.request_escape`); no message drives a motor.
 
 :class:`Link.run` loops forever: one session per connection, and after any end of a session
 (refused, closed, silent for too long, broken input) a delay from :class:`Backoff` before the next
@@ -43,6 +44,7 @@ from minimize_surprise.errors import (
 from minimize_surprise.session import FrameAuth, master_proof, new_nonce, proof_matches, robot_proof
 from minimize_surprise.wire import (
     DEAD_AFTER_HEARTBEATS,
+    FEATURES,
     HANDSHAKE_MAX_FRAME_SIZE,
     MAX_FRAME_SIZE,
     PROTOCOL_VERSION,
@@ -53,6 +55,7 @@ from minimize_surprise.wire import (
     Challenge,
     Check,
     Error,
+    Escape,
     Evaluate,
     Failed,
     Hello,
@@ -258,6 +261,7 @@ class Link:
                         protocol_version=PROTOCOL_VERSION,
                         sensors=self.sensors,
                         nonce=robot_nonce,
+                        features=FEATURES,
                     )
                 )
                 challenge = _expect(await stream.receive(), Challenge)
@@ -324,6 +328,17 @@ class Link:
                     # In its own task: the reads take up to a few seconds, the link's
                     # heartbeat must not wait for them.
                     self.spawn(self._answer_check(stream, msg, dead_after), name="check")
+                case Escape(seq=seq):
+                    reply = self.runner.request_escape(seq)
+                    if reply.accepted:
+                        self.log.info(
+                            "the experimenter asked for an escape: it starts at the next step "
+                            "of evaluation %s",
+                            reply.evaluation_id,
+                        )
+                    else:
+                        self.log.info("the experimenter's escape refused: %s", reply.reason)
+                    await self._send(stream, reply, dead_after)
                 case Ping(seq=seq):
                     await self._send(stream, Pong(seq=seq), dead_after)
                 case Pong():

@@ -38,8 +38,9 @@ from drivers.clock import Clock
 from minimize_surprise.errors import HardwareTimeoutError, RobotUnreachableError
 from minimize_surprise.fitness import SurpriseScore
 from minimize_surprise.network import NetworkPair
-from minimize_surprise.safety import STOP, SafetyLayer, SafetyState
+from minimize_surprise.safety import REASON_EXPERIMENTER, STOP, SafetyLayer, SafetyState
 from minimize_surprise.wire import EvaluationStats, Trace
+from robot_agent.led import StartFlash
 from robot_agent.watchdog import Watchdog
 
 __all__ = [
@@ -186,6 +187,12 @@ class ControlLoop:
         self.watchdog = watchdog
         #: the deadlines of the evaluation running now (or the last one)
         self.deadlines: Deadlines | None = None
+        #: the experimenter asked for an escape (``surprise-master escape``): passed to the safety
+        #: layer at every step with a usable reading until the layer starts it; the runner sets
+        #: it and clears it around every evaluation, so none carries over
+        self.escape_requested = False
+        #: the steps at which the experimenter's escapes started in the latest evaluation
+        self.escapes_started: list[int] = []
         # Passed to the safety layer for a step without a reading; it only checks the shape.
         self._no_values = np.zeros(len(body.sensors))
         self._has_pose = hasattr(body, "pose")
@@ -200,14 +207,17 @@ class ControlLoop:
         period: float = 0.1,
         record: bool = False,
         sink: StepSink | None = None,
+        flash: StartFlash | None = None,
     ) -> LoopOutcome:
         """Run ``steps`` control steps of ``period`` seconds of ``network`` (already reset) from
         where the robot stands.
 
         ``index`` maps a body frame to the network's sensor order (see :func:`sensor_index`);
         ``state`` is the safety state to start from; ``sink`` (optional) sees every step with a
-        reading (see :data:`StepSink`). Exceptions of the body's ``drive`` and of the network
-        propagate, as does cancellation; the motors keep their last command then.
+        reading (see :data:`StepSink`); ``flash`` (optional) is lit at the first step and put
+        out at the step its time is up (the caller finishes it). Exceptions of the body's
+        ``drive`` and of the network propagate, as does cancellation; the motors keep their last
+        command then.
         """
         # Locals: attribute look-ups add up at 10 Hz on a Pi; this is the hot path.
         body, clock, layer, watchdog = self.body, self.clock, self.layer, self.watchdog
@@ -235,11 +245,16 @@ class ControlLoop:
 
         deadlines = self.deadlines = Deadlines(clock, period)
         deadlines.start()
+        self.escapes_started = []
+        if flash is not None:
+            await flash.start()  # never raises, never waits for the robot
         step = 0
         while step < steps:
             step += 1
             if watchdog is not None:
                 watchdog.feed()
+            if flash is not None and flash.until is not None:
+                await flash.step()
             # --- read s(t), bounded
             error: str | None = None
             try:
@@ -289,9 +304,21 @@ class ControlLoop:
                 action, prediction = network.step(s)
                 score.expect(prediction)
                 # --- safety: on the whole frame, with the frame's age on the loop's clock
-                decision = layer.step(state, values, action, age=clock.now() - frame.timestamp)
+                decision = layer.step(
+                    state,
+                    values,
+                    action,
+                    age=clock.now() - frame.timestamp,
+                    escape_now=self.escape_requested,
+                )
                 state = decision.state
                 reason = decision.reason
+                if reason == REASON_EXPERIMENTER:
+                    # Used up: the layer runs the rest of the manoeuvre on its own. Rare enough
+                    # (a person's hand) to be logged from inside a step.
+                    self.escape_requested = False
+                    self.escapes_started.append(step)
+                    log.info("the experimenter's escape started at step %d", step)
                 if reason is not None:
                     interventions[reason] = interventions.get(reason, 0) + 1
                 command = decision.command

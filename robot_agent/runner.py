@@ -22,8 +22,11 @@ from minimize_surprise.errors import HardwareError, ProtocolError, RobotUnreacha
 from minimize_surprise.network import NetworkPair
 from minimize_surprise.safety import SafetyConfig, SafetyLayer
 from minimize_surprise.wire import (
+    ESCAPE_REFUSED_IDLE,
+    ESCAPE_REFUSED_PROFILE,
     MAX_BATTERY_V,
     CheckReport,
+    EscapeReply,
     Evaluate,
     EvaluationStats,
     Failed,
@@ -33,6 +36,7 @@ from minimize_surprise.wire import (
 from robot_agent.bounded import finish
 from robot_agent.checkup import check_body
 from robot_agent.config import MAX_PERIOD, LoopConfig
+from robot_agent.led import StartFlash
 from robot_agent.loop import (
     FAILED_UNREACHABLE,
     ControlLoop,
@@ -182,6 +186,8 @@ class EvaluationRunner:
             return failed
         network, index = prepared
         async with self._lock:
+            # An experimenter's escape asked for during an earlier evaluation does not carry over.
+            self.loop.escape_requested = False
             self.running = msg.evaluation_id
             # A new genome: no escape manoeuvre carries over (the network was just built fresh).
             state = self.layer.reset(self.safety_state)
@@ -201,6 +207,8 @@ class EvaluationRunner:
             if telemetry is not None:
                 sampler = telemetry.sampler(msg.evaluation_id, msg.spec.sensors, msg.step_period)
             started = self.clock.now()
+            # The post-evaluation's start flash, for an overhead camera (robot_agent.led).
+            flash = StartFlash(self.body, self.clock) if msg.post_evaluation else None
             if self.watchdog is not None:
                 self.watchdog.arm()
             try:
@@ -212,6 +220,7 @@ class EvaluationRunner:
                     period=msg.step_period,
                     record=msg.record,
                     sink=None if sampler is None else sampler.sample,
+                    flash=flash,
                 )
             except RobotUnreachableError as exc:
                 unreachable = str(exc)
@@ -222,6 +231,7 @@ class EvaluationRunner:
                 failure = f"{FAILED_INTERNAL}: {exc!r}"
             finally:
                 self.running = None
+                self.loop.escape_requested = False
                 # The stop is confirmed by the robot itself; a robot that does not confirm it
                 # is unreachable, whatever the evaluation looked like (the master must know).
                 stop_error = await stop_motors(self.body, self.config.stop_timeout)
@@ -232,6 +242,9 @@ class EvaluationRunner:
                         unreachable = unreachable or f"the motor stop: {stop_error}"
                 if self.watchdog is not None:
                     self.watchdog.disarm()
+                if flash is not None:
+                    # After the motors: an LED never delays a stop. Bounded; never raises.
+                    await flash.finish()
 
         if outcome is not None:
             self.safety_state = outcome.safety_state
@@ -275,6 +288,30 @@ class EvaluationRunner:
         )
         self._summarise(msg, result, stats, duration)
         return result
+
+    def request_escape(self, seq: int) -> EscapeReply:
+        """The experimenter asks for the safety layer's escape now (``surprise-master escape``):
+        accepted while an evaluation runs in the ``escape`` profile (the layer starts it at the
+        next step with a usable reading), refused otherwise with a reason starting with
+        ``ESCAPE_REFUSED_PROFILE`` or ``ESCAPE_REFUSED_IDLE`` (:mod:`minimize_surprise.wire`).
+        Only asks; the layer decides the motors."""
+        if self.layer.config.profile != "escape":
+            return EscapeReply(
+                seq=seq,
+                accepted=False,
+                reason=f"{ESCAPE_REFUSED_PROFILE}: this robot's safety layer runs the "
+                f"{self.layer.config.profile!r} profile, which has no escape behaviour (paper "
+                "Sec. V-B): move the robot by hand",
+            )
+        running = self.running
+        if running is None:
+            return EscapeReply(
+                seq=seq,
+                accepted=False,
+                reason=f"{ESCAPE_REFUSED_IDLE}: no evaluation runs, the motors are stopped",
+            )
+        self.loop.escape_requested = True
+        return EscapeReply(seq=seq, accepted=True, evaluation_id=running)
 
     async def check(self, seq: int) -> CheckReport:
         """A preflight check's report (:mod:`robot_agent.checkup`); ``busy`` while an

@@ -11,6 +11,9 @@ Layout (docs/runs.md shows each file)::
     master.log             the master's log
     live.json              Live: while a master serves the run (master_alive says if it still does)
     pause.json             PauseFile: while the run waits for a person
+    events.jsonl           Event lines: what happened when (the experimenter's escapes, the
+                           post-evaluation's start), appended by the master
+    requests/              EscapeRequest files a person's command drops for the running master
     post_evaluation.json   PostEvaluation: the post-evaluation's per-robot fitness and statistics
     traces/<robot>.npz     the post-evaluation trace of each robot
     metrics.json, plots/   written by ``surprise-master report`` (and at the end of ``sim``)
@@ -29,6 +32,10 @@ gained keys.
 Whether a master still serves a run is decided in one place, :func:`master_alive`: it says
 ``running``, it rewrote the file within :data:`STALE_AFTER` seconds, and its process exists when it
 names one on this machine.
+
+Why one file of over 600 lines: it is the run directory's one definition, every file side by side
+with its format, so that a change to one is made where the others are seen, and the schema's
+tests find every file by walking one module's structures.
 """
 
 from __future__ import annotations
@@ -55,16 +62,22 @@ __all__ = [
     "CONFIG_SNAPSHOT",
     "EVALUATIONS",
     "EVALUATION_COLUMNS",
+    "EVENTS",
+    "EVENT_ESCAPE",
+    "EVENT_POST_EVALUATION",
     "LIVE_INTERVAL",
     "LOG",
     "METRICS",
     "PLOTS",
+    "REQUESTS",
     "ROBOT_STAT_PREFIXES",
     "STALE_AFTER",
     "TRACES",
     "BestGenome",
     "BoxesMoved",
     "Checkpoint",
+    "EscapeRequest",
+    "Event",
     "Live",
     "PauseFile",
     "PauseNote",
@@ -77,6 +90,7 @@ __all__ = [
     "RunFile",
     "SimulatedWorld",
     "Simulation",
+    "append_event",
     "decode",
     "encode",
     "evaluation_header",
@@ -85,6 +99,7 @@ __all__ = [
     "master_alive",
     "read",
     "read_config",
+    "read_events",
     "read_if_readable",
     "read_rows",
     "robot_stat_columns",
@@ -104,6 +119,14 @@ PLOTS: Final = "plots"
 BOX_TRACK: Final = "box_track.npz"
 #: A baseline's results in its output directory (``surprise-master baseline``).
 BASELINE_FILE: Final = "baseline.json"
+#: What happened to the run when, one :class:`Event` a line, appended by the master.
+EVENTS: Final = "events.jsonl"
+#: Where a person's command drops its requests for the running master (:class:`EscapeRequest`).
+REQUESTS: Final = "requests"
+#: Event kinds: the experimenter asked for a robot's escape, and how it went.
+EVENT_ESCAPE: Final = "escape"
+#: Event kinds: an attempt of the post-evaluation went out to the robots (they flash).
+EVENT_POST_EVALUATION: Final = "post-evaluation-start"
 
 #: How often a master rewrites live.json at the least.
 LIVE_INTERVAL: Final = 2.0
@@ -265,11 +288,17 @@ class PostRobot(msgspec.Struct, frozen=True, kw_only=True):
 
 
 class PostEvaluation(RunFile, frozen=True, kw_only=True):
-    """``post_evaluation.json``: the best genome's post-evaluation, robot by robot."""
+    """``post_evaluation.json``: the best genome's post-evaluation, robot by robot.
+
+    ``started_at`` is the wall-clock time (seconds since the epoch, the master's clock) at which
+    the counted attempt went out to the robots, which flash their top LED as it starts: an
+    overhead camera's tracker aligns its video by it. None in a file written before it existed.
+    """
 
     FILE: ClassVar[str] = "post_evaluation.json"
     FORMAT: ClassVar[int] = 1
     INDENT: ClassVar[int | None] = 2
+    OMIT_NONE: ClassVar[tuple[str, ...]] = ("started_at",)
 
     evaluation_id: int
     steps: int
@@ -278,6 +307,7 @@ class PostEvaluation(RunFile, frozen=True, kw_only=True):
     #: the mean of the robots' fitness in the post-evaluation
     swarm_fitness: float | None
     robots: dict[str, PostRobot]
+    started_at: float | None = None
 
 
 class SimulatedWorld(msgspec.Struct, frozen=True, kw_only=True, omit_defaults=True):
@@ -333,6 +363,78 @@ class Replay(RunFile, frozen=True, kw_only=True):
     source: str
     source_run: str | None
     genome_fitness: float | None
+
+
+class EscapeRequest(RunFile, frozen=True, kw_only=True):
+    """A request of ``surprise-master escape`` for the running master: robot ``robot`` is to run
+    its safety layer's escape now. Written as ``requests/escape-<token>.json`` (``FILE`` is the
+    name's pattern, the token unique per request); the master takes it away and appends an
+    :class:`Event` of kind ``escape`` naming the same ``token``, the answer the command waits
+    for."""
+
+    FILE: ClassVar[str] = "escape-request.json"
+    FORMAT: ClassVar[int] = 1
+
+    robot: str
+    token: str
+    #: when the person asked (seconds since the epoch)
+    requested_at: float
+
+
+class Event(msgspec.Struct, frozen=True, kw_only=True):
+    """One line of ``events.jsonl``: something that happened to the run, at ``time`` (seconds
+    since the epoch, the master's clock).
+
+    ``escape``: the experimenter asked for ``robot``'s escape (``request`` the token of the
+    :class:`EscapeRequest`); ``accepted`` whether the robot's safety layer starts it at its next
+    step, in evaluation ``evaluation_id``, or why not (``detail``, one line).
+    ``post-evaluation-start``: attempt ``evaluation_id`` of the post-evaluation went out to the
+    robots, which flash their top LED at its first step (``post_evaluation.json``'s
+    ``started_at`` is the one that counted).
+    """
+
+    #: the version of a line's structure; each line carries it as ``format``
+    FORMAT: ClassVar[int] = 1
+
+    time: float
+    kind: str
+    robot: str | None = None
+    request: str | None = None
+    accepted: bool | None = None
+    evaluation_id: int | None = None
+    detail: str = ""
+
+
+def append_event(run_dir: str | Path, event: Event) -> None:
+    """Append ``event`` as one line of ``events.jsonl`` (created if need be). One ``write`` of a
+    whole line, so that a reader never sees half of one; not synced: a log, not a commit."""
+    plain = {key: value for key, value in msgspec.to_builtins(event).items() if value is not None}
+    line = json.dumps({"format": Event.FORMAT, **plain}) + "\n"
+    path = Path(run_dir) / EVENTS
+    with writing(path), open(path, "a", encoding="utf-8") as file:
+        file.write(line)
+
+
+def read_events(run_dir: str | Path) -> list[Event]:
+    """Every event of ``events.jsonl`` in order (none when there is no file); a line this
+    version cannot read (torn, a newer format) is skipped, as a log reader should."""
+    try:
+        text = (Path(run_dir) / EVENTS).read_text(encoding="utf-8")
+    except FileNotFoundError:
+        return []
+    except OSError as exc:
+        raise RunDirError(f"{Path(run_dir) / EVENTS} cannot be read: {exc}") from None
+    events = []
+    for line in text.splitlines():
+        try:
+            data = json.loads(line)
+            version = data.pop("format", 1)
+            if not isinstance(version, int) or version > Event.FORMAT:
+                continue
+            events.append(msgspec.convert(data, Event))
+        except (ValueError, AttributeError, msgspec.ValidationError):
+            continue
+    return events
 
 
 class RunConfig(msgspec.Struct, frozen=True, kw_only=True):

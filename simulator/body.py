@@ -37,11 +37,11 @@ import asyncio
 import contextlib
 from collections.abc import Sequence
 from types import TracebackType
-from typing import Self
+from typing import NamedTuple, Self
 
 import numpy as np
 
-from drivers.body import Body, SensorFrame, clamp_unit
+from drivers.body import Body, SensorFrame, clamp_unit, led_level
 from drivers.clock import Clock, MonotonicClock
 from simulator.battery import SimBattery
 from simulator.world import World
@@ -83,6 +83,15 @@ class _Waiter:
         self.index = index
 
 
+class LedChange(NamedTuple):
+    """A robot's top LED set to ``colour`` (red, green, blue in [0, 1]; all 0 is off), showing
+    from world step ``step`` on (steps since the world's last reset, as its recording counts)."""
+
+    step: int
+    robot: int
+    colour: tuple[float, float, float]
+
+
 class SimSwarm:
     """One shared :class:`World` and the bodies of its robots (see the module docstring).
 
@@ -101,6 +110,9 @@ class SimSwarm:
         self._advance_pending = False
         self._task: asyncio.Task[None] | None = None
         self._clock: Clock = MonotonicClock() if realtime else LockstepClock(self)
+        #: every change of a robot's top LED, in order, since :meth:`clear_top_leds` (a synthetic
+        #: camera draws them; :meth:`lit_steps` reads them per robot)
+        self.top_leds: list[LedChange] = []
 
     # --- bodies and participation --------------------------------------------------------------
 
@@ -148,6 +160,35 @@ class SimSwarm:
         if index in self._participants:
             self._submitted.add(index)
             self._advance()
+
+    # --- top LEDs ------------------------------------------------------------------------------
+
+    def set_top_led(self, index: int, colour: tuple[float, float, float]) -> None:
+        """Robot ``index``'s top LED shows ``colour`` from the world's current step on."""
+        self.top_leds.append(LedChange(self.world.steps, index, colour))
+
+    def clear_top_leds(self) -> None:
+        """Forget the LED changes so far: call it with a world reset, whose steps count anew."""
+        self.top_leds.clear()
+
+    def lit_steps(self, index: int) -> list[tuple[int, int | None]]:
+        """The world steps in which robot ``index``'s top LED was lit, as ``(first, end)`` spans
+        (``end`` excluded; None: still lit)."""
+        spans: list[tuple[int, int | None]] = []
+        lit_from: int | None = None
+        for change in self.top_leds:
+            if change.robot != index:
+                continue
+            on = any(change.colour)
+            if on and lit_from is None:
+                lit_from = change.step
+            elif not on and lit_from is not None:
+                if change.step > lit_from:  # lit and off within one step: never seen
+                    spans.append((lit_from, change.step))
+                lit_from = None
+        if lit_from is not None:
+            spans.append((lit_from, None))
+        return spans
 
     # --- lockstep ------------------------------------------------------------------------------
 
@@ -339,3 +380,7 @@ class SimBody(Body):
     async def stop(self) -> None:
         """Set both wheel speeds to zero; counts as this step's command."""
         self._swarm.submit(self._index, 0.0, 0.0)
+
+    async def set_top_led(self, red: float, green: float, blue: float) -> None:
+        """Light the top LED (recorded in :attr:`SimSwarm.top_leds` at the current step)."""
+        self._swarm.set_top_led(self._index, (led_level(red), led_level(green), led_level(blue)))

@@ -241,6 +241,7 @@ def evaluate(
                     right=action[1, lane],
                     fresh=True,
                     age=0.0,
+                    escape_now=False,  # no experimenter reaches into a compiled run
                 )
                 left, right, code = safety_step(sp, groups, inputs, state[i])
                 counts[i, code] += 1

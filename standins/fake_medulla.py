@@ -10,9 +10,10 @@ drivers can tell; docs/thymio.md lists what was observed:
 - ``GetVariable`` never answers while the robot is disconnected or the fake is in ``hang``
   mode (the calls are released with an error when the fake shuts down);
 - ``IsConnected`` stays true for :data:`IS_CONNECTED_LAG` seconds after the robot went away;
-- ``SetVariable`` fails silently (its rejections are only recorded in
-  :attr:`FakeMedulla.rejected`); dbus-fast sends no reply when the caller set
-  ``NO_REPLY_EXPECTED``, as the drivers do for writes, and an empty one otherwise;
+- ``SetVariable`` of an unknown node or variable is recorded in :attr:`FakeMedulla.rejected` and
+  answered with ``InvalidArgs``, which reaches only a caller that expects a reply (dbus-fast
+  sends none to ``NO_REPLY_EXPECTED``, as the drivers set for the motors): silent for the
+  motors' writes, told to the top LED's, as the real medulla does;
 - ``LoadScripts`` answers a missing file or a malformed program with an error when the caller
   expects a reply (the real one aborts on malformed XML; it answers compile errors), resets the
   robot's VM (the program's variables start from their initial values) and makes the program's
@@ -50,6 +51,7 @@ from drivers.thymio import (
     ASEBA_SERVICE,
     FAILSAFE_TICK,
     HEARTBEAT,
+    LEDS_TOP,
 )
 
 #: Seconds to wait for dbus-daemon to print its address, and for it to exit.
@@ -112,6 +114,8 @@ class StaticThymioModel:
         self.targets: dict[str, int] = {"left": 0, "right": 0}
         #: Every target received, in order, as ``(side, value)``.
         self.target_log: list[tuple[str, int]] = []
+        #: Every ``leds.top`` written, in order (three values 0..32).
+        self.led_log: list[list[int]] = []
         self.variables: dict[str, list[int]] = {}
 
     def prox_horizontal(self) -> list[int]:
@@ -126,6 +130,10 @@ class StaticThymioModel:
         """Record the target in :attr:`targets` and :attr:`target_log`."""
         self.targets[side] = value
         self.target_log.append((side, value))
+
+    def set_top_led(self, values: list[int]) -> None:
+        """Record a ``leds.top`` write in :attr:`led_log`."""
+        self.led_log.append(list(values))
 
 
 def _int16(values: list[int]) -> list[int]:
@@ -342,19 +350,26 @@ class FakeMedulla:
                 self._idle.set()
 
     def set_variable(self, node: str, variable: str, values: list[int]) -> None:
-        """``SetVariable``: store the values; motor targets go to the model. Never fails."""
+        """``SetVariable``: store the values; motor targets go to the model, ``leds.top`` to its
+        ``set_top_led`` if it has one. An unknown node or variable is recorded and raised (a
+        caller that expects no reply never sees it)."""
         self.calls.append(("SetVariable", (node, variable, list(values))))
         if node != self.node:
             self.rejected.append(f"SetVariable: node {node} does not exists")
-            return
+            raise DBusError(ErrorType.INVALID_ARGS, f"node {node} does not exists")
         if not self._known(variable):
             self.rejected.append(f"SetVariable: variable {variable} does not exists")
-            return
+            raise DBusError(
+                ErrorType.INVALID_ARGS, f"variable {variable} does not exists in node {self.node}"
+            )
         if not self._robot_connected:
             return  # medulla writes into the void
         self.model.variables[variable] = _int16(values)
         if variable in MOTOR_TARGETS and values:
             self.model.set_target(MOTOR_TARGETS[variable], _int16(values)[0])
+        record = getattr(self.model, "set_top_led", None)
+        if variable == LEDS_TOP and record is not None:
+            record(_int16(values))
 
     def load_scripts(self, path: str) -> None:
         """``LoadScripts``: load the ``.aesl`` program into the robot's VM.

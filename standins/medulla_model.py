@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from drivers.config import SPEED_SCALE
-from drivers.thymio import GROUND_MAX, IR_MAX, PROX_HORIZONTAL, VBAT, VBAT_SCALE
+from drivers.thymio import GROUND_MAX, IR_MAX, LEDS_TOP, PROX_HORIZONTAL, VBAT, VBAT_SCALE
 from minimize_surprise.sensors import GROUND_SENSORS, IR_SENSORS
 from simulator.battery import SimBattery
 from simulator.scenarios import WorldConfig
@@ -119,6 +119,9 @@ class SimThymio:
         self._show_battery()
         #: The latest motor targets received, in motor units.
         self.targets: dict[str, int] = {"left": 0, "right": 0}
+        #: Every ``leds.top`` written, as ``(world step, [red, green, blue])`` (0..32): when a
+        #: camera over the world would have seen it change.
+        self.led_log: list[tuple[int, list[int]]] = []
         self._ir = np.array([world.sensors.index(s) for s in IR_SENSORS], dtype=np.intp)
         self._ground = np.array([world.sensors.index(s) for s in GROUND_SENSORS], dtype=np.intp)
         self._released = False
@@ -148,6 +151,10 @@ class SimThymio:
             self.targets["left"] / self.speed_scale,
             self.targets["right"] / self.speed_scale,
         )
+
+    def set_top_led(self, values: list[int]) -> None:
+        """Record a ``leds.top`` write with the world's step in :attr:`led_log`."""
+        self.led_log.append((self.world.steps, list(values)))
 
     # -- sensor updates ---------------------------------------------------------------------------
 
@@ -190,7 +197,8 @@ class SimMedulla(FakeMedulla):
 
     def __init__(self, model: SimThymio, node: str = "thymio-II") -> None:
         super().__init__(model, node)
-        self.native.add(VBAT)  # a real Thymio's firmware declares it (Playground's does not)
+        # A real Thymio's firmware declares them (Playground's does not).
+        self.native.update((VBAT, LEDS_TOP))
         self.calls: Any = collections.deque(maxlen=CALL_LOG_SIZE)
         self._pending = 0
         self._no_pending = asyncio.Event()

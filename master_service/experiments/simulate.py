@@ -101,6 +101,10 @@ class SimulatedSwarm:
         self._safety_before: list[list[int]] | None = None
         self._replay_safety: list[list[int]] | None = None
         self._agents: list[Agent] = []
+        #: the run's master and the swarm of simulated bodies while :meth:`run` runs (the
+        #: swarm after it too: its robots' top LEDs, for a synthetic camera)
+        self.master: Master | None = None
+        self.swarm: SimSwarm | None = None
 
     def master_config(self) -> MasterConfig:
         """The master's configuration: loopback, any free port, only the simulated robots."""
@@ -128,6 +132,8 @@ class SimulatedSwarm:
     async def _reset_arena(self) -> None:
         # Every robot is idle between two rounds, so nobody is inside a step of the world.
         self.world.reset(seed=self.experiment.seed + 1)
+        if self.swarm is not None:
+            self.swarm.clear_top_leds()  # the world's steps count anew, and so do the LEDs'
         self._boxes_before = self.world.box_positions.tolist()
         if self._replay_safety is not None:
             for agent, state in zip(self._agents, self._replay_safety, strict=True):
@@ -166,8 +172,8 @@ class SimulatedSwarm:
         if resume:
             directory = RunDir(run_dir)
             checkpoint = directory.read_state(directory.load_config())
-        swarm = SimSwarm(self.world, realtime=self.realtime, attach_all=True)
-        master = Master(
+        swarm = self.swarm = SimSwarm(self.world, realtime=self.realtime, attach_all=True)
+        master = self.master = Master(
             self.master_config(),
             run_dir,
             secret=self._secret,

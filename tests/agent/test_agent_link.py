@@ -28,6 +28,7 @@ from minimize_surprise.backoff import Backoff
 from minimize_surprise.errors import ConnectionClosedError
 from minimize_surprise.session import NONCE_SIZE, master_proof, new_nonce
 from minimize_surprise.wire import (
+    FEATURE_ESCAPE,
     LOGGED_TEXT_LIMIT,
     MAX_REASON_LENGTH,
     PROTOCOL_VERSION,
@@ -122,6 +123,7 @@ async def test_handshake_introduces_the_robot_and_answers_the_challenge(master):
             protocol_version=PROTOCOL_VERSION,
             sensors=THYMIO,
             nonce=hello.nonce,
+            features=(FEATURE_ESCAPE,),
         )
         assert hello.nonce is not None and len(hello.nonce) == NONCE_SIZE
         await asyncio.wait_for(agent.connected.wait(), 5)

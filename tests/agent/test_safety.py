@@ -15,6 +15,7 @@ from minimize_surprise.safety import (
     REASON_BACKWARD_LIMIT,
     REASON_CLAMP,
     REASON_ESCAPE,
+    REASON_EXPERIMENTER,
     REASON_FORCE,
     REASON_FRONT,
     REASON_GROUND,
@@ -215,6 +216,38 @@ def test_front_escape_reverses_30_steps_then_turns_then_releases():
     assert state == SafetyState(rng=state.rng)  # idle again, nothing left over
     # Pinned for seed 1, so that a change of the generator is noticed: traces replay exactly.
     assert (n, spin) == (PINNED_TURN_SEED_1, PINNED_SPIN_SEED_1)
+
+
+def test_the_experimenter_starts_the_front_escape_whatever_the_network_commands():
+    layer, state = ESCAPE_LAYER, ESCAPE_LAYER.initial_state(1)
+    first = layer.step(state, full(), (1, 1), escape_now=True)
+    assert first.command == (-1.0, -1.0) and first.reason == REASON_EXPERIMENTER
+    rest, state = run(layer, first.state, 29, full())
+    assert [d.command for d in rest] == [(-1.0, -1.0)] * 29
+    assert {d.reason for d in rest} == {REASON_ESCAPE}
+    # The same bounded manoeuvre as the layer's own: a turn of 25..44 steps, then idle.
+    n, _, state = turn_length(layer, state, full())
+    assert 25 <= n <= 44 and state == SafetyState(rng=state.rng)
+
+
+def test_the_experimenter_restarts_a_running_manoeuvre_and_turns_when_boxed_in_behind():
+    mid_turn = SafetyState(phase="turn", steps_left=3, direction=1, rng=5)
+    again = ESCAPE_LAYER.step(mid_turn, full(), (0.2, 0.2), escape_now=True)
+    assert again.reason == REASON_EXPERIMENTER and again.state.phase == "drive"
+    assert again.state.steps_left == 29 and again.command == (-1.0, -1.0)
+    # Something behind: reversing would hit it, so the escape only turns.
+    behind = ESCAPE_LAYER.step(SafetyState(rng=5), full(ir_b0=0.9), (0, 0), escape_now=True)
+    assert behind.reason == REASON_EXPERIMENTER and behind.state.phase == "turn"
+    assert behind.command[0] == -behind.command[1] != 0
+
+
+def test_the_experimenter_waits_for_usable_data_and_the_stop_profile_ignores_it():
+    # Stale data stops the robot as always; the request is not used up (the caller asks again).
+    stale = ESCAPE_LAYER.step(SafetyState(), full(), (1, 1), fresh=False, escape_now=True)
+    assert stale == Decision(STOP, SafetyState(), REASON_STALE)
+    # The stop profile has no escape behaviour to start.
+    plain = STOP_LAYER.step(SafetyState(), frame(), (0.5, 0.5), escape_now=True)
+    assert plain == Decision((0.5, 0.5), SafetyState(), None)
 
 
 # Observed once for seed 1 and kept (see the test above).
@@ -428,7 +461,7 @@ def test_apply_safety_is_the_same_function():
 
 
 def test_reasons_are_short_distinct_strings():
-    assert len(set(REASONS)) == len(REASONS) == 10
+    assert len(set(REASONS)) == len(REASONS) == 11
     assert all(r == r.strip().lower() and len(r) <= 16 for r in REASONS)
 
 

@@ -18,7 +18,9 @@ from minimize_surprise.network import GenomeLayout, NetworkSpec
 from minimize_surprise.sensors import ALL_SENSORS
 from minimize_surprise.session import NONCE_SIZE, PROOF_SIZE, TAG_SIZE
 from minimize_surprise.wire import (
+    FEATURE_ESCAPE,
     HANDSHAKE_MAX_FRAME_SIZE,
+    MAX_FEATURES,
     MAX_FRAME_SIZE,
     MAX_HEARTBEAT_INTERVAL,
     MAX_NAME_LENGTH,
@@ -33,6 +35,8 @@ from minimize_surprise.wire import (
     Bye,
     Challenge,
     Error,
+    Escape,
+    EscapeReply,
     Evaluate,
     EvaluationStats,
     Failed,
@@ -116,6 +120,7 @@ messages: st.SearchStrategy[Message] = st.one_of(
         protocol_version=i64,
         sensors=st.lists(small_text, max_size=MAX_SENSORS).map(tuple),
         nonce=st.none() | st.binary(min_size=NONCE_SIZE, max_size=NONCE_SIZE),
+        features=st.lists(small_text, max_size=MAX_FEATURES).map(tuple),
     ),
     st.builds(
         Challenge,
@@ -148,6 +153,7 @@ messages: st.SearchStrategy[Message] = st.one_of(
         steps=st.integers(1, MAX_RECORDED_STEPS),
         step_period=periods,
         record=st.just(True),
+        post_evaluation=st.booleans(),
     ),
     st.builds(
         Result,
@@ -158,6 +164,14 @@ messages: st.SearchStrategy[Message] = st.one_of(
     ),
     st.builds(Failed, evaluation_id=u63, reason=small_text),
     st.builds(Abort, evaluation_id=u63, reason=small_text),
+    st.builds(Escape, seq=u63),
+    st.builds(
+        EscapeReply,
+        seq=u63,
+        accepted=st.booleans(),
+        evaluation_id=st.none() | u63,
+        reason=small_text,
+    ),
     st.builds(Ping, seq=u63),
     st.builds(Pong, seq=u63),
     st.builds(Error, code=small_text, message=small_text),
@@ -540,6 +554,7 @@ def test_the_largest_handshake_messages_fit_the_small_handshake_frames() -> None
             protocol_version=-(2**63),
             sensors=tuple("\u00e9" * MAX_NAME_LENGTH for _ in range(MAX_SENSORS)),
             nonce=bytes(NONCE_SIZE),
+            features=tuple("\u00e9" * MAX_NAME_LENGTH for _ in range(MAX_FEATURES)),
         ),
         Challenge(nonce=bytes(NONCE_SIZE), proof=bytes(PROOF_SIZE)),
         Authenticate(proof=bytes(PROOF_SIZE)),
@@ -550,6 +565,17 @@ def test_the_largest_handshake_messages_fit_the_small_handshake_frames() -> None
         # Tagged (Welcome, a late Refused) or not: either way within the limit, and decodable.
         data = encode(msg, max_frame_size=HANDSHAKE_MAX_FRAME_SIZE - TAG_SIZE)
         assert decode_frame(data) == msg
+
+
+def test_a_hello_of_a_robot_older_than_its_features_offers_none() -> None:
+    # A version-2 robot deployed before features existed sends no such field: it offers nothing,
+    # so the master never sends it a message it would not decode.
+    payload = msgspec.msgpack.decode(hello_payload(protocol_version=PROTOCOL_VERSION))
+    payload.pop("features", None)
+    msg = decode_payload(msgspec.msgpack.encode(payload))
+    assert isinstance(msg, Hello) and msg.features == ()
+    offered = Hello(**{**msgspec.structs.asdict(msg), "features": (FEATURE_ESCAPE,)})
+    assert decode_payload(msgspec.msgpack.encode(offered)) == offered
 
 
 def test_a_hello_of_another_version_may_lack_the_nonce() -> None:

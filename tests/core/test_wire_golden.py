@@ -48,6 +48,7 @@ import pytest
 from minimize_surprise.errors import ProtocolError
 from minimize_surprise.network import GenomeLayout, NetworkSpec
 from minimize_surprise.wire import (
+    FEATURE_ESCAPE,
     PROTOCOL_VERSION,
     REFUSED_VERSION_MISMATCH,
     Abort,
@@ -57,6 +58,8 @@ from minimize_surprise.wire import (
     Check,
     CheckReport,
     Error,
+    Escape,
+    EscapeReply,
     Evaluate,
     EvaluationStats,
     Failed,
@@ -133,6 +136,7 @@ def current_cases() -> dict[str, Message]:
                 protocol_version=PROTOCOL_VERSION,
                 sensors=SENSORS,
                 nonce=NONCE,
+                features=(FEATURE_ESCAPE,),
             ),
         ),
         (
@@ -157,6 +161,7 @@ def current_cases() -> dict[str, Message]:
                 steps=1000,
                 step_period=0.1,
                 record=True,
+                post_evaluation=True,
             ),
         ),
         (
@@ -197,6 +202,15 @@ def current_cases() -> dict[str, Message]:
         ),
         ("check-report/busy", CheckReport(seq=8, time=1795860001.5, busy=True)),
         ("check-report/defaults", CheckReport(seq=9, time=-0.0)),
+        ("escape", Escape(seq=11)),
+        ("escape-reply/accepted", EscapeReply(seq=11, accepted=True, evaluation_id=2**40 + 2)),
+        (
+            "escape-reply/refused",
+            EscapeReply(
+                seq=12, accepted=False, reason="profile: the stop profile has no escape behaviour"
+            ),
+        ),
+        ("escape-reply/defaults", EscapeReply(seq=13, accepted=False)),
         ("ping", Ping(seq=2**63 - 1)),
         ("pong", Pong(seq=0)),
         ("error", Error(code="authentication", message="a frame's tag does not verify")),

@@ -120,6 +120,31 @@ async def test_the_battery_reads_as_a_real_thymios_and_drains_while_driving(dbus
             await base.close()
 
 
+async def test_the_top_led_is_recorded_with_the_world_s_step(dbus_address: str):
+    # A served simulated Thymio declares leds.top as a real one does; its model records each
+    # write with the step a camera over the world would have seen it from.
+    w = world()
+    model = SimThymio(w, 0)
+    async with (
+        serve_sim_thymio(dbus_address, model),
+        SimSwarm(w, realtime=True),
+    ):
+        base = ThymioBase(ThymioConfig(bus=dbus_address, timeout=DRIVER_TIMEOUT))
+        await base.open()
+        try:
+            await base.read()
+            await base.set_top_led(0.0, 1.0, 0.0)
+            lit_at = w.steps
+            for _ in range(3):
+                await base.read()
+            await base.set_top_led(0.0, 0.0, 0.0)
+        finally:
+            await base.close()
+    (on, green), (off, dark) = model.led_log
+    assert (green, dark) == ([0, 32, 0], [0, 0, 0])
+    assert on <= lit_at and off >= on + 3  # three reads: three new steps at least
+
+
 async def test_a_read_is_answered_after_the_bound_when_the_world_stalls(dbus_address: str):
     w = world()  # never stepped
     async with serve_sim_thymio(dbus_address, SimThymio(w, 0)):

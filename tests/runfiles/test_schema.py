@@ -11,6 +11,7 @@ import sys
 import time
 from pathlib import Path
 
+import msgspec
 import pytest
 
 from minimize_surprise.config import ExperimentConfig
@@ -22,6 +23,8 @@ from runfiles.schema import (
     BestGenome,
     BoxesMoved,
     Checkpoint,
+    EscapeRequest,
+    Event,
     Live,
     PauseFile,
     PauseNote,
@@ -104,13 +107,19 @@ GOLDEN: dict[type[RunFile], tuple[RunFile, str]] = {
             genome_fitness=0.5,
             swarm_fitness=0.625,
             robots={"a": PostRobot(fitness=0.625, stats=STATS, trace="traces/a.npz")},
+            started_at=1700000002.5,
         ),
         '{\n  "format": 1,\n  "evaluation_id": 12,\n  "steps": 100,\n  "genome_fitness": 0.5,\n'
         '  "swarm_fitness": 0.625,\n  "robots": {\n    "a": {\n      "fitness": 0.625,\n'
         '      "stats": {\n        "steps_run": 100,\n        "overruns": 1,\n'
         '        "interventions": {\n          "front": 3\n        },\n'
         '        "read_failures": 0,\n        "battery_v": 3.9\n      },\n'
-        '      "trace": "traces/a.npz"\n    }\n  }\n}',
+        '      "trace": "traces/a.npz"\n    }\n  },\n  "started_at": 1700000002.5\n}',
+    ),
+    EscapeRequest: (
+        EscapeRequest(robot="thymio-3", token="0f1e2d3c4b5a6978", requested_at=1700000003.25),
+        '{"format": 1, "robot": "thymio-3", "token": "0f1e2d3c4b5a6978", '
+        '"requested_at": 1700000003.25}',
     ),
     Simulation: (
         Simulation(
@@ -157,6 +166,53 @@ def test_every_file_is_pinned_by_its_bytes_and_reads_back(kind: type[RunFile], t
     schema.write(tmp_path, example)
     assert (tmp_path / kind.FILE).read_text() == golden
     assert schema.read(tmp_path, kind) == example
+
+
+def test_a_post_evaluation_written_before_its_start_time_reads_without_one(tmp_path) -> None:
+    example, golden = GOLDEN[PostEvaluation]
+    older = golden.replace(',\n  "started_at": 1700000002.5', "")
+    assert "started_at" not in older
+    (tmp_path / PostEvaluation.FILE).write_text(older)
+    assert schema.read(tmp_path, PostEvaluation) == msgspec.structs.replace(
+        example, started_at=None
+    )
+    # And written so again when there is none (a run of the compiled engine: no robots flash).
+    assert schema.encode(msgspec.structs.replace(example, started_at=None)).decode() == older
+
+
+#: Two events as the master appends them: each a line of its own, unset fields left out.
+EVENTS = [
+    Event(time=1700000004.5, kind="post-evaluation-start", evaluation_id=41),
+    Event(
+        time=1700000005.75,
+        kind="escape",
+        robot="thymio-3",
+        request="0f1e2d3c4b5a6978",
+        accepted=False,
+        detail="thymio-3 is not connected",
+    ),
+]
+EVENT_LINES = (
+    '{"format": 1, "time": 1700000004.5, "kind": "post-evaluation-start", "evaluation_id": 41, '
+    '"detail": ""}\n'
+    '{"format": 1, "time": 1700000005.75, "kind": "escape", "robot": "thymio-3", '
+    '"request": "0f1e2d3c4b5a6978", "accepted": false, "detail": "thymio-3 is not connected"}\n'
+)
+
+
+def test_events_are_lines_pinned_by_their_bytes_and_read_back(tmp_path: Path) -> None:
+    assert schema.read_events(tmp_path) == []
+    for event in EVENTS:
+        schema.append_event(tmp_path, event)
+    assert (tmp_path / schema.EVENTS).read_text() == EVENT_LINES
+    assert schema.read_events(tmp_path) == EVENTS
+
+
+def test_an_event_line_this_version_cannot_read_is_skipped(tmp_path: Path) -> None:
+    newer = '{"format": 2, "time": 1.0, "kind": "escape"}\n'
+    torn = '{"format": 1, "time": 2.0, "ki'
+    (tmp_path / schema.EVENTS).write_text(EVENT_LINES + newer + '{"time": 3}\n' + torn)
+    assert schema.read_events(tmp_path) == EVENTS
 
 
 def test_an_absent_file_is_none_and_a_damaged_one_is_named(tmp_path: Path) -> None:

@@ -284,3 +284,32 @@ async def test_a_long_sleep_alone_leaves_the_event_loop_responsive():
     await bounded(sleeper, ticker(), timeout=10.0)
     assert s.world.steps == 3_000
     assert ticks >= 2  # the world stepped in bursts, the loop ran in between
+
+
+async def test_top_leds_are_recorded_by_world_step_for_a_synthetic_camera():
+    s = swarm(2, attach_all=True)  # in lockstep from the start: neither runs ahead
+    lit = []
+
+    async def flashing(body: SimBody, on: int, off: int) -> None:
+        # An agent's loop that lights its LED at step ``on`` and puts it out at step ``off``.
+        async with body:
+            t0 = body.clock.now()
+            for k in range(8):
+                if k == on:
+                    await body.set_top_led(0.0, 1.0, 0.0)
+                if k == off:
+                    await body.set_top_led(0.0, 0.0, 0.0)
+                await body.read()
+                await body.drive(0.0, 0.0)
+                await body.clock.sleep_until(t0 + (k + 1) * DT)
+        lit.append(body.index)
+
+    await bounded(flashing(s.body(0), 0, 5), flashing(s.body(1), 2, 9))
+    assert sorted(lit) == [0, 1]
+    assert s.lit_steps(0) == [(0, 5)]
+    assert s.lit_steps(1) == [(2, None)]  # still lit
+    assert s.top_leds[0].colour == (0.0, 1.0, 0.0)
+    await s.body(1).set_top_led(2.0, float("nan"), -1.0)  # clamped, NaN off: never an error
+    assert s.top_leds[-1].colour == (1.0, 0.0, 0.0)
+    s.clear_top_leds()  # with a reset of the world, whose steps count anew
+    assert s.lit_steps(0) == [] and s.top_leds == []
