@@ -260,9 +260,10 @@ class OverheadVideo:
     # --- one frame -----------------------------------------------------------------------------
 
     def frames(self) -> Iterator[tuple[float, np.ndarray]]:
-        """Every frame of the video with its time after the start (seconds)."""
+        """Every frame of the video with its time on the video's clock (seconds from the first
+        frame, as a video file's are; :meth:`frame_time` is the time after the start)."""
         for index in range(self.frame_count):
-            yield self.frame_time(index), self.render(index)
+            yield index / self.scene.fps, self.render(index)
 
     def render(self, index: int) -> np.ndarray:
         """Frame ``index`` (BGR, uint8)."""
