@@ -231,6 +231,9 @@ def track_command(args: argparse.Namespace) -> int:
         if args.run is None:
             raise ConfigError("name the positions' file, or the run it belongs to", key="--out")
         out = args.run / "tracked_positions.csv"
+    if args.camera is not None and duration is None:
+        # A camera has no last frame: the post-evaluation's length says when to stop.
+        raise ConfigError("a live camera needs the post-evaluation's length", key="--duration")
     source = args.camera if args.camera is not None else str(args.video)
     result = track_video(source, config, duration=duration, start=args.start, boxes=boxes)
     camera = result.camera
