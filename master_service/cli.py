@@ -7,6 +7,8 @@ Subcommands::
     surprise-master resume DIR [--pause-before-post]
                                                     continue a run from its checkpoint
     surprise-master report DIR [--positions CSV]   write metrics.json and plots/
+    surprise-master track VIDEO --run DIR --floor WxH --markers R=ID,... --camera-height M
+                                                    poses and boxes from an overhead camera
     surprise-master status DIR                      where a run stands
     surprise-master check CONFIG [--json]           preflight: is every robot fit for a run?
     surprise-master continue DIR                    let a paused run go on (a battery swapped,
@@ -94,9 +96,7 @@ def _parser() -> argparse.ArgumentParser:
     _pause_option(resume)
     resume.set_defaults(handler=_resume)
 
-    check = sub.add_parser(
-        "check", help="preflight: is every robot of a configuration fit for a run?"
-    )
+    check = sub.add_parser("check", help="preflight: is every robot fit for a run?")
     check.add_argument("config", type=Path, metavar="CONFIG", help="master configuration (YAML)")
     check.add_argument(
         "--timeout",
@@ -109,6 +109,7 @@ def _parser() -> argparse.ArgumentParser:
     check.set_defaults(handler=cli_lab.check_command)
 
     cli_lab.add_hand_commands(sub)  # continue, escape
+    cli_lab.add_track_parser(sub)
 
     report = sub.add_parser("report", help="write metrics.json and plots of a run")
     report.add_argument("dir", type=Path, metavar="DIR", help="the run directory")
@@ -185,12 +186,7 @@ def _parser() -> argparse.ArgumentParser:
         "secret",
         help="write a new shared secret of the master and the robots (only you may read it)",
     )
-    secret.add_argument(
-        "file",
-        type=Path,
-        metavar="FILE",
-        help="where to write it, e.g. secret.key (never replaced)",
-    )
+    secret.add_argument("file", type=Path, metavar="FILE", help="where (never replaced)")
     secret.set_defaults(handler=cli_lab.secret_command)
 
     status = sub.add_parser("status", help="show where a run stands")

@@ -1,16 +1,18 @@
 """The handlers of ``surprise-master``'s commands around a run: ``report``, ``status``,
 ``check`` (the preflight), ``continue`` (after a pause), ``escape`` (the experimenter's hand),
-``watch`` and ``dashboard``, and the parsers of a person's actions on a running run
-(:func:`add_hand_commands`); the rest of the parser and the commands that run experiments are in
-:mod:`master_service.cli`."""
+``watch``, ``dashboard`` and ``track`` (the overhead camera, with its options here), and the
+parsers of a person's actions on a running run (:func:`add_hand_commands`); the rest of the
+parser and the commands that run experiments are in :mod:`master_service.cli`."""
 
 from __future__ import annotations
 
 import argparse
 import asyncio
 import json
+import math
 import sys
 from pathlib import Path
+from typing import Any
 
 from master_service.config import load_master_config, required_secret
 from master_service.rundir import RunDir, RunDirError
@@ -18,6 +20,7 @@ from minimize_surprise.text import plural
 
 __all__ = [
     "add_hand_commands",
+    "add_track_parser",
     "check_command",
     "continue_command",
     "dashboard_command",
@@ -25,6 +28,7 @@ __all__ = [
     "report_command",
     "secret_command",
     "status_command",
+    "track_command",
     "watch_command",
 ]
 
@@ -194,4 +198,127 @@ def secret_command(args: argparse.Namespace) -> int:
         f"wrote a new shared secret to {path} (only you may read it); copy it to every robot: "
         f"sudo deploy/install-pi.sh ROBOT_ID {path}"
     )
+    return 0
+
+
+def add_track_parser(sub: Any) -> None:
+    """The ``track`` command's options, on the subcommands' parser ``sub``."""
+    track = sub.add_parser(
+        "track", help="robots' poses and the boxes of a post-evaluation from an overhead camera"
+    )
+    track.add_argument("video", nargs="?", type=Path, metavar="VIDEO", help="a video file")
+    track.add_argument("--camera", type=int, metavar="N", help="or the camera N (V4L2), live")
+    track.add_argument(
+        "--run", type=Path, metavar="DIR", help="the run: its robots, boxes and post-evaluation"
+    )
+    track.add_argument("--out", type=Path, metavar="CSV", help="default: DIR/tracked_positions.csv")
+    track.add_argument("--config", type=Path, help="a tracking file (YAML; docs/tracking.md)")
+    track.add_argument("--floor", metavar="WxH", help="metres between the corner markers")
+    track.add_argument("--markers", metavar="ROBOT=ID,...", help="each robot's marker id")
+    track.add_argument(
+        "--camera-height", type=float, metavar="M", help="the lens's height above the floor"
+    )
+    track.add_argument(
+        "--start", type=float, metavar="S", help="the post-evaluation's start in the video "
+        "(default: the robots' LED flash)",
+    )  # fmt: skip
+    track.add_argument(
+        "--duration", type=float, metavar="S", help="its length (default: the run's)"
+    )
+    track.add_argument("--boxes", action="store_true", help="find boxes (default: the run's)")
+    track.set_defaults(handler=track_command)
+
+
+def track_command(args: argparse.Namespace) -> int:
+    """``surprise-master track``."""
+    import msgspec
+
+    from minimize_surprise.errors import ConfigError
+    from runfiles import schema
+    from simulator.experiment import world_config
+    from tracking.config import load_tracking_config, parse_floor, parse_markers
+    from tracking.video import track_video, write_boxes, write_positions
+
+    if (args.video is None) == (args.camera is None):
+        raise ConfigError("give a video file or --camera N (one of them)", key="VIDEO")
+    config = load_tracking_config(args.config)
+    robots = config.robots
+    if args.markers is not None:
+        robots = msgspec.structs.replace(robots, ids=parse_markers(args.markers))
+    updates: dict[str, Any] = {"robots": robots}
+    if args.floor is not None:
+        updates["floor"] = parse_floor(args.floor)
+    if args.camera_height is not None:
+        updates["camera"] = msgspec.structs.replace(config.camera, height=args.camera_height)
+    duration, boxes = args.duration, args.boxes
+    if args.run is not None:
+        run = schema.read_config(args.run).experiment
+        assert run is not None
+        post = schema.read(args.run, schema.PostEvaluation)
+        ids = list(post.robots) if post is not None else []
+        stray = [r for r in robots.ids if ids and r not in ids]
+        if stray:
+            raise ConfigError(
+                f"no robot '{stray[0]}' in the run's post-evaluation (it has {', '.join(ids)})",
+                key="--markers",
+            )
+        steps = post.steps if post is not None else run.post_evaluation_steps
+        duration = steps * run.step_period if duration is None else duration
+        world = world_config(run)
+        boxes = boxes or world.boxes
+        if world.boxes:
+            updates["boxes"] = msgspec.structs.replace(config.boxes, size=world.box_size)
+    try:
+        config = msgspec.structs.replace(config, **updates)
+    except ValueError as exc:  # the checks of TrackingConfig, e.g. a marker used twice
+        raise ConfigError(str(exc), file=str(args.config) if args.config else None) from None
+    out = args.out
+    if out is None:
+        if args.run is None:
+            raise ConfigError("name the positions' file, or the run it belongs to", key="--out")
+        out = args.run / "tracked_positions.csv"
+    if args.camera is not None and duration is None:
+        # A camera has no last frame: the post-evaluation's length says when to stop.
+        raise ConfigError("a live camera needs the post-evaluation's length", key="--duration")
+    source = args.camera if args.camera is not None else str(args.video)
+    result = track_video(source, config, duration=duration, start=args.start, boxes=boxes)
+    camera = result.camera
+    how = "the LED flash" if result.flash else "--start"
+    print(
+        f"tracked {result.source}: {plural(result.frames, 'frame')}; the post-evaluation from "
+        f"{result.start:.2f} s ({how}), {plural(len(result.times), 'frame')} over "
+        f"{result.times[-1]:.1f} s"
+        + ("" if result.end_reached else f" (the video ended before its {duration:g} s)")
+    )
+    print(
+        f"camera {camera.height:g} m above ({camera.nadir[0]:.3f}, {camera.nadir[1]:.3f}) m, "
+        f"{math.degrees(camera.tilt):.1f} degrees off the vertical; the corner markers fit to "
+        f"{camera.residual_px:.2f} px"
+    )
+    for robot, summary in result.robots.items():
+        line = f"{robot} (marker {summary.marker}): seen in {summary.seen} of {summary.frames}"
+        if summary.seen < summary.frames:
+            line += (
+                f", {summary.frames - summary.seen} filled in (interpolated, or held at an end), "
+                f"longest gap {summary.longest_gap_s:.1f} s"
+            )
+        print(line)
+    if result.unknown:
+        print(
+            "ignored stray markers: " + ", ".join(f"{m} ({n}x)" for m, n in result.unknown.items())
+        )
+    write_positions(out, result)
+    written = [str(out)]
+    boxes_file = write_boxes(out, result)
+    if boxes_file is not None and result.boxes is not None:
+        found = result.boxes
+        print(
+            f"boxes: {len(found.boxes.start) + len(found.unpaired_start)} at the start, "
+            f"{len(found.boxes.end) + len(found.unpaired_end)} at the end, "
+            f"{len(found.boxes.start)} paired"
+        )
+        written.append(str(boxes_file))
+    print(f"wrote {' and '.join(written)}")
+    if args.run is not None:
+        print(f"next: surprise-master report {args.run} --positions {out}")
     return 0

@@ -35,6 +35,7 @@ from runfiles.schema import (
     BOX_TRACK,
     METRICS,
     PLOTS,
+    BoxesMoved,
     Checkpoint,
     PostEvaluation,
     Replay,
@@ -112,6 +113,7 @@ def _post_metrics(
     sensors: list[str],
     simulation: Simulation | None,
     dt: float,
+    tracked_boxes: BoxesMoved | None = None,
 ) -> dict[str, Any]:
     robots: dict[str, Any] = {}
     predicted: list[np.ndarray] = []
@@ -158,7 +160,8 @@ def _post_metrics(
     if poses:
         steps = min(len(p) for p in poses.values())
         stacked = np.stack([p[:steps] for p in poses.values()], axis=1)
-        boxes = None if simulation is None else simulation.post_evaluation_boxes
+        # A simulated run's boxes, or those an overhead camera found for a real one.
+        boxes = tracked_boxes if simulation is None else simulation.post_evaluation_boxes
         behaviour = sim_metrics.behaviour_metrics(
             stacked,
             None if boxes is None else np.asarray(boxes.start, dtype=np.float64),
@@ -241,6 +244,7 @@ class _Run:
     traces: dict[str, dict[str, np.ndarray]]
     simulation: Simulation | None
     tracked: dict[str, Any] | None = None  # where a tracker's file gave the poses
+    tracked_boxes: BoxesMoved | None = None  # the boxes the tracker found, paired
 
 
 def _load(
@@ -258,7 +262,14 @@ def _load(
     tracked = tracker.add_tracked_poses(
         positions, traces, config.experiment.step_period, offset=offset, ignore=robots
     )
-    return _Run(run, config.experiment, checkpoint, rows, robots, post, traces, simulation, tracked)
+    boxes = None
+    if tracked is not None and positions is not None and simulation is None:
+        found = tracker.tracked_boxes(positions)
+        if found is not None:
+            boxes, tracked["boxes"] = found
+    return _Run(
+        run, config.experiment, checkpoint, rows, robots, post, traces, simulation, tracked, boxes
+    )
 
 
 def compute_metrics(path: str | Path) -> dict[str, Any]:
@@ -308,6 +319,7 @@ def _metrics(data: _Run) -> dict[str, Any]:
             list(data.experiment.sensors),
             data.simulation,
             data.experiment.step_period,
+            data.tracked_boxes,
         )
     )
     if data.tracked is not None and metrics["post_evaluation"] is not None:
@@ -400,7 +412,10 @@ def behaviour_line(metrics: dict[str, Any]) -> str | None:
         return f"behaviour: none: {post.get('behaviour_missing', NO_POSITIONS)}"
     kind = sim_metrics.behaviour_label(b)
     if post.get("positions"):
-        kind += f" (positions from {post['positions']['file']})"
+        source = post["positions"]
+        boxes = source.get("boxes")
+        also = f", d_B from the boxes in {boxes['file']}" if boxes else ""
+        kind += f" (positions from {source['file']}{also})"
     return f"behaviour: {kind}"
 
 
@@ -447,11 +462,13 @@ def _title(data: _Run, metrics: dict[str, Any]) -> str:
 
 
 def _arena(data: _Run) -> pictures.Arena | None:
-    """The run's world as the pictures draw it (real robots: their experiment's, if tracked)."""
-    if data.simulation is None:
-        return pictures.Arena(world_config(data.experiment)) if data.tracked else None
+    """The run's world as the pictures draw it (real robots: their experiment's, if tracked, with
+    the boxes the tracker found)."""
+    if data.simulation is None and not data.tracked:
+        return None
     config = world_config(data.experiment)
-    boxes = data.simulation.post_evaluation_boxes
+    simulated = data.simulation
+    boxes = data.tracked_boxes if simulated is None else simulated.post_evaluation_boxes
     track, every = None, 1
     path = data.run / BOX_TRACK
     if path.is_file():

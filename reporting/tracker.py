@@ -7,9 +7,18 @@ the behaviour metrics, classes and the trajectories are those of a simulated run
 
 The file: a header row naming at least the columns ``time`` (seconds, the tracker's clock),
 ``robot`` (the robot's id in the run, as in ``post_evaluation.json``), ``x``, ``y`` (metres) and
-``heading`` (radians); other columns are ignored, the rows may come in any order. The frame is the
-simulator's (``simulator.scenarios``): origin at the centre of the carpet, x to the right, y up,
-a robot's position the point between its wheels, its heading counter-clockwise from the x axis.
+``heading`` (radians); other columns are ignored but ``seen``: a row whose ``seen`` is 0 holds a
+pose the tracker filled in for a frame in which it did not see the robot (``surprise-master
+track`` writes them, so that its file has every robot in every frame), and is skipped here, so
+that the gaps are measured and filled as in any tracker's file. The rows may come in any order.
+The frame is the simulator's (``simulator.scenarios``): origin at the centre of the carpet, x to
+the right, y up, a robot's position the point between its wheels, its heading counter-clockwise
+from the x axis.
+
+Boxes: ``surprise-master track`` writes beside the file the boxes it found when the
+post-evaluation started and ended (``runfiles.schema.TrackedBoxes``, named by
+:func:`runfiles.schema.tracked_boxes_path`); when that file is there the report takes d_B from it
+(:func:`tracked_boxes`), as a simulated run's from ``simulation.json``.
 
 Alignment: the trace's step k was taken at tracker time ``offset + k * step_period``; ``offset``
 is the first time in the file unless given. Each robot's samples are interpolated linearly onto
@@ -32,6 +41,8 @@ from typing import Any, Final
 import numpy as np
 
 from minimize_surprise.errors import ConfigError
+from runfiles import schema
+from runfiles.schema import BoxesMoved, TrackedBoxes
 
 __all__ = [
     "COLUMNS",
@@ -42,6 +53,7 @@ __all__ = [
     "add_tracked_poses",
     "read_tracker",
     "resample",
+    "tracked_boxes",
     "tracked_poses",
 ]
 
@@ -141,6 +153,7 @@ def read_tracker(
             )
     index = {column: names.index(column) for column in COLUMNS}
     width = max(index.values()) + 1
+    seen = names.index("seen") if "seen" in names else None
     for line, row in lines:
         if not row or not "".join(row).strip():
             continue  # a blank line, as a hand-edited file's last one often is
@@ -152,6 +165,8 @@ def read_tracker(
                 line=line,
                 column=missing,
             )
+        if seen is not None and seen < len(row) and row[seen].strip() == "0":
+            continue  # filled in by the tracker, not seen
         robot = row[index["robot"]].strip()
         if robot not in rows and robot in ignore:
             continue
@@ -323,3 +338,34 @@ def add_tracked_poses(
     for robot, poses in found.poses.items():
         traces[robot]["poses"] = poses
     return found.source
+
+
+def tracked_boxes(positions: str | Path) -> tuple[BoxesMoved, dict[str, Any]] | None:
+    """The boxes found with the tracker file ``positions`` (its
+    :func:`~runfiles.schema.tracked_boxes_path`), paired start to end, and what ``metrics.json``
+    records of them; None when the tracker wrote no boxes. A file that cannot be read or decoded
+    raises :class:`TrackerError` or :class:`runfiles.schema.RunDirError` naming it."""
+    path = schema.tracked_boxes_path(positions)
+    if not path.is_file():
+        return None
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise TrackerError(f"cannot read it: {exc.strerror or exc}", file=str(path)) from None
+    found = schema.decode(TrackedBoxes, raw, name=str(path))
+    pairs = len(found.boxes.start)
+    if len(found.boxes.end) != pairs:
+        raise TrackerError(
+            f"{pairs} boxes at the start are paired with {len(found.boxes.end)} at the end",
+            file=str(path),
+            column="boxes",
+        )
+    source = {
+        "file": str(path),
+        "sha256": hashlib.sha256(raw).hexdigest(),
+        "video": found.source,
+        "pairs": pairs,
+        "unpaired_start": len(found.unpaired_start),
+        "unpaired_end": len(found.unpaired_end),
+    }
+    return found.boxes, source

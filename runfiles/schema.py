@@ -20,6 +20,11 @@ Layout (docs/runs.md shows each file)::
     simulation.json        Simulation: in simulation, the world, and the boxes before and after
                            the post-evaluation
     box_track.npz          in simulation with boxes: the boxes during the post-evaluation
+    tracked_positions.csv  a real run: the robots' poses an overhead camera tracked
+                           (``surprise-master track``; the columns in reporting.tracker)
+    tracked_positions.boxes.json
+                           TrackedBoxes: the boxes the camera found at the post-evaluation's
+                           start and end, beside the positions' file (tracked_boxes_path)
     replay.json            Replay: in a replay's directory, where its genome came from
 
 Versions. Each JSON file carries its ``format``, the version of its structure here (a file written
@@ -90,6 +95,7 @@ __all__ = [
     "RunFile",
     "SimulatedWorld",
     "Simulation",
+    "TrackedBoxes",
     "append_event",
     "decode",
     "encode",
@@ -103,6 +109,7 @@ __all__ = [
     "read_if_readable",
     "read_rows",
     "robot_stat_columns",
+    "tracked_boxes_path",
     "write",
     "write_atomic",
     "writing",
@@ -351,6 +358,34 @@ class Simulation(RunFile, frozen=True, kw_only=True):
     post_evaluation_boxes: BoxesMoved | None = None
     #: every robot's safety state when the post-evaluation began (a replay starts from it)
     post_evaluation_safety: list[list[int]] | None = None
+
+
+class TrackedBoxes(RunFile, frozen=True, kw_only=True):
+    """``<positions>.boxes.json`` beside a tracker's positions file (:func:`tracked_boxes_path`):
+    the boxes an overhead camera found on the floor when the post-evaluation started and ended.
+    ``boxes`` pairs them (``start[i]`` went to ``end[i]``, metres) so that the sum of the
+    distances is least, as boxes carry no identity; boxes found only at one end are left out of
+    the pairs and listed in ``unpaired_start`` and ``unpaired_end``."""
+
+    FILE: ClassVar[str] = "tracked_positions.boxes.json"
+    FORMAT: ClassVar[int] = 1
+    INDENT: ClassVar[int | None] = 2
+
+    #: the video (or camera) the boxes were found in
+    source: str
+    #: seconds after the post-evaluation's start of the frames the boxes were found in
+    start_time_s: float
+    end_time_s: float
+    boxes: BoxesMoved
+    unpaired_start: list[list[float]] = msgspec.field(default_factory=list)
+    unpaired_end: list[list[float]] = msgspec.field(default_factory=list)
+
+
+def tracked_boxes_path(positions: str | Path) -> Path:
+    """The boxes' file that goes with the tracker's positions file ``positions``:
+    ``tracked_positions.csv`` has ``tracked_positions.boxes.json`` beside it."""
+    path = Path(positions)
+    return path.with_name(f"{path.stem}.boxes.json")
 
 
 class Replay(RunFile, frozen=True, kw_only=True):

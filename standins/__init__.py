@@ -13,7 +13,10 @@ would be, in tests, rehearsals and the simulated swarm's separate processes.
 * :mod:`standins.serve` - ``surprise-sim-robots``: simulated robots served as separate
   processes behind either medulla;
 * :mod:`standins.scripted_robots` - robots that speak the protocol over TCP from a script, for
-  the master's tests and benchmarks.
+  the master's tests and benchmarks;
+* :mod:`standins.overhead_camera` - a synthetic overhead camera filming a simulated
+  post-evaluation (corner markers, robots with ArUco markers, boxes, the LED flash), for the
+  tracker's tests and benchmark.
 
 Nothing is imported here, so that each part costs only what it uses.
 """

@@ -35,6 +35,7 @@ from runfiles.schema import (
     RunFile,
     SimulatedWorld,
     Simulation,
+    TrackedBoxes,
     master_alive,
 )
 
@@ -140,6 +141,20 @@ GOLDEN: dict[type[RunFile], tuple[RunFile, str]] = {
         Replay(source="/runs/a", source_run="/runs/a", genome_fitness=None),
         '{\n  "format": 1,\n  "source": "/runs/a",\n  "source_run": "/runs/a",\n'
         '  "genome_fitness": null\n}',
+    ),
+    TrackedBoxes: (
+        TrackedBoxes(
+            source="post.mp4",
+            start_time_s=0.0,
+            end_time_s=100.0,
+            boxes=BoxesMoved(start=[[0.0, 0.1]], end=[[0.2, 0.1]]),
+            unpaired_end=[[0.3, 0.3]],
+        ),
+        '{\n  "format": 1,\n  "source": "post.mp4",\n  "start_time_s": 0.0,\n'
+        '  "end_time_s": 100.0,\n  "boxes": {\n    "start": [\n      [\n        0.0,\n'
+        '        0.1\n      ]\n    ],\n    "end": [\n      [\n        0.2,\n        0.1\n'
+        '      ]\n    ]\n  },\n  "unpaired_start": [],\n  "unpaired_end": [\n    [\n'
+        "      0.3,\n      0.3\n    ]\n  ]\n}",
     ),
 }
 
