@@ -1,6 +1,10 @@
 """Every file of a run directory, as typed and versioned structures: the one definition that the
 master, ``status``, ``report``, the dashboard, the replay and the studies write and read.
 
+Why one file of over 600 lines: it is the run directory's one definition, every file side by side
+with its format, so that a change to one is made where the others are seen, and the schema's
+tests find every file by walking one module's structures.
+
 Layout (docs/runs.md shows each file)::
 
     config.yaml            the resolved master configuration (experiment inline, paths absolute);
@@ -37,10 +41,6 @@ gained keys.
 Whether a master still serves a run is decided in one place, :func:`master_alive`: it says
 ``running``, it rewrote the file within :data:`STALE_AFTER` seconds, and its process exists when it
 names one on this machine.
-
-Why one file of over 600 lines: it is the run directory's one definition, every file side by side
-with its format, so that a change to one is made where the others are seen, and the schema's
-tests find every file by walking one module's structures.
 """
 
 from __future__ import annotations
