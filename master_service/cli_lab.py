@@ -265,6 +265,9 @@ def track_command(args: argparse.Namespace) -> int:
         steps = post.steps if post is not None else run.post_evaluation_steps
         duration = steps * run.step_period if duration is None else duration
         world = world_config(run)
+        if args.floor is None and config.floor is None:
+            # The corner markers mark the floor's corners: the run's arena gives its size.
+            updates["floor"] = (world.carpet_width, world.carpet_height)
         boxes = boxes or world.boxes
         if world.boxes:
             updates["boxes"] = msgspec.structs.replace(config.boxes, size=world.box_size)

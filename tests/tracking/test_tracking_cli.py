@@ -171,3 +171,36 @@ def test_a_marker_used_twice_in_a_tracking_file_is_named(tmp_path, capsys):
 def test_a_video_or_a_camera_is_needed(capsys):
     assert main(["track"]) == 2
     assert "give a video file or --camera N" in capsys.readouterr().err
+
+
+def test_without_floor_the_runs_arena_gives_it(filmed, tmp_path, capsys):
+    # The corner markers lie at the floor's corners: a run in a 1.3 m arena needs no --floor.
+    boxes = filmed.video.boxes
+    assert boxes is not None
+    video = OverheadVideo(
+        scene(image_size=(960, 540)),
+        filmed.poses[:15],
+        boxes[: 15 // filmed.video.box_every + 1],
+        box_every=filmed.video.box_every,
+        pre_roll=0.5,
+        seed=2,
+    )
+    path = video.write(tmp_path / "short.mp4")
+    real = _real(filmed.run, tmp_path)
+    config_file = real / "config.yaml"
+    config = yaml.safe_load(config_file.read_text())
+    config["experiment"]["simulation"] = {"arena_side": 1.3}
+    config_file.write_text(yaml.safe_dump(config))
+    markers = ",".join(f"{r}={m}" for r, m in zip(ROBOTS, MARKERS, strict=True))
+    args = ["track", str(path), "--run", str(real), "--markers", markers, "--camera-height", "2"]
+    assert main([*args, "--duration", "0.5"]) == 0, capsys.readouterr().err
+    assert _fit(capsys.readouterr().out) < 1.0  # pixels
+    config["experiment"]["simulation"] = {"arena_side": 1.6}  # the wrong floor: a poor fit
+    config_file.write_text(yaml.safe_dump(config))
+    assert main([*args, "--duration", "0.5"]) == 0
+    assert _fit(capsys.readouterr().out) > 3.0
+
+
+def _fit(out: str) -> float:
+    # The corner markers' residual the command prints, in pixels.
+    return float(out.split("the corner markers fit to ")[1].split(" px")[0])
