@@ -266,8 +266,9 @@ def track_command(args: argparse.Namespace) -> int:
         duration = steps * run.step_period if duration is None else duration
         world = world_config(run)
         if args.floor is None and config.floor is None:
-            # The corner markers mark the floor's corners: the run's arena gives its size.
-            updates["floor"] = (world.carpet_width, world.carpet_height)
+            # The corner markers lie in the walls' inner corners, off the carpet the boxes and
+            # robots cover: the run's arena gives where.
+            updates["floor"] = (2 * world.wall_hx, 2 * world.wall_hy)
         boxes = boxes or world.boxes
         if world.boxes:
             updates["boxes"] = msgspec.structs.replace(config.boxes, size=world.box_size)

@@ -51,13 +51,13 @@ class OverheadScene:
 
     ``floor`` is the rectangle between the corner markers' black squares' outer corners (centred
     on the origin; each sheet's white margin lies around its square),
-    ``carpet`` the square the robots drive on; ``robots`` the robot ids in the poses' order and
+    ``carpet`` the carpet the robots drive on, its side or its (width, height); ``robots`` the robot ids in the poses' order and
     ``markers`` their marker ids. The camera stands ``height`` above the point ``nadir``, its
     optical axis aimed at ``aim`` on the floor and turned ``roll`` about it.
     """
 
     floor: tuple[float, float] = (1.3, 1.3)
-    carpet: float = 1.1
+    carpet: float | tuple[float, float] = 1.1
     robots: tuple[str, ...] = ()
     markers: tuple[int, ...] = ()
     corner_ids: tuple[int, int, int, int] = (0, 1, 2, 3)
@@ -209,7 +209,8 @@ class OverheadVideo:
             )
 
         texture[box(-s.floor[0] / 2, -s.floor[1] / 2, s.floor[0] / 2, s.floor[1] / 2)] = _MARGIN
-        texture[box(-s.carpet / 2, -s.carpet / 2, s.carpet / 2, s.carpet / 2)] = _CARPET
+        cw, ch = s.carpet if isinstance(s.carpet, tuple) else (s.carpet, s.carpet)
+        texture[box(-cw / 2, -ch / 2, cw / 2, ch / 2)] = _CARPET
         dictionary = cv2.aruco.getPredefinedDictionary(s.dictionary)
         side = round(s.corner_size / res)
         w, h, c = s.floor[0] / 2, s.floor[1] / 2, s.corner_size

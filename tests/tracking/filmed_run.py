@@ -6,6 +6,7 @@ start after 1 s of standing."""
 
 from __future__ import annotations
 
+import shutil
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -87,3 +88,17 @@ def film(where: Path) -> Filmed:
         video.frames(), config, name="synthetic", duration=STEPS * 0.1, boxes=True
     )
     return Filmed(run, poses, start, end, video, config, result)
+
+
+def as_real(run: Path, where: Path) -> Path:
+    """The simulated run as a real one looks: no poses in its traces, no simulation files."""
+    real = where / "real"
+    shutil.copytree(run, real)
+    for name in ("simulation.json", "box_track.npz", "metrics.json"):
+        (real / name).unlink(missing_ok=True)
+    shutil.rmtree(real / "plots", ignore_errors=True)
+    for path in (real / "traces").iterdir():
+        with np.load(path) as data:
+            arrays = {key: data[key] for key in data.files if key != "poses"}
+        np.savez_compressed(path, **arrays)
+    return real

@@ -4,13 +4,11 @@ behaviour and d_B from an overhead camera's video; and every bad input named in 
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 
-import numpy as np
 import pytest
 import yaml
-from filmed_run import MARKERS, ROBOTS, Filmed, scene, tracking_config
+from filmed_run import MARKERS, ROBOTS, Filmed, as_real, scene, tracking_config
 
 from master_service.cli import main
 from minimize_surprise.errors import ConfigError
@@ -19,20 +17,6 @@ from standins.overhead_camera import OverheadVideo
 from tracking.camera import TrackingError
 from tracking.config import parse_floor, parse_markers
 from tracking.video import track_frames
-
-
-def _real(run: Path, where: Path) -> Path:
-    """The simulated run as a real one looks: no poses in its traces, no simulation files."""
-    real = where / "real"
-    shutil.copytree(run, real)
-    for name in ("simulation.json", "box_track.npz", "metrics.json"):
-        (real / name).unlink(missing_ok=True)
-    shutil.rmtree(real / "plots", ignore_errors=True)
-    for path in (real / "traces").iterdir():
-        with np.load(path) as data:
-            arrays = {key: data[key] for key in data.files if key != "poses"}
-        np.savez_compressed(path, **arrays)
-    return real
 
 
 def _tracking_file(path: Path) -> Path:
@@ -50,7 +34,7 @@ def _tracking_file(path: Path) -> Path:
 
 def test_track_then_report_gives_the_simulators_class_and_d_b(filmed, tmp_path, capsys):
     video = filmed.video.write(tmp_path / "post.mp4")
-    real = _real(filmed.run, tmp_path)
+    real = as_real(filmed.run, tmp_path)
     config = _tracking_file(tmp_path / "tracking.yaml")
     assert main(["track", str(video), "--run", str(real), "--config", str(config)]) == 0
     out = capsys.readouterr().out
@@ -133,7 +117,7 @@ def test_no_flash_and_no_start_is_named_and_a_start_does_without(filmed, tmp_pat
 
 
 def test_markers_of_robots_not_in_the_run_are_refused(filmed, tmp_path, capsys):
-    real = _real(filmed.run, tmp_path)
+    real = as_real(filmed.run, tmp_path)
     args = ["track", str(tmp_path / "v.mp4"), "--run", str(real), "--floor", "1.3x1.3"]
     assert main([*args, "--markers", "thymio-9=10", "--camera-height", "2"]) == 2
     err = capsys.readouterr().err
@@ -174,7 +158,8 @@ def test_a_video_or_a_camera_is_needed(capsys):
 
 
 def test_without_floor_the_runs_arena_gives_it(filmed, tmp_path, capsys):
-    # The corner markers lie at the floor's corners: a run in a 1.3 m arena needs no --floor.
+    # The corner markers lie in the walls' inner corners: a run in the boxes arena (1.1 m, the
+    # walls 10 cm out) needs no --floor for its 1.3 m between the markers.
     boxes = filmed.video.boxes
     assert boxes is not None
     video = OverheadVideo(
@@ -186,16 +171,14 @@ def test_without_floor_the_runs_arena_gives_it(filmed, tmp_path, capsys):
         seed=2,
     )
     path = video.write(tmp_path / "short.mp4")
-    real = _real(filmed.run, tmp_path)
+    real = as_real(filmed.run, tmp_path)
     config_file = real / "config.yaml"
     config = yaml.safe_load(config_file.read_text())
-    config["experiment"]["simulation"] = {"arena_side": 1.3}
-    config_file.write_text(yaml.safe_dump(config))
     markers = ",".join(f"{r}={m}" for r, m in zip(ROBOTS, MARKERS, strict=True))
     args = ["track", str(path), "--run", str(real), "--markers", markers, "--camera-height", "2"]
     assert main([*args, "--duration", "0.5"]) == 0, capsys.readouterr().err
     assert _fit(capsys.readouterr().out) < 1.0  # pixels
-    config["experiment"]["simulation"] = {"arena_side": 1.6}  # the wrong floor: a poor fit
+    config["experiment"]["simulation"] = {"arena_side": 1.4}  # the wrong floor: a poor fit
     config_file.write_text(yaml.safe_dump(config))
     assert main([*args, "--duration", "0.5"]) == 0
     assert _fit(capsys.readouterr().out) > 3.0
