@@ -245,6 +245,7 @@ def _random_walk(world: World, steps: int, seed: int) -> np.ndarray:
 
 def main(argv: list[str] | None = None) -> None:
     """Draw a named scenario to a PNG (see the module docstring)."""
+    from simulator.arenas import load_arena
     from simulator.scenarios import SCENARIOS, scenario_config
 
     parser = argparse.ArgumentParser(prog="python -m simulator.render", description=__doc__)
@@ -252,14 +253,17 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("out", type=Path)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--steps", type=int, default=300, help="steps of random walk to draw")
+    parser.add_argument("--arena", help="the scenario's robots in this arena (name or file)")
     args = parser.parse_args(argv)
-    world = World(scenario_config(args.scenario), seed=args.seed)
+    arena = None if args.arena is None else load_arena(args.arena)
+    world = World(scenario_config(args.scenario, arena=arena), seed=args.seed)
     trajectories = _random_walk(world, args.steps, args.seed) if args.steps > 0 else None
     render_world(
         world,
         args.out,
         trajectories=trajectories,
-        title=f"{args.scenario}: {world.n_robots} robots, {len(world.box_positions)} boxes, "
+        title=f"{args.scenario}{'' if arena is None else ' in ' + arena.name}: "
+        f"{world.n_robots} robots, {len(world.box_positions)} boxes, "
         f"seed {args.seed}, t = {world.time:.1f} s",
     )
 
