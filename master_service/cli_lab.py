@@ -226,6 +226,10 @@ def add_track_parser(sub: Any) -> None:
         "--duration", type=float, metavar="S", help="its length (default: the run's)"
     )
     track.add_argument("--boxes", action="store_true", help="find boxes (default: the run's)")
+    track.add_argument(
+        "--live", action="store_true", help="write where the camera sees the robots to "
+        "DIR/camera.json while it tracks, for the dashboard (needs --run)",
+    )  # fmt: skip
     track.set_defaults(handler=track_command)
 
 
@@ -237,6 +241,7 @@ def track_command(args: argparse.Namespace) -> int:
     from runfiles import schema
     from simulator.experiment import world_config
     from tracking.config import load_tracking_config, parse_floor, parse_markers
+    from tracking.live import CameraWriter
     from tracking.video import track_video, write_boxes, write_positions
 
     if (args.video is None) == (args.camera is None):
@@ -285,7 +290,15 @@ def track_command(args: argparse.Namespace) -> int:
         # A camera has no last frame: the post-evaluation's length says when to stop.
         raise ConfigError("a live camera needs the post-evaluation's length", key="--duration")
     source = args.camera if args.camera is not None else str(args.video)
-    result = track_video(source, config, duration=duration, start=args.start, boxes=boxes)
+    live = None
+    if args.live:
+        if args.run is None or config.floor is None:
+            raise ConfigError("a live view is written into its run: give --run", key="--live")
+        name = f"camera {source}" if isinstance(source, int) else source
+        live = CameraWriter(args.run, name, config.floor)
+    result = track_video(
+        source, config, duration=duration, start=args.start, boxes=boxes, on_frame=live
+    )
     camera = result.camera
     how = "the LED flash" if result.flash else "--start"
     print(

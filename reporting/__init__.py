@@ -7,6 +7,7 @@ run's files through :mod:`runfiles.schema` and writes nothing into a run's state
 * :mod:`reporting.tracker` - an overhead tracker's positions file, for real runs;
 * :mod:`reporting.robot_stats` - the robots' batteries, overruns and failed reads per evaluation;
 * :mod:`reporting.status` - ``surprise-master status``;
-* :mod:`reporting.dashboard_data`, :mod:`reporting.dashboard` - ``surprise-master dashboard``;
+* :mod:`reporting.dashboard_data`, :mod:`reporting.dashboard_html`, :mod:`reporting.dashboard` -
+  ``surprise-master dashboard``;
 * :mod:`reporting.watch` - a run's MQTT telemetry (``surprise-master watch``).
 """

@@ -23,15 +23,16 @@ script to read back.
 
 Bokeh is imported inside the functions that serve the page: the rest of ``master_service`` (and a
 robot's Pi) does without it. The HTML of the status and the table is built by plain functions
-(:func:`status_html`, :func:`robots_html`), tested without a browser.
+(:mod:`reporting.dashboard_html`), tested without a browser. While ``surprise-master track
+--live`` watches the run, the trajectories' plot shows where the camera sees the robots now.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import html
 import logging
+import math
 import signal
 import socket
 import sys
@@ -40,13 +41,8 @@ import webbrowser
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Final
 
-from reporting.dashboard_data import (
-    RobotRow,
-    RunReader,
-    Snapshot,
-    Trajectories,
-    parse_value,
-)
+from reporting.dashboard_data import RunReader, Snapshot, Trajectories
+from reporting.dashboard_html import header_html, robots_html, status_html, trajectories_note
 from runfiles.schema import RunDirError
 
 if TYPE_CHECKING:
@@ -70,18 +66,6 @@ DEFAULT_PORT: Final = 5006
 #: a second with robots, and a person reads no faster.
 POLL_INTERVAL: Final = 1.0
 
-#: Column titles of the robots' table for the keys known today; another key shows as it is named.
-_LABELS: Final = {
-    "fitness": "last fitness",
-    "safety_share": "safety share",
-    "battery_v": "battery (V)",
-    "overruns": "overruns",
-    "read_failures": "read failures",
-}
-#: A yes/no/unknown value's data-value and shown text.
-_YES_NO: Final = {None: ("", "–"), True: ("true", "yes"), False: ("false", "no")}
-#: Keys whose values are shares of steps, shown as percentages.
-_SHARES: Final = frozenset({"safety_share", "post_safety_share"})
 #: The loopback names a browser on this machine (or at the end of an ``ssh -L``) may use.
 _LOOPBACK: Final = ("localhost", "127.0.0.1")
 _CSS: Final = """
@@ -97,180 +81,6 @@ _CSS: Final = """
 .dash-robots td[data-key=robot] { text-align: left; }
 .dash-problem { color: #a00; }
 """
-
-
-# -- the page's text ---------------------------------------------------------------------------
-
-
-def _duration(seconds: float) -> str:
-    seconds = max(0, round(seconds))
-    hours, rest = divmod(seconds, 3600)
-    minutes, seconds = divmod(rest, 60)
-    if hours:
-        return f"{hours} h {minutes:02d} min"
-    return f"{minutes} min {seconds:02d} s" if minutes else f"{seconds} s"
-
-
-def _shown(key: str, text: str | None) -> str:
-    """How the page shows the value ``text`` (read from a file) of ``key``."""
-    value = None if text is None else parse_value(text)
-    if value is None:
-        return "–"
-    if isinstance(value, str):
-        return value
-    if key in _SHARES:
-        return f"{value:.1%}"
-    if key == "battery_v":
-        return f"{value:.2f}"
-    return str(value) if isinstance(value, int) else f"{value:.4f}"
-
-
-def _value(key: str, text: str | None, shown: str | None = None) -> str:
-    raw = "" if text is None else text
-    return (
-        f'<span class="dash-value" data-key="{html.escape(key)}" data-value="{html.escape(raw)}">'
-        f"{html.escape(_shown(key, text) if shown is None else shown)}</span>"
-    )
-
-
-def _item(label: str, key: str, text: str | None, shown: str | None = None) -> str:
-    return f'<span class="dash-label">{html.escape(label)}</span>' + _value(key, text, shown)
-
-
-def status_html(snapshot: Snapshot, telemetry: SwarmState | None = None) -> str:
-    """Where the run stands: state, progress, fitness, time left, a pause and its reason; with
-    ``telemetry``, the link to the broker and the messages read."""
-    last = snapshot.last_row or {}
-    planned = snapshot.planned
-    done = f"{snapshot.evaluations} / {'?' if planned is None else planned}"
-    items = [
-        _item("state", "state", snapshot.state, snapshot.state),
-        _item("phase", "phase", snapshot.phase, snapshot.phase),
-        _item("evaluations", "evaluations", str(snapshot.evaluations), done),
-        _item("best fitness", "best_fitness", snapshot.best_fitness),
-        _item(
-            "last evaluation",
-            "last_evaluation",
-            last.get("evaluation"),
-            f"{last['evaluation']} ({last.get('kind', '?')})" if "evaluation" in last else "–",
-        ),
-        _item("its fitness", "last_fitness", last.get("fitness")),
-        _item("accepted", "accepted", last.get("accepted")),
-        _item("its safety share", "safety_share", last.get("safety_share")),
-    ]
-    if snapshot.time_left_s is not None:
-        left = snapshot.time_left_s
-        items.append(_item("time left", "time_left", repr(left), f"~{_duration(left)}"))
-    if snapshot.master is not None:
-        items.append(_item("master", "master", snapshot.master, snapshot.master))
-    if snapshot.post_fitness is not None:
-        items.append(_item("post-evaluation fitness", "post_fitness", repr(snapshot.post_fitness)))
-    if telemetry is not None:
-        link = f"{telemetry.broker}, {telemetry.messages} messages"
-        items.append(_item("telemetry", "telemetry", telemetry.broker, link))
-    parts = [f'<div class="dash-grid">{"".join(items)}</div>']
-    if planned:
-        share = min(1.0, snapshot.evaluations / planned)
-        parts.append(f'<div class="dash-bar"><div style="width: {share:.1%}"></div></div>')
-    if snapshot.pause is not None:
-        pause = snapshot.pause
-        robots = f" (robots: {', '.join(pause.robots)})" if pause.robots else ""
-        since = f", since {time.strftime('%H:%M:%S', time.localtime(pause.since))}"
-        parts.append(
-            f'<div class="dash-pause">paused: {_value("pause", pause.reason, pause.reason)}'
-            f"{html.escape(robots)}{since if pause.since is not None else ''}</div>"
-        )
-    return "".join(parts)
-
-
-def _robot_cells(
-    robot: RobotRow, keys: list[str], post: dict[str, Any] | None, extra: str = ""
-) -> str:
-    connected = _YES_NO[robot.connected]
-    cells = [
-        f'<td data-key="robot" data-value="{html.escape(robot.robot)}">'
-        f"{html.escape(robot.robot)}</td>",
-        f'<td data-key="connected" data-value="{connected[0]}">{connected[1]}</td>',
-    ]
-    values = dict(robot.values)
-    if post is not None:
-        for key in ("fitness", "safety_share"):
-            number = post.get(robot.robot, {}).get(key)
-            values[f"post_{key}"] = "" if number is None else repr(number)
-    for key in [*keys, *(("post_fitness", "post_safety_share") if post is not None else ())]:
-        text = values.get(key)
-        cells.append(
-            f'<td data-key="{html.escape(key)}" data-value="{html.escape(text or "")}">'
-            f"{html.escape(_shown(key, text))}</td>"
-        )
-    return f'<tr data-robot="{html.escape(robot.robot)}">{"".join(cells)}{extra}</tr>'
-
-
-def robots_html(
-    snapshot: Snapshot, telemetry: SwarmState | None = None, now: float | None = None
-) -> str:
-    """The robots' table: connected, the last row's per-robot columns (fitness, battery, ...),
-    the newer ``robot_state`` of a running master, and the post-evaluation's fitness; with
-    ``telemetry``, each robot's MQTT view too (a robot only MQTT knows gets a row of its own)."""
-    robots = list(snapshot.robots)
-    if telemetry is not None:
-        known = {r.robot for r in robots}
-        robots += [RobotRow(name, None) for name in sorted(telemetry.robots) if name not in known]
-    if not robots:
-        return '<p data-key="robots" data-value="0">no robots yet</p>'
-    post = snapshot.post_robots or None
-    titles = ["robot", "connected", *(_LABELS.get(k, k.replace("_", " ")) for k in snapshot.keys)]
-    if post is not None:
-        titles += ["post-eval. fitness", "post-eval. safety share"]
-    if telemetry is not None:
-        titles += ["online (MQTT)", "battery (MQTT, V)", "last message"]
-    head = "".join(f"<th>{html.escape(t)}</th>" for t in titles)
-    now = time.time() if now is None else now
-    body = "".join(
-        _robot_cells(r, snapshot.keys, post, _mqtt_cells(telemetry, r.robot, now)) for r in robots
-    )
-    return f'<table class="dash-robots"><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>'
-
-
-def _mqtt_cells(telemetry: SwarmState | None, robot: str, now: float) -> str:
-    # A robot's own view over MQTT: online by its status (and last will), the battery it read
-    # after its last evaluation, seconds since its last message.
-    if telemetry is None:
-        return ""
-    view = telemetry.robots.get(robot)
-    online = None if view is None else view.online
-    state = _YES_NO[online]
-    battery = None if view is None or view.evaluation is None else view.evaluation.battery_v
-    seen = None if view is None or view.last_seen is None else max(0.0, now - view.last_seen)
-    volts = ("", "–") if battery is None else (repr(battery), f"{battery:.2f}")
-    ago = ("", "–") if seen is None else (f"{seen:.1f}", f"{_duration(seen)} ago")
-    return "".join(
-        f'<td data-key="{key}" data-value="{value}">{shown}</td>'
-        for key, (value, shown) in (
-            ("mqtt_online", state), ("mqtt_battery_v", volts), ("mqtt_last_message", ago)
-        )
-    )  # fmt: skip
-
-
-def _header_html(run_dir: Path, snapshot: Snapshot | None, error: str | None) -> str:
-    name = snapshot.name if snapshot is not None else run_dir.name
-    lines = [f"<h2>run {html.escape(name)}</h2><div>{html.escape(str(run_dir))}</div>"]
-    problems = ([] if snapshot is None else snapshot.problems) + ([error] if error else [])
-    lines += [f'<div class="dash-problem">{html.escape(p)}</div>' for p in problems]
-    return "".join(lines)
-
-
-def _trajectories_note(trajectories: Trajectories | None) -> str:
-    if trajectories is None:
-        return '<p data-key="trajectories" data-value="0">no post-evaluation trajectories yet</p>'
-    count = len(trajectories.xs)
-    return (
-        f'<p data-key="trajectories" data-value="{count}">post-evaluation: paths of {count} '
-        f"robots over {trajectories.steps} steps (the dot: where each ended)</p>"
-    )
-
-
-# -- the Bokeh document --------------------------------------------------------------------------
 
 
 class _Poller:
@@ -310,6 +120,7 @@ class _Page:
         self.paths = ColumnDataSource({"xs": [], "ys": [], "robot": [], "colour": []})
         self.ends = ColumnDataSource({"x": [], "y": [], "robot": [], "colour": []})
         self.arena = ColumnDataSource({"x": [], "y": [], "side": [], "height": []})
+        self.seen = ColumnDataSource({"x": [], "y": [], "angle": [], "robot": []})
         fitness = figure(
             name="fitness",
             title="fitness over the evaluations",
@@ -346,6 +157,9 @@ class _Page:
                   line_color="#555")  # fmt: skip
         plot.multi_line("xs", "ys", source=self.paths, line_color="colour", line_width=1.5)
         plot.scatter("x", "y", source=self.ends, color="colour", size=8)
+        # The camera's live view: a triangle per robot pointing its heading (0 points up).
+        plot.scatter("x", "y", source=self.seen, marker="triangle", angle="angle", size=14,
+                     color="#d62728")  # fmt: skip
         plot.text("x", "y", text="robot", source=self.ends, text_font_size="9pt", x_offset=6,
                   text_baseline="middle", text_color="colour")  # fmt: skip
         plot.add_tools(HoverTool(tooltips=[("robot", "@robot")]))
@@ -373,13 +187,13 @@ class _Page:
             self._show(snapshot)
         except Exception as exc:  # the page must outlive what it cannot show
             _log.exception("dashboard: cannot show %s", self.run_dir)
-            _set(self.header, _header_html(self.run_dir, None, f"cannot show the run: {exc}"))
+            _set(self.header, header_html(self.run_dir, None, f"cannot show the run: {exc}"))
 
     def _show(self, snapshot: Snapshot) -> None:
-        _set(self.header, _header_html(self.run_dir, snapshot, None))
+        _set(self.header, header_html(self.run_dir, snapshot, None))
         _set(self.status, status_html(snapshot, self.telemetry))
         _set(self.robots, robots_html(snapshot, self.telemetry))
-        _set(self.note, _trajectories_note(snapshot.trajectories))
+        _set(self.note, trajectories_note(snapshot.trajectories))
         curve = snapshot.curve
         sent = len(self.curve.data["evaluation"])
         if curve.generation == self._generation and len(curve.evaluation) >= sent:
@@ -399,6 +213,7 @@ class _Page:
             }
             self._generation = curve.generation
         self._show_trajectories(snapshot.trajectories)
+        self._show_camera(snapshot)
 
     def _show_trajectories(self, trajectories: Trajectories | None) -> None:
         signature = None if trajectories is None else trajectories.signature
@@ -431,6 +246,21 @@ class _Page:
             if side
             else {"x": [], "y": [], "side": [], "height": []}
         )
+
+    def _show_camera(self, snapshot: Snapshot) -> None:
+        view = snapshot.camera
+        robots = [] if view is None else sorted(view.robots)
+        poses = [] if view is None else [view.robots[r] for r in robots]
+        self.seen.data = {
+            "x": [p.x for p in poses],
+            "y": [p.y for p in poses],
+            "angle": [p.heading - math.pi / 2 for p in poses],
+            "robot": robots,
+        }
+        self.paths_plot.visible = snapshot.trajectories is not None or view is not None
+        if view is not None and snapshot.trajectories is None:
+            width, height = view.floor
+            self.arena.data = {"x": [0.0], "y": [0.0], "side": [width], "height": [height]}
 
 
 def _set(div: Any, text: str) -> None:

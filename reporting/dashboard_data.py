@@ -1,10 +1,12 @@
 """What ``surprise-master dashboard`` shows, read from a run directory into plain data.
 
 :class:`RunReader` looks at a run directory (rundir.py describes its files) and returns a
-:class:`Snapshot`: where the run stands, the fitness curve, one :class:`RobotRow` per robot and
-the post-evaluation's trajectories. It only reads, never writes, and re-reads a file only when its
-size, modification time or inode changed since the last look; ``evaluations.csv`` it reads from
-where it stopped last time, so a poll costs a few ``stat`` calls while nothing happens.
+:class:`Snapshot`: where the run stands, the fitness curve, one :class:`RobotRow` per robot, the
+post-evaluation's trajectories and, while ``surprise-master track --live`` watches the run, where
+the overhead camera sees the robots (``camera.json``). It only reads, never writes, and re-reads
+a file only when its size, modification time or inode changed since the last look;
+``evaluations.csv`` it reads from where it stopped last time, so a poll costs a few ``stat``
+calls while nothing happens.
 
 Files are read while a master writes them. The JSON files are replaced atomically, but a file may
 be missing (an older run, the fast engine writes no ``live.json``), or hold what this code does
@@ -40,6 +42,7 @@ from runfiles.schema import (
     EVALUATIONS,
     STALE_AFTER,
     TRACES,
+    CameraView,
     Checkpoint,
     Live,
     PauseFile,
@@ -193,6 +196,8 @@ class Snapshot:
     post_robots: dict[str, dict[str, Value]]
     trajectories: Trajectories | None
     problems: list[str]
+    #: where an overhead camera sees the robots now (``track --live``), while its file is fresh
+    camera: CameraView | None = None
 
 
 class _Csv:
@@ -320,6 +325,7 @@ class RunReader:
         self._pause = _Watched(self.path / PauseFile.FILE, _file(PauseFile))
         self._post = _Watched(self.path / PostEvaluation.FILE, _file(PostEvaluation))
         self._simulation = _Watched(self.path / Simulation.FILE, _file(Simulation))
+        self._camera = _Watched(self.path / CameraView.FILE, _file(CameraView))
         self._traces_key: tuple[Any, ...] = ()
         self._trajectories: Trajectories | None = None
 
@@ -328,13 +334,13 @@ class RunReader:
         problems: list[str] = []
         files = (self._config, self._checkpoint, self._live, self._pause, self._post)
         # The checkpoint before the CSV: the CSV then holds at least the rows it counts.
-        for watched in (*files, self._simulation):
+        for watched in (*files, self._simulation, self._camera):
             watched.update()
         try:
             self._csv.update()
         except OSError as exc:
             problems.append(f"{EVALUATIONS}: {exc}")
-        problems += [w.problem for w in (*files, self._simulation) if w.problem]
+        problems += [w.problem for w in (*files, self._simulation, self._camera) if w.problem]
         try:
             trajectories = self._read_trajectories()
         except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
@@ -388,6 +394,7 @@ class RunReader:
             post_robots=post_robots,
             trajectories=trajectories,
             problems=problems,
+            camera=_fresh_camera(self._camera.value, now),
         )
 
     def _robots(
@@ -465,6 +472,13 @@ class RunReader:
             else None
         )
         return self._trajectories
+
+
+def _fresh_camera(view: CameraView | None, now: float) -> CameraView | None:
+    # A tracker that stopped leaves its last view behind: show it only while it is rewritten.
+    if view is None or not 0 <= now - view.updated_at <= STALE_AFTER:
+        return None
+    return view
 
 
 def _mapping(value: Any) -> dict[str, Any]:

@@ -29,6 +29,8 @@ Layout (docs/runs.md shows each file)::
     tracked_positions.boxes.json
                            TrackedBoxes: the boxes the camera found at the post-evaluation's
                            start and end, beside the positions' file (tracked_boxes_path)
+    camera.json            CameraView: while ``surprise-master track --live`` watches the run,
+                           where the camera sees the robots now (the dashboard shows it)
     replay.json            Replay: in a replay's directory, where its genome came from
 
 Versions. Each JSON file carries its ``format``, the version of its structure here (a file written
@@ -64,6 +66,7 @@ from minimize_surprise.wire import EvaluationStats
 __all__ = [
     "BASELINE_FILE",
     "BOX_TRACK",
+    "CAMERA_INTERVAL",
     "CONFIG_SNAPSHOT",
     "EVALUATIONS",
     "EVALUATION_COLUMNS",
@@ -80,6 +83,8 @@ __all__ = [
     "TRACES",
     "BestGenome",
     "BoxesMoved",
+    "CameraPose",
+    "CameraView",
     "Checkpoint",
     "EscapeRequest",
     "Event",
@@ -140,6 +145,9 @@ LIVE_INTERVAL: Final = 2.0
 #: A live.json that says ``running`` but is older than this is a master that died: five missed
 #: refreshes are no hiccup.
 STALE_AFTER: Final = 5 * LIVE_INTERVAL
+#: How often a live tracker rewrites camera.json at the most: the dashboard polls about once a
+#: second, and a robot moves 2 cm in this time; more writes would only cost the disk.
+CAMERA_INTERVAL: Final = 0.2
 
 #: Where a run stands: evolving, post-evaluating the best genome, or finished.
 Phase = Literal["evolution", "post-evaluation", "done"]
@@ -379,6 +387,35 @@ class TrackedBoxes(RunFile, frozen=True, kw_only=True):
     boxes: BoxesMoved
     unpaired_start: list[list[float]] = msgspec.field(default_factory=list)
     unpaired_end: list[list[float]] = msgspec.field(default_factory=list)
+
+
+class CameraPose(msgspec.Struct, frozen=True, kw_only=True):
+    """Where an overhead camera sees one robot: ``x``, ``y`` (metres, the arena's frame) and
+    ``heading`` (radians, counter-clockwise from x)."""
+
+    x: float
+    y: float
+    heading: float
+
+
+class CameraView(RunFile, frozen=True, kw_only=True):
+    """``camera.json``: while ``surprise-master track --live`` watches a run, where the camera
+    sees the robots now (those seen in its latest frame), rewritten at most every
+    :data:`CAMERA_INTERVAL` seconds; the dashboard shows it while it is fresh
+    (:data:`STALE_AFTER`)."""
+
+    FILE: ClassVar[str] = "camera.json"
+    FORMAT: ClassVar[int] = 1
+
+    #: the camera (a device's index) or the video
+    source: str
+    #: the floor between the corner markers, (width, height) in metres around the origin
+    floor: tuple[float, float]
+    #: the frame's time in the video (seconds from its first frame)
+    video_time: float
+    robots: dict[str, CameraPose]
+    #: wall-clock time of the write (``time.time()``)
+    updated_at: float
 
 
 def tracked_boxes_path(positions: str | Path) -> Path:

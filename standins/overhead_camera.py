@@ -51,9 +51,10 @@ class OverheadScene:
 
     ``floor`` is the rectangle between the corner markers' black squares' outer corners (centred
     on the origin; each sheet's white margin lies around its square),
-    ``carpet`` the carpet the robots drive on, its side or its (width, height); ``robots`` the robot ids in the poses' order and
-    ``markers`` their marker ids. The camera stands ``height`` above the point ``nadir``, its
-    optical axis aimed at ``aim`` on the floor and turned ``roll`` about it.
+    ``carpet`` the carpet the robots drive on, its side or its (width, height); ``robots`` the
+    robot ids in the poses' order and ``markers`` their marker ids. The camera stands ``height``
+    above the point ``nadir``, its optical axis aimed at ``aim`` on the floor and turned ``roll``
+    about it.
     """
 
     floor: tuple[float, float] = (1.3, 1.3)

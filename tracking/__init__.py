@@ -8,7 +8,8 @@ Modules:
   the parallax of a marker above the floor;
 * :mod:`tracking.boxes`: the boxes as blobs, and the start's paired with the end's for d_B;
 * :mod:`tracking.tracker`: frames in, poses out (:class:`~tracking.tracker.Tracker`);
-* :mod:`tracking.video`: a whole post-evaluation from a video or camera, and its files.
+* :mod:`tracking.video`: a whole post-evaluation from a video or camera, and its files;
+* :mod:`tracking.live`: the camera's view written for the dashboard while a run goes on.
 
 OpenCV (the ``camera`` extra) is the laptop's, never a robot's.
 """

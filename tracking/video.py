@@ -122,12 +122,19 @@ def track_video(
     duration: float | None = None,
     start: float | None = None,
     boxes: bool = False,
+    on_frame: Callable[[TrackedFrame], None] | None = None,
 ) -> TrackResult:
     """Track the post-evaluation in ``source`` (a video file, or a camera's index); see
     :func:`track_frames`."""
     name = f"camera {source}" if isinstance(source, int) else str(source)
     return track_frames(
-        frames_of(source), config, name=name, duration=duration, start=start, boxes=boxes
+        frames_of(source),
+        config,
+        name=name,
+        duration=duration,
+        start=start,
+        boxes=boxes,
+        on_frame=on_frame,
     )
 
 

@@ -22,6 +22,8 @@ from runfiles.schema import (
     STALE_AFTER,
     BestGenome,
     BoxesMoved,
+    CameraPose,
+    CameraView,
     Checkpoint,
     EscapeRequest,
     Event,
@@ -141,6 +143,18 @@ GOLDEN: dict[type[RunFile], tuple[RunFile, str]] = {
         Replay(source="/runs/a", source_run="/runs/a", genome_fitness=None),
         '{\n  "format": 1,\n  "source": "/runs/a",\n  "source_run": "/runs/a",\n'
         '  "genome_fitness": null\n}',
+    ),
+    CameraView: (
+        CameraView(
+            source="camera 0",
+            floor=(1.3, 1.3),
+            video_time=12.5,
+            robots={"thymio-1": CameraPose(x=0.1, y=-0.2, heading=1.5)},
+            updated_at=1700000004.5,
+        ),
+        '{"format": 1, "source": "camera 0", "floor": [1.3, 1.3], "video_time": 12.5, '
+        '"robots": {"thymio-1": {"x": 0.1, "y": -0.2, "heading": 1.5}}, '
+        '"updated_at": 1700000004.5}',
     ),
     TrackedBoxes: (
         TrackedBoxes(
