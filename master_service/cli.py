@@ -52,6 +52,8 @@ import msgspec
 
 from master_service import cli_lab
 from master_service.config import load_master_config, required_secret
+from master_service.console import Console
+from master_service.escape import escape_from_console
 from master_service.master import Master
 from master_service.progress import ProgressDisplay
 from master_service.rundir import RunDir, RunDirError
@@ -331,12 +333,14 @@ def _replay_of(run: RunDir) -> ReplaySource | None:
 def _serve(master: Master, args: argparse.Namespace) -> int:
     level = logging.DEBUG if args.verbose else logging.INFO
     master.evolution.pause_before_post = args.pause_before_post
+    console = Console(master.log, escape=escape_from_console(master.run_dir, master.log))
     master.evolution.pauses.console = True
+    master.evolution.pauses.terminal = console
     try:
         with ProgressDisplay(level=level) as display:
             master.add_progress_listener(display.update)
             try:
-                return asyncio.run(_serve_async(master))
+                return asyncio.run(_serve_async(master, console))
             except FileWriteError:
                 raise
             except OSError as exc:
@@ -375,14 +379,15 @@ def _next_step(exc: FileWriteError, run_dir: Path, simulated: bool) -> str:
     return f"{remedy} and run `surprise-master resume {run_dir}`"
 
 
-async def _serve_async(master: Master) -> int:
+async def _serve_async(master: Master, console: Console | None = None) -> int:
     task = asyncio.current_task()
     assert task is not None
     received: list[int] = []
     summary = None
     # The first signal stops the run cleanly (Bye to the robots, files closed); the checkpoint
     # is always current, so nothing is lost.
-    with cancelled_by_signal(task, received):
+    reading = console.reading() if console is not None else contextlib.nullcontext()
+    with cancelled_by_signal(task, received), reading:
         async with master:
             try:
                 summary = await master.run()

@@ -58,6 +58,8 @@ __all__ = [
     "POLL_INTERVAL",
     "REPLY_TIMEOUT",
     "EscapeDesk",
+    "drop_request",
+    "escape_from_console",
     "request_escape",
 ]
 
@@ -81,6 +83,36 @@ def _request_path(run_dir: Path, token: str) -> Path:
     return run_dir / REQUESTS / f"{stem}-{token}.json"
 
 
+def drop_request(run_dir: RunDir, robot: str) -> tuple[str, Path]:
+    """Drop a request for ``robot``'s escape into ``run_dir``'s ``requests/`` for the master's
+    desk; its token and file. Raises :class:`RunDirError` for a robot id no robot can have."""
+    if not is_valid_robot_id(robot):
+        raise RunDirError(f"{robot!r} is not a robot id (letters, digits, '.', '_', '-')")
+    token = secrets.token_hex(8)
+    request = EscapeRequest(robot=robot, token=token, requested_at=time.time())
+    target = _request_path(run_dir.path, token)
+    with schema.writing(target):
+        target.parent.mkdir(exist_ok=True)
+    schema.write_atomic(target, schema.encode(request), durable=False)
+    return token, target
+
+
+def escape_from_console(run_dir: RunDir, log: logging.Logger) -> Callable[[str], None]:
+    """What an ``escape ROBOT`` line on the master's terminal does
+    (:class:`~master_service.console.Console`): the request ``surprise-master escape`` drops;
+    the desk answers it in the log."""
+
+    def escape(robot: str) -> None:
+        try:
+            drop_request(run_dir, robot)
+        except (RunDirError, OSError) as exc:
+            log.warning("the experimenter's escape for %s: %s", robot, exc)
+        else:
+            log.info("the experimenter's escape for %s asked from the console", robot)
+
+    return escape
+
+
 def request_escape(run_dir: RunDir, robot: str, *, timeout: float = ANSWER_TIMEOUT) -> Event:
     """Ask the master running ``run_dir`` to make ``robot`` escape now; its answer (an
     ``escape`` event: ``accepted``, or why not in ``detail``).
@@ -96,14 +128,7 @@ def request_escape(run_dir: RunDir, robot: str, *, timeout: float = ANSWER_TIMEO
             f"no master is running {path}: the experimenter's escape reaches robots only "
             "during a run"
         )
-    if not is_valid_robot_id(robot):
-        raise RunDirError(f"{robot!r} is not a robot id (letters, digits, '.', '_', '-')")
-    token = secrets.token_hex(8)
-    request = EscapeRequest(robot=robot, token=token, requested_at=time.time())
-    target = _request_path(path, token)
-    with schema.writing(target):
-        target.parent.mkdir(exist_ok=True)
-    schema.write_atomic(target, schema.encode(request), durable=False)
+    token, target = drop_request(run_dir, robot)
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         for event in read_events(path):

@@ -18,14 +18,12 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import os
-import sys
-import termios
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Final
 
+from master_service.console import Console, terminal_usable
 from master_service.rundir import RunDir, RunDirError
 from minimize_surprise.wire import EvaluationStats
 from runfiles import schema
@@ -112,13 +110,23 @@ def request_continue(run_dir: RunDir) -> PauseFile | None:
 class PauseGate:
     """Holds a run while it is paused; the one place that writes and waits for ``pause.json``.
 
-    ``console``: Enter on the master's terminal continues too (only when stdin is a terminal).
+    ``console``: Enter on the master's terminal continues too (only when stdin is a terminal in
+    the foreground); ``terminal`` the master's :class:`~master_service.console.Console` that
+    reads it for the whole run (None: the gate reads the terminal itself while it waits).
     """
 
-    def __init__(self, run_dir: RunDir, log: logging.Logger, *, console: bool = False) -> None:
+    def __init__(
+        self,
+        run_dir: RunDir,
+        log: logging.Logger,
+        *,
+        console: bool = False,
+        terminal: Console | None = None,
+    ) -> None:
         self.run_dir = run_dir
         self.log = log
         self.console = console
+        self.terminal = terminal
         #: the pause the run waits in now, None while it runs
         self.current: Pause | None = None
 
@@ -142,18 +150,20 @@ class PauseGate:
         self.log.warning("paused: %s; then: %s", pause.text, how)
         if on_change is not None:
             on_change()
-        entered = asyncio.Event()
-        reader = self._watch_console(entered)
+        terminal = self.terminal or Console(self.log)
         started = time.monotonic()
-        try:
-            while self.run_dir.file(PAUSE).exists() and not entered.is_set():
-                with contextlib.suppress(TimeoutError):
-                    async with asyncio.timeout(POLL_INTERVAL):
-                        await entered.wait()
-        finally:
-            if reader is not None:
-                asyncio.get_running_loop().remove_reader(reader)
-            self.current = None
+        with contextlib.ExitStack() as stack:
+            if self.console and not terminal.active:
+                stack.enter_context(terminal.reading())
+            terminal.arm()
+            entered = terminal.enter()
+            try:
+                while self.run_dir.file(PAUSE).exists() and not (self.console and entered.is_set()):
+                    with contextlib.suppress(TimeoutError):
+                        async with asyncio.timeout(POLL_INTERVAL):
+                            await entered.wait()
+            finally:
+                self.current = None
         self.clear_stale()
         waited = time.monotonic() - started
         self.log.info("continued after a pause of %.0f s (%s)", waited, pause.kind)
@@ -162,30 +172,4 @@ class PauseGate:
         return waited
 
     def _console_usable(self) -> bool:
-        if not (self.console and sys.stdin is not None and sys.stdin.isatty()):
-            return False
-        try:
-            # Only in the foreground: reading the terminal from the background (`&`) would
-            # stop the whole master (SIGTTIN).
-            return os.tcgetpgrp(sys.stdin.fileno()) == os.getpgrp()
-        except OSError:
-            return False
-
-    def _watch_console(self, entered: asyncio.Event) -> int | None:
-        if not self._console_usable():
-            return None
-        fd = sys.stdin.fileno()
-        # A line typed before the pause began must not end it: only an Enter pressed now does.
-        with contextlib.suppress(OSError, termios.error):
-            termios.tcflush(fd, termios.TCIFLUSH)
-
-        def on_input() -> None:
-            with contextlib.suppress(OSError):
-                os.read(fd, 1024)  # the line the person typed; its content does not matter
-            entered.set()
-
-        try:
-            asyncio.get_running_loop().add_reader(fd, on_input)
-        except (NotImplementedError, OSError, ValueError):
-            return None
-        return fd
+        return self.console and terminal_usable()
