@@ -21,7 +21,7 @@ import logging
 import os
 import sys
 import termios
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 __all__ = ["Console", "terminal_usable"]
 
@@ -76,7 +76,7 @@ class Console:
                 termios.tcflush(self._fd, termios.TCIFLUSH)
 
     @contextlib.contextmanager
-    def reading(self):  # type: ignore[no-untyped-def]  # a context manager of None
+    def reading(self) -> Iterator[Console]:
         """Read the terminal while the block runs, if it may be read (:func:`terminal_usable`)."""
         opened = self._open()
         try:
