@@ -52,20 +52,23 @@ import re
 import shutil
 import signal
 import sys
+import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import msgspec
 import numpy as np
 import yaml
 
-from drivers.config import SPEED_SCALE
+from drivers.config import SPEED_SCALE, ForceSensorConfig, LightSensorConfig
 from minimize_surprise.errors import ConfigError
 from minimize_surprise.files import write_atomic, write_new_secret
-from minimize_surprise.sensors import GROUND_SENSORS, IR_SENSORS
+from minimize_surprise.sensors import FORCE_SENSORS, GROUND_SENSORS, IR_SENSORS, LIGHT_SENSORS
 from minimize_surprise.wire import DEFAULT_PORT
 from simulator.arenas import load_arena
 from simulator.scenarios import SCENARIOS, WorldConfig, scenario_config
+from standins.i2c_bridge import constant_chips, serve_i2c_bridge, served_parts, world_chips
 from standins.playground import PLAYGROUND_SPEED_SCALE, speed_scale_for
 
 if TYPE_CHECKING:
@@ -103,7 +106,10 @@ RECONNECT_JITTER = 0.25
 _SIGNALS = (signal.SIGTERM, signal.SIGINT)
 #: What to install when the D-Bus modules are missing.
 ROBOT_EXTRA = "pip install -e '.[robot]'"
-_THYMIO_SENSORS = frozenset(IR_SENSORS + GROUND_SENSORS)
+_SERVED_SENSORS = frozenset(IR_SENSORS + GROUND_SENSORS + FORCE_SENSORS + LIGHT_SENSORS)
+#: The directory of the I2C bridges' sockets: a private one under the temporary directory, as
+#: the dbus-daemons' (a Unix socket's path holds 107 bytes, which DIR may exceed).
+I2C_DIR_PREFIX = "fake-i2c-"
 
 
 def robot_id(index: int, ids: Sequence[str] | None = None) -> str:
@@ -154,10 +160,10 @@ def _port(text: str) -> int:
 
 
 def servable_scenarios() -> tuple[str, ...]:
-    """The scenarios whose robots carry only the Thymio's own sensors (IR and ground): the
-    D-Bus service provides nothing else (force and light sensors are I2C devices)."""
+    """The scenarios whose robots carry only sensors this command serves: the Thymio's own (IR
+    and ground) over D-Bus, the force and light sensors as emulated I2C chips over a bridge."""
     return tuple(
-        name for name in SCENARIOS if set(scenario_config(name).sensors) <= _THYMIO_SENSORS
+        name for name in SCENARIOS if set(scenario_config(name).sensors) <= _SERVED_SENSORS
     )
 
 
@@ -171,7 +177,8 @@ def _parser() -> argparse.ArgumentParser:
         "--scenario",
         default="basic",
         choices=servable_scenarios(),
-        help="the world (default: basic; scenarios with force or light sensors cannot be served)",
+        help="the world (default: basic); the force and light sensors of boxes and gradient are "
+        "served as emulated I2C chips, one socket per robot",
     )
     parser.add_argument(
         "--backend",
@@ -248,9 +255,11 @@ def agent_config(
     bus: str,
     secret_file: Path,
     thymio: dict[str, Any] | None = None,
+    parts: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """The agent configuration (plain data) of robot ``index`` served on ``bus``; ``thymio``
-    adds to its ``body.thymio`` settings."""
+    adds to its ``body.thymio`` settings, ``parts`` to its ``body`` (the I2C parts and the
+    bridge, see :func:`i2c_parts`)."""
     return {
         "robot_id": robot_id(index, args.ids),
         "master": {
@@ -258,7 +267,10 @@ def agent_config(
             "port": args.master_port,
             "secret_file": str(secret_file),
         },
-        "body": {"thymio": {"bus": bus, "speed_scale": args.speed_scale, **(thymio or {})}},
+        "body": {
+            "thymio": {"bus": bus, "speed_scale": args.speed_scale, **(thymio or {})},
+            **(parts or {}),
+        },
         "safety": {"profile": "stop"},
         "reconnect": {
             "initial": args.reconnect_initial,
@@ -279,6 +291,21 @@ SIM_THYMIO: dict[str, Any] = {}
 PLAYGROUND_THYMIO: dict[str, Any] = {"failsafe": True, "restart_medulla": True}
 
 
+def i2c_parts(
+    force: ForceSensorConfig | None, light: Sequence[LightSensorConfig], bridge: Path | None
+) -> dict[str, Any]:
+    """``body``'s I2C keys of an agent configuration (plain data): the force and light sensors
+    as wired on the served robot, read over the bridge at ``bridge``; none without a bridge."""
+    if bridge is None:
+        return {}
+    parts: dict[str, Any] = {"i2c_bridge": str(bridge)}
+    if force is not None:
+        parts["force"] = msgspec.to_builtins(force)
+    if light:
+        parts["light"] = msgspec.to_builtins(list(light))
+    return parts
+
+
 def _write_agent_config(
     args: argparse.Namespace,
     directory: Path,
@@ -287,18 +314,25 @@ def _write_agent_config(
     secret_file: Path,
     what: str,
     thymio: dict[str, Any],
+    parts: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Write robot ``index``'s agent configuration (``what`` the robot is, for its header); the
     robot's entry in robots.json."""
     path = directory / f"agent-{robot_id(index, args.ids)}.yaml"
     header = (
         f"{_HEADER} (pid {os.getpid()}): {what}.\n"
-        "# Valid while that process runs: the bus below is its private dbus-daemon.\n"
+        "# Valid while that process runs: the bus below is its private dbus-daemon"
+        + (", the I2C bridge its socket" if parts else "")
+        + ".\n"
     )
-    text = yaml.safe_dump(agent_config(args, index, bus, secret_file, thymio), sort_keys=False)
+    data = agent_config(args, index, bus, secret_file, thymio, parts)
+    text = yaml.safe_dump(data, sort_keys=False)
     # Readers (the tests, a script waiting for robots.json) see the whole file or none.
     write_atomic(path, (header + text).encode("utf-8"), durable=False)
-    return {"robot_id": robot_id(index, args.ids), "index": index, "bus": bus, "config": str(path)}
+    entry = {"robot_id": robot_id(index, args.ids), "index": index, "bus": bus, "config": str(path)}
+    if parts:
+        entry["i2c_bridge"] = parts["i2c_bridge"]
+    return entry
 
 
 def _secret_file(given: Path | None, directory: Path) -> Path:
@@ -357,7 +391,23 @@ def _announce(args: argparse.Namespace, robots: list[dict[str, Any]], scenario: 
     for robot in robots:
         port = robot.get("medulla_port")
         medulla = f", asebamedulla on TCP {port}" if port else ""
-        print(f"  {robot['robot_id']}: D-Bus {robot['bus']}{medulla}", flush=True)
+        bridge = robot.get("i2c_bridge")
+        i2c = f", I2C bridge {bridge}" if bridge else ""
+        print(f"  {robot['robot_id']}: D-Bus {robot['bus']}{medulla}{i2c}", flush=True)
+    if any(robot.get("i2c_bridge") for robot in robots):
+        if args.backend == "playground":
+            print(
+                "  the I2C chips do not follow Playground: Enki has no blade, so the force "
+                "sensor reads an unloaded blade (0), and no lamp, so the light sensors read "
+                "the uniform light",
+                flush=True,
+            )
+        else:
+            print(
+                "  the I2C chips read the world: the force on each robot's blade, the light at "
+                "its sensors",
+                flush=True,
+            )
     print("start one agent per robot (each in its own terminal, or with &):", flush=True)
     for robot in robots:
         print(f"  surprise-agent --config {robot['config']}", flush=True)
@@ -492,14 +542,22 @@ async def _serve_sim(
     # compiles would stall the real-time world for seconds, and the agents' reads time out.
     await asyncio.to_thread(warm_up)
     world = SignallingWorld(config, args.seed, record=args.poses)
+    force, light = served_parts(config.sensors)
+    bridges = _bridge_dir(stack) if force is not None or light else None
     robots = []
     for index in range(world.n_robots):
         bus = await stack.enter_async_context(private_bus())
         model = SimThymio(world, index, speed_scale=args.speed_scale)
         await stack.enter_async_context(serve_sim_thymio(bus, model))
+        bridge = None
+        if bridges is not None:
+            bridge = bridges / f"{robot_id(index, args.ids)}.sock"
+            chips = world_chips(world, index, force, light)
+            await stack.enter_async_context(serve_i2c_bridge(bridge, chips.i2c))
         what = f"simulated Thymio {index} of scenario {args.scenario}, seed {args.seed}"
+        parts = i2c_parts(force, light, bridge)
         robots.append(
-            _write_agent_config(args, directory, index, bus, secret_file, what, SIM_THYMIO)
+            _write_agent_config(args, directory, index, bus, secret_file, what, SIM_THYMIO, parts)
         )
     # The exit stack stops the world before the services hang up and the buses go.
     await stack.enter_async_context(SimSwarm(world, realtime=True))
@@ -526,14 +584,29 @@ async def _serve_playground(
     arena = Arena.of(config, args.seed)
     lab = await stack.enter_async_context(PlaygroundLab(directory / PLAYGROUND_DIR, arena))
     assert lab.playground is not None and lab.world_bus is not None
+    force, light = served_parts(config.sensors)
+    bridges = _bridge_dir(stack) if force is not None or light else None
     robots = []
     for robot in lab.robots:
+        bridge = None
+        if bridges is not None:
+            bridge = bridges / f"{robot_id(robot.index, args.ids)}.sock"
+            # Enki has no blade and no lamp: an unloaded blade, the scenario's uniform light.
+            chips = constant_chips(force, light, light_value=config.light_uniform)
+            await stack.enter_async_context(serve_i2c_bridge(bridge, chips.i2c))
         what = (
             f"Aseba Playground Thymio {robot.index} of scenario {args.scenario}, seed "
             f"{args.seed}, behind asebamedulla"
         )
         entry = _write_agent_config(
-            args, directory, robot.index, robot.bus.address, secret_file, what, PLAYGROUND_THYMIO
+            args,
+            directory,
+            robot.index,
+            robot.bus.address,
+            secret_file,
+            what,
+            PLAYGROUND_THYMIO,
+            i2c_parts(force, light, bridge),
         )
         entry.update(robot_port=robot.robot_port, medulla_port=robot.medulla.port)
         robots.append(entry)
@@ -545,6 +618,11 @@ async def _serve_playground(
         "directory": str(lab.directory),
     }
     return lab
+
+
+def _bridge_dir(stack: contextlib.AsyncExitStack) -> Path:
+    """A private directory for the I2C bridges' sockets, removed when ``stack`` closes."""
+    return Path(stack.enter_context(tempfile.TemporaryDirectory(prefix=I2C_DIR_PREFIX)))
 
 
 def _save_poses(path: Path, world: SignallingWorld) -> None:
