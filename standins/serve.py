@@ -381,7 +381,27 @@ def _prepare_dir(directory: Path) -> None:
         (directory / ROBOTS_FILE).unlink()
 
 
-def _announce(args: argparse.Namespace, robots: list[dict[str, Any]], scenario: str) -> None:
+def _i2c_readings(backend: str, force: bool, light: bool) -> str:
+    """What the served robots' I2C chips read, for the startup lines."""
+    if backend == "playground":
+        parts = []
+        if force:
+            parts.append("Enki has no blade: the force sensors read an unloaded blade (0)")
+        if light:
+            parts.append("it has no lamp: the light sensors read the uniform light")
+        return "the I2C chips do not follow Playground: " + "; ".join(parts)
+    parts = ["the force on each robot's blade"] if force else []
+    if light:
+        parts.append("the light at its light sensors")
+    return "the I2C chips read the world: " + " and ".join(parts)
+
+
+def _announce(
+    args: argparse.Namespace,
+    robots: list[dict[str, Any]],
+    scenario: str,
+    sensors: Sequence[str],
+) -> None:
     kind = "Aseba Playground Thymios" if args.backend == "playground" else "simulated Thymios"
     print(
         f"surprise-sim-robots: {len(robots)} {kind} of scenario {scenario} "
@@ -394,20 +414,9 @@ def _announce(args: argparse.Namespace, robots: list[dict[str, Any]], scenario: 
         bridge = robot.get("i2c_bridge")
         i2c = f", I2C bridge {bridge}" if bridge else ""
         print(f"  {robot['robot_id']}: D-Bus {robot['bus']}{medulla}{i2c}", flush=True)
-    if any(robot.get("i2c_bridge") for robot in robots):
-        if args.backend == "playground":
-            print(
-                "  the I2C chips do not follow Playground: Enki has no blade, so the force "
-                "sensor reads an unloaded blade (0), and no lamp, so the light sensors read "
-                "the uniform light",
-                flush=True,
-            )
-        else:
-            print(
-                "  the I2C chips read the world: the force on each robot's blade, the light at "
-                "its sensors",
-                flush=True,
-            )
+    force, light = served_parts(sensors)
+    if force is not None or light:
+        print(f"  {_i2c_readings(args.backend, force is not None, bool(light))}", flush=True)
     print("start one agent per robot (each in its own terminal, or with &):", flush=True)
     for robot in robots:
         print(f"  surprise-agent --config {robot['config']}", flush=True)
@@ -490,7 +499,7 @@ async def serve(args: argparse.Namespace) -> int:
             write_atomic(directory / ROBOTS_FILE, text.encode("utf-8"), durable=False)
             announced = True
             place = args.scenario + (f" in {arena.name}" if arena is not None else "")
-            _announce(args, info["robots"], place)
+            _announce(args, info["robots"], place, config.sensors)
             if lab is None:
                 await asyncio.Event().wait()  # until a signal cancels this task
                 return EXIT_OK  # not reached: the wait ends only by cancellation
