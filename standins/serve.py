@@ -36,8 +36,14 @@ or the ``robot`` extra (``dbus-fast``) is not installed: the D-Bus modules are i
 the arguments are parsed, so ``--help`` works without it.
 
 Without ``--secret-file``, ``DIR/secret.key`` is used and created with a random secret if
-absent; the master's ``secret_file`` must name the same file. Only scenarios whose robots carry
-nothing but the Thymio's own sensors (IR and ground) can be served: ``basic``.
+absent; the master's ``secret_file`` must name the same file.
+
+Robots with a force sensor or light sensors (``boxes``, ``gradient``) get them as emulated I2C
+chips served on a Unix socket per robot (:mod:`standins.i2c_bridge`, in a private directory under
+the temporary directory, removed on exit): their agent configurations add ``body.force``,
+``body.light`` and ``body.i2c_bridge``, and robots.json names each robot's socket
+(``i2c_bridge``). With ``sim`` the chips read the world's force on the blade and the light at the
+sensors; with ``playground`` an unloaded blade and the uniform light, since Enki has neither.
 """
 
 from __future__ import annotations
