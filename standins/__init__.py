@@ -14,6 +14,7 @@ would be, in tests, rehearsals and the simulated swarm's separate processes.
   boxes, start poses);
 * :mod:`standins.serve` - ``surprise-sim-robots``: simulated robots served as separate
   processes behind either medulla;
+* :mod:`standins.agent_files` - the agent configurations ``surprise-sim-robots`` writes;
 * :mod:`standins.scripted_robots` - robots that speak the protocol over TCP from a script, for
   the master's tests and benchmarks;
 * :mod:`standins.overhead_camera` - a synthetic overhead camera filming a simulated

@@ -28,8 +28,10 @@ import contextlib
 import errno
 import logging
 import os
+import tempfile
 from collections.abc import AsyncIterator, Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 import msgspec
 
@@ -50,7 +52,9 @@ __all__ = [
     "MAX_SOCKET_PATH",
     "SERVED_FORCE",
     "SERVED_LIGHT",
+    "SOCKET_DIR_PREFIX",
     "I2CBridgeServer",
+    "RobotBridges",
     "RobotChips",
     "constant_chips",
     "force_volts",
@@ -294,3 +298,75 @@ async def serve_i2c_bridge(path: str | Path, i2c: FakeI2C) -> AsyncIterator[I2CB
         await server.wait_closed()
         with contextlib.suppress(FileNotFoundError):
             path.unlink()
+
+
+#: The prefix of the private directory of a swarm's bridge sockets, under the temporary directory
+#: as the dbus-daemons' are: a Unix socket's path holds 107 bytes, which a user's DIR may exceed.
+SOCKET_DIR_PREFIX = "fake-i2c-"
+
+
+class RobotBridges:
+    """The I2C bridges of a served swarm whose robots carry ``sensors``: one socket per robot
+    carrying a force or light sensor, in a private directory removed on exit (an async context
+    manager). Robots with only the Thymio's sensors need none: then nothing is served."""
+
+    def __init__(self, sensors: Sequence[str]) -> None:
+        self.force, self.light = served_parts(sensors)
+        #: whether the robots carry any I2C part
+        self.needed = self.force is not None or bool(self.light)
+        self.directory: Path | None = None
+        self._stack = contextlib.AsyncExitStack()
+
+    async def __aenter__(self) -> RobotBridges:
+        if self.needed:
+            temporary = tempfile.TemporaryDirectory(prefix=SOCKET_DIR_PREFIX)
+            self.directory = Path(self._stack.enter_context(temporary))
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self._stack.aclose()
+
+    async def serve_world(self, robot_id: str, world: World, index: int) -> dict[str, Any]:
+        """Serve robot ``index`` of ``world`` (:func:`world_chips`) as ``robot_id``; its agent's
+        ``body`` keys (:meth:`body`)."""
+        if not self.needed:
+            return {}
+        return await self._serve(robot_id, world_chips(world, index, self.force, self.light))
+
+    async def serve_constant(self, robot_id: str, light: float) -> dict[str, Any]:
+        """Serve ``robot_id``'s chips reading an unloaded blade and ``light`` everywhere; its
+        agent's ``body`` keys (:meth:`body`)."""
+        if not self.needed:
+            return {}
+        chips = constant_chips(self.force, self.light, light_value=light)
+        return await self._serve(robot_id, chips)
+
+    async def _serve(self, robot_id: str, chips: RobotChips) -> dict[str, Any]:
+        assert self.directory is not None, "serve inside the context"
+        path = self.directory / f"{robot_id}.sock"
+        await self._stack.enter_async_context(serve_i2c_bridge(path, chips.i2c))
+        return self.body(path)
+
+    def body(self, path: Path) -> dict[str, Any]:
+        """An agent configuration's ``body`` keys (plain data) for the bridge at ``path``: the
+        socket, and the force and light parts wired as the served chips are."""
+        parts: dict[str, Any] = {"i2c_bridge": str(path)}
+        if self.force is not None:
+            parts["force"] = msgspec.to_builtins(self.force)
+        if self.light:
+            parts["light"] = msgspec.to_builtins(list(self.light))
+        return parts
+
+    def readings(self, backend: str) -> str:
+        """What the chips read on ``backend`` (``sim`` or ``playground``), for a person."""
+        if backend == "playground":
+            said = []
+            if self.force is not None:
+                said.append("Enki has no blade: the force sensors read an unloaded blade (0)")
+            if self.light:
+                said.append("it has no lamp: the light sensors read the uniform light")
+            return "the I2C chips do not follow Playground: " + "; ".join(said)
+        said = ["the force on each robot's blade"] if self.force is not None else []
+        if self.light:
+            said.append("the light at its light sensors")
+        return "the I2C chips read the world: " + " and ".join(said)

@@ -36,14 +36,9 @@ or the ``robot`` extra (``dbus-fast``) is not installed: the D-Bus modules are i
 the arguments are parsed, so ``--help`` works without it.
 
 Without ``--secret-file``, ``DIR/secret.key`` is used and created with a random secret if
-absent; the master's ``secret_file`` must name the same file.
-
-Robots with a force sensor or light sensors (``boxes``, ``gradient``) get them as emulated I2C
-chips served on a Unix socket per robot (:mod:`standins.i2c_bridge`, in a private directory under
-the temporary directory, removed on exit): their agent configurations add ``body.force``,
-``body.light`` and ``body.i2c_bridge``, and robots.json names each robot's socket
-(``i2c_bridge``). With ``sim`` the chips read the world's force on the blade and the light at the
-sensors; with ``playground`` an unloaded blade and the uniform light, since Enki has neither.
+absent; the master's ``secret_file`` must name the same file. A robot's force and light sensors
+(``boxes``, ``gradient``) are emulated I2C chips on a Unix socket of its own
+(:class:`~standins.i2c_bridge.RobotBridges`), which its agent configuration and robots.json name.
 """
 
 from __future__ import annotations
@@ -58,23 +53,27 @@ import re
 import shutil
 import signal
 import sys
-import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import msgspec
 import numpy as np
-import yaml
 
-from drivers.config import SPEED_SCALE, ForceSensorConfig, LightSensorConfig
+from drivers.config import SPEED_SCALE
 from minimize_surprise.errors import ConfigError
 from minimize_surprise.files import write_atomic, write_new_secret
 from minimize_surprise.sensors import FORCE_SENSORS, GROUND_SENSORS, IR_SENSORS, LIGHT_SENSORS
 from minimize_surprise.wire import DEFAULT_PORT
 from simulator.arenas import load_arena
 from simulator.scenarios import SCENARIOS, WorldConfig, scenario_config
-from standins.i2c_bridge import constant_chips, serve_i2c_bridge, served_parts, world_chips
+from standins.agent_files import (
+    HEADER,
+    PLAYGROUND_THYMIO,
+    SIM_THYMIO,
+    robot_id,
+    write_agent_config,
+)
+from standins.i2c_bridge import RobotBridges
 from standins.playground import PLAYGROUND_SPEED_SCALE, speed_scale_for
 
 if TYPE_CHECKING:
@@ -94,34 +93,20 @@ EXIT_USAGE = 2
 
 #: The master's default TCP port.
 DEFAULT_MASTER_PORT = DEFAULT_PORT
-#: Robot ids are ``sim-<index>``: they name CSV columns and trace files on the master.
-ROBOT_ID_PREFIX = "sim-"
 ROBOTS_FILE = "robots.json"
 POSES_FILE = "poses.npy"
 SECRET_FILE = "secret.key"
-#: The first line of every agent configuration this command writes: only those are replaced.
-_HEADER = "# Written by surprise-sim-robots"
 #: The subdirectory of DIR with the playground backend's files.
 PLAYGROUND_DIR = "playground"
 BACKENDS = ("sim", "playground")
 #: The agents' reconnection backoff, as ``robot_agent.config.BackoffConfig`` defaults it.
 RECONNECT_INITIAL = 0.5
 RECONNECT_MAX = 30.0
-RECONNECT_JITTER = 0.25
 
 _SIGNALS = (signal.SIGTERM, signal.SIGINT)
 #: What to install when the D-Bus modules are missing.
 ROBOT_EXTRA = "pip install -e '.[robot]'"
 _SERVED_SENSORS = frozenset(IR_SENSORS + GROUND_SENSORS + FORCE_SENSORS + LIGHT_SENSORS)
-#: The directory of the I2C bridges' sockets: a private one under the temporary directory, as
-#: the dbus-daemons' (a Unix socket's path holds 107 bytes, which DIR may exceed).
-I2C_DIR_PREFIX = "fake-i2c-"
-
-
-def robot_id(index: int, ids: Sequence[str] | None = None) -> str:
-    """The id of simulated robot ``index``: ``ids[index]`` when given (``--ids``), else
-    ``sim-<index>``."""
-    return ids[index] if ids else f"{ROBOT_ID_PREFIX}{index}"
 
 
 def _ids(text: str) -> list[str]:
@@ -183,8 +168,7 @@ def _parser() -> argparse.ArgumentParser:
         "--scenario",
         default="basic",
         choices=servable_scenarios(),
-        help="the world (default: basic); the force and light sensors of boxes and gradient are "
-        "served as emulated I2C chips, one socket per robot",
+        help="the world (default: basic; force and light sensors as emulated I2C chips)",
     )
     parser.add_argument(
         "--backend",
@@ -255,92 +239,6 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
-def agent_config(
-    args: argparse.Namespace,
-    index: int,
-    bus: str,
-    secret_file: Path,
-    thymio: dict[str, Any] | None = None,
-    parts: dict[str, Any] | None = None,
-) -> dict[str, Any]:
-    """The agent configuration (plain data) of robot ``index`` served on ``bus``; ``thymio``
-    adds to its ``body.thymio`` settings, ``parts`` to its ``body`` (the I2C parts and the
-    bridge, see :func:`i2c_parts`)."""
-    return {
-        "robot_id": robot_id(index, args.ids),
-        "master": {
-            "host": args.master_host,
-            "port": args.master_port,
-            "secret_file": str(secret_file),
-        },
-        "body": {
-            "thymio": {"bus": bus, "speed_scale": args.speed_scale, **(thymio or {})},
-            **(parts or {}),
-        },
-        "safety": {"profile": "stop"},
-        "reconnect": {
-            "initial": args.reconnect_initial,
-            # The agent refuses max < initial; a short --reconnect-initial alone raises max.
-            "max": max(args.reconnect_max, args.reconnect_initial),
-            "jitter": RECONNECT_JITTER,
-        },
-    }
-
-
-#: ``body.thymio`` of the sim backend's agents: no failsafe program, since the simulated Thymio
-#: runs no Aseba code, and no medulla to restart.
-SIM_THYMIO: dict[str, Any] = {}
-#: ``body.thymio`` of the playground backend's agents, as on a lab's robot
-#: (deploy/examples/agent-thymio-1.yaml): Playground's Thymios run the failsafe program, and an
-#: agent ends a medulla that lost its robot, which the server restarts as systemd would
-#: (docs/rehearsal.md).
-PLAYGROUND_THYMIO: dict[str, Any] = {"failsafe": True, "restart_medulla": True}
-
-
-def i2c_parts(
-    force: ForceSensorConfig | None, light: Sequence[LightSensorConfig], bridge: Path | None
-) -> dict[str, Any]:
-    """``body``'s I2C keys of an agent configuration (plain data): the force and light sensors
-    as wired on the served robot, read over the bridge at ``bridge``; none without a bridge."""
-    if bridge is None:
-        return {}
-    parts: dict[str, Any] = {"i2c_bridge": str(bridge)}
-    if force is not None:
-        parts["force"] = msgspec.to_builtins(force)
-    if light:
-        parts["light"] = msgspec.to_builtins(list(light))
-    return parts
-
-
-def _write_agent_config(
-    args: argparse.Namespace,
-    directory: Path,
-    index: int,
-    bus: str,
-    secret_file: Path,
-    what: str,
-    thymio: dict[str, Any],
-    parts: dict[str, Any] | None = None,
-) -> dict[str, Any]:
-    """Write robot ``index``'s agent configuration (``what`` the robot is, for its header); the
-    robot's entry in robots.json."""
-    path = directory / f"agent-{robot_id(index, args.ids)}.yaml"
-    header = (
-        f"{_HEADER} (pid {os.getpid()}): {what}.\n"
-        "# Valid while that process runs: the bus below is its private dbus-daemon"
-        + (", the I2C bridge its socket" if parts else "")
-        + ".\n"
-    )
-    data = agent_config(args, index, bus, secret_file, thymio, parts)
-    text = yaml.safe_dump(data, sort_keys=False)
-    # Readers (the tests, a script waiting for robots.json) see the whole file or none.
-    write_atomic(path, (header + text).encode("utf-8"), durable=False)
-    entry = {"robot_id": robot_id(index, args.ids), "index": index, "bus": bus, "config": str(path)}
-    if parts:
-        entry["i2c_bridge"] = parts["i2c_bridge"]
-    return entry
-
-
 def _secret_file(given: Path | None, directory: Path) -> Path:
     if given is not None:
         path = given.expanduser().resolve()
@@ -381,33 +279,14 @@ def _prepare_dir(directory: Path) -> None:
     # fail to connect, so they go.
     for stale in directory.glob("agent-*.yaml"):
         with contextlib.suppress(OSError):
-            if stale.read_text(encoding="utf-8").startswith(_HEADER):
+            if stale.read_text(encoding="utf-8").startswith(HEADER):
                 stale.unlink()
     with contextlib.suppress(FileNotFoundError):
         (directory / ROBOTS_FILE).unlink()
 
 
-def _i2c_readings(backend: str, force: bool, light: bool) -> str:
-    """What the served robots' I2C chips read, for the startup lines."""
-    if backend == "playground":
-        parts = []
-        if force:
-            parts.append("Enki has no blade: the force sensors read an unloaded blade (0)")
-        if light:
-            parts.append("it has no lamp: the light sensors read the uniform light")
-        return "the I2C chips do not follow Playground: " + "; ".join(parts)
-    parts = ["the force on each robot's blade"] if force else []
-    if light:
-        parts.append("the light at its light sensors")
-    return "the I2C chips read the world: " + " and ".join(parts)
-
-
-def _announce(
-    args: argparse.Namespace,
-    robots: list[dict[str, Any]],
-    scenario: str,
-    sensors: Sequence[str],
-) -> None:
+def _announce(args: argparse.Namespace, info: dict[str, Any], scenario: str) -> None:
+    robots = info["robots"]
     kind = "Aseba Playground Thymios" if args.backend == "playground" else "simulated Thymios"
     print(
         f"surprise-sim-robots: {len(robots)} {kind} of scenario {scenario} "
@@ -420,9 +299,8 @@ def _announce(
         bridge = robot.get("i2c_bridge")
         i2c = f", I2C bridge {bridge}" if bridge else ""
         print(f"  {robot['robot_id']}: D-Bus {robot['bus']}{medulla}{i2c}", flush=True)
-    force, light = served_parts(sensors)
-    if force is not None or light:
-        print(f"  {_i2c_readings(args.backend, force is not None, bool(light))}", flush=True)
+    if "i2c" in info:
+        print(f"  {info['i2c']}", flush=True)
     print("start one agent per robot (each in its own terminal, or with &):", flush=True)
     for robot in robots:
         print(f"  surprise-agent --config {robot['config']}", flush=True)
@@ -505,7 +383,7 @@ async def serve(args: argparse.Namespace) -> int:
             write_atomic(directory / ROBOTS_FILE, text.encode("utf-8"), durable=False)
             announced = True
             place = args.scenario + (f" in {arena.name}" if arena is not None else "")
-            _announce(args, info["robots"], place, config.sensors)
+            _announce(args, info, place)
             if lab is None:
                 await asyncio.Event().wait()  # until a signal cancels this task
                 return EXIT_OK  # not reached: the wait ends only by cancellation
@@ -557,22 +435,18 @@ async def _serve_sim(
     # compiles would stall the real-time world for seconds, and the agents' reads time out.
     await asyncio.to_thread(warm_up)
     world = SignallingWorld(config, args.seed, record=args.poses)
-    force, light = served_parts(config.sensors)
-    bridges = _bridge_dir(stack) if force is not None or light else None
+    bridges = await stack.enter_async_context(RobotBridges(config.sensors))
+    if bridges.needed:
+        info["i2c"] = bridges.readings("sim")
     robots = []
     for index in range(world.n_robots):
         bus = await stack.enter_async_context(private_bus())
         model = SimThymio(world, index, speed_scale=args.speed_scale)
         await stack.enter_async_context(serve_sim_thymio(bus, model))
-        bridge = None
-        if bridges is not None:
-            bridge = bridges / f"{robot_id(index, args.ids)}.sock"
-            chips = world_chips(world, index, force, light)
-            await stack.enter_async_context(serve_i2c_bridge(bridge, chips.i2c))
+        parts = await bridges.serve_world(robot_id(index, args.ids), world, index)
         what = f"simulated Thymio {index} of scenario {args.scenario}, seed {args.seed}"
-        parts = i2c_parts(force, light, bridge)
         robots.append(
-            _write_agent_config(args, directory, index, bus, secret_file, what, SIM_THYMIO, parts)
+            write_agent_config(args, directory, index, bus, secret_file, what, SIM_THYMIO, parts)
         )
     # The exit stack stops the world before the services hang up and the buses go.
     await stack.enter_async_context(SimSwarm(world, realtime=True))
@@ -599,29 +473,20 @@ async def _serve_playground(
     arena = Arena.of(config, args.seed)
     lab = await stack.enter_async_context(PlaygroundLab(directory / PLAYGROUND_DIR, arena))
     assert lab.playground is not None and lab.world_bus is not None
-    force, light = served_parts(config.sensors)
-    bridges = _bridge_dir(stack) if force is not None or light else None
+    bridges = await stack.enter_async_context(RobotBridges(config.sensors))
+    if bridges.needed:
+        info["i2c"] = bridges.readings("playground")
     robots = []
     for robot in lab.robots:
-        bridge = None
-        if bridges is not None:
-            bridge = bridges / f"{robot_id(robot.index, args.ids)}.sock"
-            # Enki has no blade and no lamp: an unloaded blade, the scenario's uniform light.
-            chips = constant_chips(force, light, light_value=config.light_uniform)
-            await stack.enter_async_context(serve_i2c_bridge(bridge, chips.i2c))
+        # Enki has no blade and no lamp: an unloaded blade, the scenario's uniform light.
+        parts = await bridges.serve_constant(robot_id(robot.index, args.ids), config.light_uniform)
         what = (
             f"Aseba Playground Thymio {robot.index} of scenario {args.scenario}, seed "
             f"{args.seed}, behind asebamedulla"
         )
-        entry = _write_agent_config(
-            args,
-            directory,
-            robot.index,
-            robot.bus.address,
-            secret_file,
-            what,
-            PLAYGROUND_THYMIO,
-            i2c_parts(force, light, bridge),
+        bus = robot.bus.address
+        entry = write_agent_config(
+            args, directory, robot.index, bus, secret_file, what, PLAYGROUND_THYMIO, parts
         )
         entry.update(robot_port=robot.robot_port, medulla_port=robot.medulla.port)
         robots.append(entry)
@@ -633,11 +498,6 @@ async def _serve_playground(
         "directory": str(lab.directory),
     }
     return lab
-
-
-def _bridge_dir(stack: contextlib.AsyncExitStack) -> Path:
-    """A private directory for the I2C bridges' sockets, removed when ``stack`` closes."""
-    return Path(stack.enter_context(tempfile.TemporaryDirectory(prefix=I2C_DIR_PREFIX)))
 
 
 def _save_poses(path: Path, world: SignallingWorld) -> None:
