@@ -6,7 +6,8 @@ deploy/examples/experiment-object-manipulation.yaml for a few short evaluations
 (docs/separate-processes.md, docs/rehearsal.md).
 
 With ``--backend sim`` the chips read the world's force on each blade; with ``--backend
-playground`` Enki has no blade, so the force reads an unloaded blade: zero at every step.
+playground`` Enki has no blade, so the force reads an unloaded blade: zero at every step. The
+gradient scenario's robots read their two light sensors, behind a multiplexer, the same way.
 """
 
 from __future__ import annotations
@@ -78,7 +79,7 @@ def _rehearse(lab: Processes, tmp_path: Path, backend: str) -> dict[str, np.ndar
     wait_for(announced.exists, START_TIMEOUT, "robots.json", lab, alive=("sim",))
     info: dict[str, Any] = json.loads(announced.read_text())
     bridges = [Path(robot["i2c_bridge"]) for robot in info["robots"]]
-    assert len(set(bridges)) == ROBOTS
+    assert len(set(bridges)) == ROBOTS and "I2C chips" in info["i2c"]
     for robot, bridge in zip(info["robots"], bridges, strict=True):
         assert stat.S_ISSOCK(bridge.stat().st_mode)
         body = load_agent_config(robot["config"]).body
@@ -153,3 +154,52 @@ def test_the_object_experiment_rehearsed_in_playground_reads_no_force(
         f"sim-{i}": 0.0 for i in range(ROBOTS)
     }
     assert "Enki has no blade" in procs.logs[0].read_text()
+
+
+def test_the_gradient_robots_read_their_light_sensors_over_the_bridge(
+    procs: Processes,  # noqa: F811
+    tmp_path: Path,
+):
+    port = free_port()
+    secret = tmp_path / "secret.key"
+    secret.write_text(SECRET)
+    robots_dir = tmp_path / "robots"
+    procs.start(
+        "sim",
+        "standins.serve",
+        *("--scenario", "gradient", "--robots", "2", "--seed", "1", "--dir", str(robots_dir)),
+        *("--master-port", str(port), "--secret-file", str(secret)),
+    )
+    announced = robots_dir / "robots.json"
+    wait_for(announced.exists, START_TIMEOUT, "robots.json", procs, alive=("sim",))
+    info = json.loads(announced.read_text())
+    assert "the light at its light sensors" in info["i2c"]
+    sensors = load_agent_config(info["robots"][0]["config"]).body.sensor_names()
+    assert sensors[-3:] == ("force", "light.0", "light.1")
+    master_config = tmp_path / "master.yaml"
+    master_config.write_text(
+        yaml.safe_dump(
+            {
+                "experiment": {"scenario": "gradient", "robots": 2, "sensors": list(sensors)},
+                "host": "127.0.0.1",
+                "port": port,
+                "secret_file": str(secret),
+                "allowed_robots": [robot["robot_id"] for robot in info["robots"]],
+            }
+        )
+    )
+    for index, robot in enumerate(info["robots"]):
+        procs.start(f"agent-{index}", "robot_agent.cli", "--config", robot["config"])
+    # The preflight reads every part of every robot (docs/preflight.md).
+    procs.start("check", "master_service", "check", str(master_config), "--json")
+    assert procs.wait("check", RUN_TIMEOUT) == 0, procs.report()
+    output = procs.logs[-1].read_text()  # the JSON, among the log lines of the robots joining
+    rows, _ = json.JSONDecoder().raw_decode(output, output.index("[\n"))
+    for row in rows:
+        readings = row["readings"]
+        assert row["fit"] and readings["force"] == 0.0, row  # nothing pushed before the start
+        # The lamp's light at the start ring, in the TSL45315's steps of 4 / 1024 (the preflight
+        # prints 4 decimals: 0.00005 x 256 off at most).
+        for name in ("light.0", "light.1"):
+            assert 0.0 < readings[name] < 1.0, row
+            assert readings[name] * 256 == pytest.approx(round(readings[name] * 256), abs=0.02)
