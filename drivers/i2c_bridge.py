@@ -31,7 +31,7 @@ import errno as errnos
 import socket
 import struct
 import time
-from typing import Annotated, Final, Literal
+from typing import Annotated, Final, Literal, get_args
 
 import msgspec
 
@@ -39,13 +39,17 @@ from minimize_surprise.errors import HardwareError
 
 __all__ = [
     "BRIDGE_CALL_TIMEOUT",
+    "HEADER_SIZE",
+    "MAX_ERROR_MESSAGE",
     "MAX_MESSAGE_SIZE",
     "OPS",
     "BridgeReply",
     "BridgeRequest",
     "BridgeSMBus",
+    "Op",
     "bridge_factory",
     "frame",
+    "message_size",
 ]
 
 #: Seconds one call may take from sending the request to the whole reply. The server answers from
@@ -57,17 +61,23 @@ BRIDGE_CALL_TIMEOUT: Final = 0.2
 #: The longest message either side accepts, in bytes: a request is about 20, a reply about 20
 #: plus an error's message; anything longer is a peer speaking another protocol.
 MAX_MESSAGE_SIZE: Final = 1024
+#: The longest error message a reply carries, in characters (an ``OSError``'s text and a path),
+#: which keeps every reply far below :data:`MAX_MESSAGE_SIZE`.
+MAX_ERROR_MESSAGE: Final = 400
 #: The length prefix of every message.
 _HEADER = struct.Struct(">I")
+#: Bytes of the length prefix.
+HEADER_SIZE: Final = _HEADER.size
 
+#: What a request asks: ``open`` (does the bus exist?) or the name of an SMBus method.
 Op = Literal[
     "open", "read_byte_data", "write_byte_data", "read_word_data", "write_word_data", "write_byte"
 ]  # fmt: skip
 #: Every ``op`` a request may carry.
-OPS: tuple[str, ...] = Op.__args__  # type: ignore[attr-defined]
+OPS: tuple[str, ...] = get_args(Op)
 
-Byte = Annotated[int, msgspec.Meta(ge=0, le=0xFF)]
-Word = Annotated[int, msgspec.Meta(ge=0, le=0xFFFF)]
+_Byte = Annotated[int, msgspec.Meta(ge=0, le=0xFF)]
+_Word = Annotated[int, msgspec.Meta(ge=0, le=0xFFFF)]
 
 
 class BridgeRequest(msgspec.Struct, frozen=True, array_like=True, forbid_unknown_fields=True):
@@ -76,24 +86,25 @@ class BridgeRequest(msgspec.Struct, frozen=True, array_like=True, forbid_unknown
     #: ``open`` or the SMBus method
     op: Op
     #: the bus number, as in ``/dev/i2c-N``
-    bus: Byte
+    bus: _Byte
     #: the device's 7-bit address
     address: Annotated[int, msgspec.Meta(ge=0, le=0x7F)] = 0
     #: the register (command byte); 0 where the call has none
-    register: Byte = 0
+    register: _Byte = 0
     #: the byte or word written; 0 for a read
-    value: Word = 0
+    value: _Word = 0
 
 
 class BridgeReply(msgspec.Struct, frozen=True, array_like=True, forbid_unknown_fields=True):
     """The answer to one :class:`BridgeRequest`: ``value``, or the call's ``errno`` and message."""
 
     #: what a read returned (0 for a write or after an error)
-    value: Word = 0
+    value: _Word = 0
+    # Linux's error numbers are below 4096 (MAX_ERRNO).
     #: 0 on success, else the errno of the call's ``OSError``
     errno: Annotated[int, msgspec.Meta(ge=0, le=4095)] = 0
     #: the error's message ('' on success)
-    message: Annotated[str, msgspec.Meta(max_length=400)] = ""
+    message: Annotated[str, msgspec.Meta(max_length=MAX_ERROR_MESSAGE)] = ""
 
 
 _encoder = msgspec.msgpack.Encoder()
@@ -112,10 +123,6 @@ def message_size(header: bytes) -> int:
     if size > MAX_MESSAGE_SIZE:
         raise ValueError(f"a message of {size} bytes (at most {MAX_MESSAGE_SIZE})")
     return int(size)
-
-
-#: Bytes of the length prefix.
-HEADER_SIZE: Final = _HEADER.size
 
 
 class BridgeSMBus:
@@ -166,14 +173,18 @@ class BridgeSMBus:
 
     # -- the wire -----------------------------------------------------------------------------
 
-    def _call(self, op: str, address: int, register: int = 0, value: int = 0) -> int:
+    def _call(self, op: Op, address: int, register: int = 0, value: int = 0) -> int:
         if self._closed:
             raise OSError(errnos.EBADF, f"I2C bridge {self.path}: the bus handle is closed")
-        try:
-            request = BridgeRequest(op, self.bus, address, register, value)  # type: ignore[arg-type]
-        except (TypeError, msgspec.ValidationError) as exc:
-            # A driver bug, as smbus2 would reject it; never sent.
-            raise ValueError(f"I2C bridge {self.path}: bad {op} call: {exc}") from None
+        # Constructing a struct checks no bounds (decoding does): a driver's bad argument is
+        # refused here, as smbus2 refuses it, instead of costing the connection at the server.
+        top = 0xFFFF if op == "write_word_data" else 0xFF
+        if not (0 <= address <= 0x7F and 0 <= register <= 0xFF and 0 <= value <= top):
+            raise ValueError(
+                f"I2C bridge {self.path}: {op}: address 0x{address:X}, register {register} or "
+                f"value {value} out of range"
+            )
+        request = BridgeRequest(op, self.bus, address, register, value)
         reply = self._exchange(request)
         if reply.errno:
             raise OSError(reply.errno, f"{reply.message} (I2C bridge {self.path})")

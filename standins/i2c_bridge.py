@@ -38,6 +38,7 @@ import msgspec
 from drivers.config import ForceSensorConfig, LightSensorConfig, MuxConfig
 from drivers.i2c_bridge import (
     HEADER_SIZE,
+    MAX_ERROR_MESSAGE,
     BridgeReply,
     BridgeRequest,
     frame,
@@ -218,9 +219,9 @@ class I2CBridgeServer:
             message = exc.strerror or str(exc)
             if exc.filename:
                 message += f": {exc.filename}"
-            return BridgeReply(errno=exc.errno or errno.EIO, message=message[:400])
+            return BridgeReply(errno=exc.errno or errno.EIO, message=message[:MAX_ERROR_MESSAGE])
         except ValueError as exc:  # an argument the chip's bus refuses, as smbus2 would
-            return BridgeReply(errno=errno.EINVAL, message=str(exc)[:400])
+            return BridgeReply(errno=errno.EINVAL, message=str(exc)[:MAX_ERROR_MESSAGE])
 
     @staticmethod
     def _call(handle: FakeSMBus, request: BridgeRequest) -> int:

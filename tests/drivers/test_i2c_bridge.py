@@ -212,3 +212,29 @@ async def test_a_stalled_server_is_a_hardware_error_within_the_timeout(socket_pa
         assert str(socket_path) in str(info.value)
     finally:
         listener.close()
+
+
+async def test_a_nack_a_bad_argument_and_garbage(socket_path: Path):
+    chips = RobotChips(SERVED_FORCE, (), lambda: 0.0, lambda _: 0.0)
+    async with serve_i2c_bridge(socket_path, chips.i2c):
+
+        def client() -> None:
+            bus = BridgeSMBus(str(socket_path), 1)
+            # Nobody at 0x33: errno 121 as from /dev/i2c-1, and the next call works.
+            with pytest.raises(OSError, match="Remote I/O error") as nack:
+                bus.read_byte_data(0x33, 0)
+            assert nack.value.errno == 121 and str(socket_path) in str(nack.value)
+            with pytest.raises(ValueError, match="out of range"):
+                bus.write_byte_data(0x48, 1, 256)  # refused before it is sent
+            assert bus.read_word_data(0x48, 1) > 0  # the ADS1115's config register
+            bus.close()
+            with pytest.raises(OSError, match="closed"):
+                bus.read_word_data(0x48, 1)
+            # Not the protocol: the server hangs up rather than guess at an answer.
+            with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as raw:
+                raw.settimeout(1.0)
+                raw.connect(str(socket_path))
+                raw.sendall(b"\x00\x00\x00\x05hello")
+                assert raw.recv(16) == b""
+
+        await asyncio.to_thread(client)
