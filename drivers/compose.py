@@ -14,6 +14,7 @@ from drivers.body import Body, PartReading, SensorFrame, describe_error
 from drivers.config import BodyConfig
 from drivers.force import ForceSensor
 from drivers.i2c import I2CBuses, I2CDevice, SMBusFactory
+from drivers.i2c_bridge import bridge_factory
 from drivers.light import LightSensor
 from drivers.parts import Part, gather_all
 from drivers.thymio import ThymioBase
@@ -147,10 +148,14 @@ async def _settle(*awaitables: Awaitable[None]) -> list[BaseException | None]:
 def build_body(config: BodyConfig, *, smbus_factory: SMBusFactory | None = None) -> RobotBody:
     """The body described by ``config`` (nothing is opened until ``open()``/``async with``).
 
-    ``smbus_factory(bus_number)`` opens an I2C bus; the default is ``smbus2.SMBus``, and tests pass
+    ``smbus_factory(bus_number)`` opens an I2C bus; the default is ``smbus2.SMBus``, or the bridge
+    at ``config.i2c_bridge`` when it names one (:mod:`drivers.i2c_bridge`), and tests pass
     ``standins.fake_i2c`` buses. Parts are reported in canonical order: the Thymio's IR and ground
     sensors, ``force``, ``light.0``, ``light.1`` (light sensors in the order of ``config.light``).
     """
+    if smbus_factory is None and config.i2c_bridge is not None:
+        # A rehearsal: the same drivers, their transfers answered by emulated chips elsewhere.
+        smbus_factory = bridge_factory(config.i2c_bridge)
     buses = I2CBuses(smbus_factory)
     parts: list[Part] = []
     if config.force is not None:

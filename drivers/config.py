@@ -202,8 +202,16 @@ class BodyConfig(Strict, frozen=True):
     #: the blade's force sensor on an ADS1115, reported as ``force`` (``null``: none;
     #: docs/sensors.md)
     force: ForceSensorConfig | None = None
+    # A real robot reads its chips on /dev/i2c-N; a rehearsal's agent reads emulated chips served
+    # by surprise-sim-robots, whose readings come from its simulated world.
+    #: a rehearsal's stand-in for the I2C buses: the Unix socket of the emulated chips that
+    #: ``surprise-sim-robots`` serves (it writes this key); ``null`` on a real robot, which reads
+    #: ``/dev/i2c-N`` (docs/separate-processes.md)
+    i2c_bridge: str | None = None
 
     def __post_init__(self) -> None:
+        if self.i2c_bridge is not None and not self.i2c_bridge.strip():
+            raise ValueError("`i2c_bridge`: expected the bridge's socket path or null, got ''")
         if len(self.light) > len(LIGHT_SENSORS):
             raise ValueError(f"`light`: at most {len(LIGHT_SENSORS)} light sensors are supported")
         seen: dict[tuple[object, ...], int] = {}

@@ -36,8 +36,9 @@ or the ``robot`` extra (``dbus-fast``) is not installed: the D-Bus modules are i
 the arguments are parsed, so ``--help`` works without it.
 
 Without ``--secret-file``, ``DIR/secret.key`` is used and created with a random secret if
-absent; the master's ``secret_file`` must name the same file. Only scenarios whose robots carry
-nothing but the Thymio's own sensors (IR and ground) can be served: ``basic``.
+absent; the master's ``secret_file`` must name the same file. A robot's force and light sensors
+(``boxes``, ``gradient``) are emulated I2C chips on a Unix socket of its own
+(:class:`~standins.i2c_bridge.RobotBridges`), which its agent configuration and robots.json name.
 """
 
 from __future__ import annotations
@@ -57,15 +58,22 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import yaml
 
 from drivers.config import SPEED_SCALE
 from minimize_surprise.errors import ConfigError
 from minimize_surprise.files import write_atomic, write_new_secret
-from minimize_surprise.sensors import GROUND_SENSORS, IR_SENSORS
+from minimize_surprise.sensors import FORCE_SENSORS, GROUND_SENSORS, IR_SENSORS, LIGHT_SENSORS
 from minimize_surprise.wire import DEFAULT_PORT
 from simulator.arenas import load_arena
 from simulator.scenarios import SCENARIOS, WorldConfig, scenario_config
+from standins.agent_files import (
+    HEADER,
+    PLAYGROUND_THYMIO,
+    SIM_THYMIO,
+    robot_id,
+    write_agent_config,
+)
+from standins.i2c_bridge import RobotBridges
 from standins.playground import PLAYGROUND_SPEED_SCALE, speed_scale_for
 
 if TYPE_CHECKING:
@@ -85,31 +93,20 @@ EXIT_USAGE = 2
 
 #: The master's default TCP port.
 DEFAULT_MASTER_PORT = DEFAULT_PORT
-#: Robot ids are ``sim-<index>``: they name CSV columns and trace files on the master.
-ROBOT_ID_PREFIX = "sim-"
 ROBOTS_FILE = "robots.json"
 POSES_FILE = "poses.npy"
 SECRET_FILE = "secret.key"
-#: The first line of every agent configuration this command writes: only those are replaced.
-_HEADER = "# Written by surprise-sim-robots"
 #: The subdirectory of DIR with the playground backend's files.
 PLAYGROUND_DIR = "playground"
 BACKENDS = ("sim", "playground")
 #: The agents' reconnection backoff, as ``robot_agent.config.BackoffConfig`` defaults it.
 RECONNECT_INITIAL = 0.5
 RECONNECT_MAX = 30.0
-RECONNECT_JITTER = 0.25
 
 _SIGNALS = (signal.SIGTERM, signal.SIGINT)
 #: What to install when the D-Bus modules are missing.
 ROBOT_EXTRA = "pip install -e '.[robot]'"
-_THYMIO_SENSORS = frozenset(IR_SENSORS + GROUND_SENSORS)
-
-
-def robot_id(index: int, ids: Sequence[str] | None = None) -> str:
-    """The id of simulated robot ``index``: ``ids[index]`` when given (``--ids``), else
-    ``sim-<index>``."""
-    return ids[index] if ids else f"{ROBOT_ID_PREFIX}{index}"
+_SERVED_SENSORS = frozenset(IR_SENSORS + GROUND_SENSORS + FORCE_SENSORS + LIGHT_SENSORS)
 
 
 def _ids(text: str) -> list[str]:
@@ -154,10 +151,10 @@ def _port(text: str) -> int:
 
 
 def servable_scenarios() -> tuple[str, ...]:
-    """The scenarios whose robots carry only the Thymio's own sensors (IR and ground): the
-    D-Bus service provides nothing else (force and light sensors are I2C devices)."""
+    """The scenarios whose robots carry only sensors this command serves: the Thymio's own (IR
+    and ground) over D-Bus, the force and light sensors as emulated I2C chips over a bridge."""
     return tuple(
-        name for name in SCENARIOS if set(scenario_config(name).sensors) <= _THYMIO_SENSORS
+        name for name in SCENARIOS if set(scenario_config(name).sensors) <= _SERVED_SENSORS
     )
 
 
@@ -171,7 +168,7 @@ def _parser() -> argparse.ArgumentParser:
         "--scenario",
         default="basic",
         choices=servable_scenarios(),
-        help="the world (default: basic; scenarios with force or light sensors cannot be served)",
+        help="the world (default: basic; force and light sensors as emulated I2C chips)",
     )
     parser.add_argument(
         "--backend",
@@ -242,65 +239,6 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
-def agent_config(
-    args: argparse.Namespace,
-    index: int,
-    bus: str,
-    secret_file: Path,
-    thymio: dict[str, Any] | None = None,
-) -> dict[str, Any]:
-    """The agent configuration (plain data) of robot ``index`` served on ``bus``; ``thymio``
-    adds to its ``body.thymio`` settings."""
-    return {
-        "robot_id": robot_id(index, args.ids),
-        "master": {
-            "host": args.master_host,
-            "port": args.master_port,
-            "secret_file": str(secret_file),
-        },
-        "body": {"thymio": {"bus": bus, "speed_scale": args.speed_scale, **(thymio or {})}},
-        "safety": {"profile": "stop"},
-        "reconnect": {
-            "initial": args.reconnect_initial,
-            # The agent refuses max < initial; a short --reconnect-initial alone raises max.
-            "max": max(args.reconnect_max, args.reconnect_initial),
-            "jitter": RECONNECT_JITTER,
-        },
-    }
-
-
-#: ``body.thymio`` of the sim backend's agents: no failsafe program, since the simulated Thymio
-#: runs no Aseba code, and no medulla to restart.
-SIM_THYMIO: dict[str, Any] = {}
-#: ``body.thymio`` of the playground backend's agents, as on a lab's robot
-#: (deploy/examples/agent-thymio-1.yaml): Playground's Thymios run the failsafe program, and an
-#: agent ends a medulla that lost its robot, which the server restarts as systemd would
-#: (docs/rehearsal.md).
-PLAYGROUND_THYMIO: dict[str, Any] = {"failsafe": True, "restart_medulla": True}
-
-
-def _write_agent_config(
-    args: argparse.Namespace,
-    directory: Path,
-    index: int,
-    bus: str,
-    secret_file: Path,
-    what: str,
-    thymio: dict[str, Any],
-) -> dict[str, Any]:
-    """Write robot ``index``'s agent configuration (``what`` the robot is, for its header); the
-    robot's entry in robots.json."""
-    path = directory / f"agent-{robot_id(index, args.ids)}.yaml"
-    header = (
-        f"{_HEADER} (pid {os.getpid()}): {what}.\n"
-        "# Valid while that process runs: the bus below is its private dbus-daemon.\n"
-    )
-    text = yaml.safe_dump(agent_config(args, index, bus, secret_file, thymio), sort_keys=False)
-    # Readers (the tests, a script waiting for robots.json) see the whole file or none.
-    write_atomic(path, (header + text).encode("utf-8"), durable=False)
-    return {"robot_id": robot_id(index, args.ids), "index": index, "bus": bus, "config": str(path)}
-
-
 def _secret_file(given: Path | None, directory: Path) -> Path:
     if given is not None:
         path = given.expanduser().resolve()
@@ -341,13 +279,14 @@ def _prepare_dir(directory: Path) -> None:
     # fail to connect, so they go.
     for stale in directory.glob("agent-*.yaml"):
         with contextlib.suppress(OSError):
-            if stale.read_text(encoding="utf-8").startswith(_HEADER):
+            if stale.read_text(encoding="utf-8").startswith(HEADER):
                 stale.unlink()
     with contextlib.suppress(FileNotFoundError):
         (directory / ROBOTS_FILE).unlink()
 
 
-def _announce(args: argparse.Namespace, robots: list[dict[str, Any]], scenario: str) -> None:
+def _announce(args: argparse.Namespace, info: dict[str, Any], scenario: str) -> None:
+    robots = info["robots"]
     kind = "Aseba Playground Thymios" if args.backend == "playground" else "simulated Thymios"
     print(
         f"surprise-sim-robots: {len(robots)} {kind} of scenario {scenario} "
@@ -357,7 +296,11 @@ def _announce(args: argparse.Namespace, robots: list[dict[str, Any]], scenario: 
     for robot in robots:
         port = robot.get("medulla_port")
         medulla = f", asebamedulla on TCP {port}" if port else ""
-        print(f"  {robot['robot_id']}: D-Bus {robot['bus']}{medulla}", flush=True)
+        bridge = robot.get("i2c_bridge")
+        i2c = f", I2C bridge {bridge}" if bridge else ""
+        print(f"  {robot['robot_id']}: D-Bus {robot['bus']}{medulla}{i2c}", flush=True)
+    if "i2c" in info:
+        print(f"  {info['i2c']}", flush=True)
     print("start one agent per robot (each in its own terminal, or with &):", flush=True)
     for robot in robots:
         print(f"  surprise-agent --config {robot['config']}", flush=True)
@@ -440,7 +383,7 @@ async def serve(args: argparse.Namespace) -> int:
             write_atomic(directory / ROBOTS_FILE, text.encode("utf-8"), durable=False)
             announced = True
             place = args.scenario + (f" in {arena.name}" if arena is not None else "")
-            _announce(args, info["robots"], place)
+            _announce(args, info, place)
             if lab is None:
                 await asyncio.Event().wait()  # until a signal cancels this task
                 return EXIT_OK  # not reached: the wait ends only by cancellation
@@ -492,14 +435,18 @@ async def _serve_sim(
     # compiles would stall the real-time world for seconds, and the agents' reads time out.
     await asyncio.to_thread(warm_up)
     world = SignallingWorld(config, args.seed, record=args.poses)
+    bridges = await stack.enter_async_context(RobotBridges(config.sensors))
+    if bridges.needed:
+        info["i2c"] = bridges.readings("sim")
     robots = []
     for index in range(world.n_robots):
         bus = await stack.enter_async_context(private_bus())
         model = SimThymio(world, index, speed_scale=args.speed_scale)
         await stack.enter_async_context(serve_sim_thymio(bus, model))
+        parts = await bridges.serve_world(robot_id(index, args.ids), world, index)
         what = f"simulated Thymio {index} of scenario {args.scenario}, seed {args.seed}"
         robots.append(
-            _write_agent_config(args, directory, index, bus, secret_file, what, SIM_THYMIO)
+            write_agent_config(args, directory, index, bus, secret_file, what, SIM_THYMIO, parts)
         )
     # The exit stack stops the world before the services hang up and the buses go.
     await stack.enter_async_context(SimSwarm(world, realtime=True))
@@ -526,14 +473,20 @@ async def _serve_playground(
     arena = Arena.of(config, args.seed)
     lab = await stack.enter_async_context(PlaygroundLab(directory / PLAYGROUND_DIR, arena))
     assert lab.playground is not None and lab.world_bus is not None
+    bridges = await stack.enter_async_context(RobotBridges(config.sensors))
+    if bridges.needed:
+        info["i2c"] = bridges.readings("playground")
     robots = []
     for robot in lab.robots:
+        # Enki has no blade and no lamp: an unloaded blade, the scenario's uniform light.
+        parts = await bridges.serve_constant(robot_id(robot.index, args.ids), config.light_uniform)
         what = (
             f"Aseba Playground Thymio {robot.index} of scenario {args.scenario}, seed "
             f"{args.seed}, behind asebamedulla"
         )
-        entry = _write_agent_config(
-            args, directory, robot.index, robot.bus.address, secret_file, what, PLAYGROUND_THYMIO
+        bus = robot.bus.address
+        entry = write_agent_config(
+            args, directory, robot.index, bus, secret_file, what, PLAYGROUND_THYMIO, parts
         )
         entry.update(robot_port=robot.robot_port, medulla_port=robot.medulla.port)
         robots.append(entry)

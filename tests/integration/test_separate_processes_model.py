@@ -178,12 +178,13 @@ async def test_shutting_down_releases_the_waiting_reads_at_once(dbus_address: st
 # --------------------------------------------------------------------------- the command line
 
 
-def test_scenarios_with_sensors_beyond_the_thymio_are_usage_errors(tmp_path, capsys):
-    assert servable_scenarios() == ("basic",)
+def test_every_scenario_is_served_its_i2c_sensors_over_a_bridge(tmp_path, capsys):
+    # The force and light sensors are emulated I2C chips (standins/i2c_bridge.py).
+    assert servable_scenarios() == ("basic", "boxes", "gradient")
     with pytest.raises(SystemExit) as exit_:
-        serve.main(["--scenario", "boxes", "--dir", str(tmp_path)])
+        serve.main(["--scenario", "lamp", "--dir", str(tmp_path)])
     assert exit_.value.code == serve.EXIT_USAGE
-    assert "invalid choice: 'boxes'" in capsys.readouterr().err
+    assert "invalid choice: 'lamp'" in capsys.readouterr().err
 
 
 def test_a_directory_served_by_a_live_process_is_refused(tmp_path, capsys):
