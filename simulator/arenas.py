@@ -51,6 +51,11 @@ Pose = tuple[float, float, float]
 #: The most of a region boxes may cover: beyond it random placement cannot find room (the
 #: simulator's ``box_coverage`` has the same limit).
 MAX_BOX_COVERAGE = 0.4
+#: A Thymio II's body as the simulator approximates it (``WorldConfig``'s ``robot_radius`` and
+#: ``body_offset``; a test keeps them equal): a circle of this radius centred this far ahead of
+#: the wheel axis. A fixed start's poses are checked against it when the file is read.
+BODY_RADIUS = 0.058
+BODY_OFFSET = 0.025
 
 
 class Floor(Strict, frozen=True):
@@ -185,12 +190,27 @@ class Arena(Strict, frozen=True):
         if start.kind == "fixed":
             if not poses:
                 raise ValueError("`start.poses`: a fixed start needs a pose per robot")
-            for i, (x, y, _) in enumerate(poses):
+            centres = []
+            for i, (x, y, heading) in enumerate(poses):
                 if abs(x) >= half_w or abs(y) >= half_h:
                     raise ValueError(
                         f"`start.poses`: pose {i + 1} ({x:g}, {y:g}) is outside the "
                         f"{2 * half_w:g} x {2 * half_h:g} m floor"
                     )
+                cx = x + BODY_OFFSET * math.cos(math.radians(heading))
+                cy = y + BODY_OFFSET * math.sin(math.radians(heading))
+                if abs(cx) + BODY_RADIUS > half_w or abs(cy) + BODY_RADIUS > half_h:
+                    raise ValueError(
+                        f"`start.poses`: the robot at pose {i + 1} ({x:g}, {y:g}) reaches "
+                        f"beyond the {2 * half_w:g} x {2 * half_h:g} m floor"
+                    )
+                for j, (ox, oy) in enumerate(centres):
+                    if math.hypot(cx - ox, cy - oy) < 2 * BODY_RADIUS:
+                        raise ValueError(
+                            f"`start.poses`: poses {j + 1} and {i + 1} overlap: their bodies "
+                            "would touch at the start"
+                        )
+                centres.append((cx, cy))
 
     def world(self) -> dict[str, Any]:
         """The simulated world's parameters this arena gives (``simulator.scenarios.WorldConfig``

@@ -111,6 +111,11 @@ BAD = [
         "outside the 1 x 1 m floor",
     ),
     (
+        "floor: {width: 1.0}\nstart: {kind: fixed, poses: [[0.45, 0, 0]]}",
+        "start.poses",
+        "reaches beyond the 1 x 1 m floor",
+    ),
+    (
         "floor: {width: 1.0}\nstart: {kind: random, region: [-0.2, 0, 0.9, 0.4]}",
         "start.region",
         "reaches beyond",
@@ -134,15 +139,30 @@ def test_a_bad_arena_file_is_refused_by_file_and_key(
     assert reason in str(info.value)
 
 
-def test_overlapping_start_poses_are_refused_by_key(tmp_path: Path) -> None:
+def test_overlapping_start_poses_are_refused_by_file_and_key(tmp_path: Path) -> None:
     path = tmp_path / "crowded.yaml"
     path.write_text(
         "name: crowded\nfloor: {width: 1.0}\n"
-        "start: {kind: fixed, poses: [[0, 0, 0], [0.05, 0, 0]]}\n"
+        "start: {kind: fixed, poses: [[0, 0, 0], [0.1, 0, 0]]}\n"
     )
     with pytest.raises(ConfigError, match="poses 1 and 2 overlap") as info:
-        World(scenario_config("basic", {"robots": 2}, arena=load_arena(path)))
+        load_arena(path)
+    assert info.value.key == "start.poses" and info.value.file == str(path)
+    # The same rule where an experiment gives the poses itself.
+    with pytest.raises(ConfigError, match="poses 1 and 2 overlap") as info:
+        World(
+            scenario_config(
+                "basic", {"robots": 2, "start": "fixed", "start_poses": [[0, 0, 0], [0.1, 0, 0]]}
+            )
+        )
     assert info.value.key == "simulation.start_poses"
+
+
+def test_the_arena_files_body_is_the_simulators() -> None:
+    from simulator.arenas import BODY_OFFSET, BODY_RADIUS
+    from simulator.scenarios import WorldConfig
+
+    assert (WorldConfig().robot_radius, WorldConfig().body_offset) == (BODY_RADIUS, BODY_OFFSET)
 
 
 def test_fixed_poses_must_match_the_robots(tmp_path: Path) -> None:
