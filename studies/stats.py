@@ -36,9 +36,11 @@ def fisher(table: Sequence[Sequence[int]]) -> dict[str, float]:
     if counts.shape[1] < 2 or counts.shape[0] < 2:
         return {"p": 1.0}
     result = stats.fisher_exact(counts)
-    out = {"p": float(result.pvalue)}
+    # scipy 1.17 gives an r x c table's p-value as an array of one when a row's counts are all
+    # in other columns than the other row's (e.g. [[3, 0, 0], [0, 1, 1]]).
+    out = {"p": float(np.ravel(result.pvalue)[0])}
     if counts.shape == (2, 2):
-        out["odds_ratio"] = float(result.statistic)
+        out["odds_ratio"] = float(np.ravel(result.statistic)[0])
     return out
 
 
