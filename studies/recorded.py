@@ -29,9 +29,7 @@ import json
 import os
 import re
 from pathlib import Path
-from typing import Annotated, Any, Final
-
-import msgspec
+from typing import Any, Final
 
 from minimize_surprise.config import Strict
 from minimize_surprise.errors import ConfigError, SurpriseError
@@ -69,9 +67,13 @@ _TRACK_IT: Final = (
 class RecordedParams(Strict, frozen=True):
     """The ``params`` of a ``recorded`` group: which run directories it reads."""
 
-    #: run directories, as paths or globs (``run-*``, ``**/run-*``) relative to the study file;
-    #: each must match at least one directory when the study runs
-    runs: Annotated[list[str], msgspec.Meta(min_length=1)]
+    #: run directories, as paths or globs (``run-*``, ``**/run-*``) relative to the study file
+    #: (at least one); each must match at least one directory when the study runs
+    runs: list[str]
+
+    def __post_init__(self) -> None:
+        if not self.runs:
+            raise ValueError("`runs`: give at least one run directory (a path or a glob)")
 
 
 class RecordedRunError(SurpriseError, RuntimeError):
@@ -94,7 +96,8 @@ def absolute_patterns(runs: list[str], base: Path) -> list[str]:
     out = []
     for pattern in runs:
         path = Path(os.path.expanduser(pattern))
-        out.append(str(path if path.is_absolute() else base.resolve() / path))
+        # Normalised: `studies/../lab-runs/run-1` and `lab-runs/run-1` are one source.
+        out.append(os.path.normpath(path if path.is_absolute() else base.resolve() / path))
     return out
 
 
@@ -207,7 +210,7 @@ def refreshed(task: dict[str, Any], stored: dict[str, Any]) -> dict[str, Any]:
     failed with the reason, unless it was read before and has since gone (a study archived
     without the lab's disk): then the stored summary stands."""
     base = {key: task[key] for key in ("group", "kind", "seed", "sweep", "run")}
-    kept = {key: stored[key] for key in ("seconds", "host") if key in stored}
+    kept: dict[str, Any] = {key: stored[key] for key in ("seconds", "host") if key in stored}
     try:
         return {**base, "status": "done", **read_recorded(task["params"]["source"]), **kept}
     except RecordedRunError as exc:

@@ -163,6 +163,15 @@ def _known(rows: Any) -> Any:
     return classes[classes != UNKNOWN]
 
 
+def _one_scheme(a: Any, b: Any) -> bool:
+    """Whether the classes ``a`` and ``b`` (both some) are of one kind, so that counting them
+    against each other means something: motion and grouping (``circling/dispersed``: a basic
+    run, or a real run among boxes whose boxes no tracker followed), or one label each (the
+    object-manipulation classes, the grid world's patterns)."""
+    kinds = {"/" in str(c) for c in (*a, *b)}
+    return len(b) > 0 and len(kinds) == 1
+
+
 def _behaviour_table(a: Any, b: Any) -> tuple[list[str], list[list[int]]]:
     classes = sorted(set(_known(a)) | set(_known(b)))
     table = [[int((s["behaviour"] == c).sum()) for c in classes] for s in (a, b)]
@@ -219,7 +228,7 @@ def _two_samples(
                     p=u["p"],
                 )
             )
-    if "behaviour" in a.columns and len(_known(a)) and len(_known(b)):
+    if "behaviour" in a.columns and len(_known(a)) and _one_scheme(_known(a), _known(b)):
         classes, table = _behaviour_table(a, b)
         f = fisher(table)
         tests["fisher-exact"].append(
