@@ -1,7 +1,8 @@
 """``surprise-study report``: a study's runs as tables, statistics and the paper's figures.
 
 It never reruns anything: it reads each run's ``summary.json`` (and ``failed.json``) and the
-per-evaluation files, and writes into ``DIR/report/``:
+per-evaluation files, a recorded run's afresh from its own directory (:mod:`studies.recorded`),
+and writes into ``DIR/report/``:
 
 * ``runs.csv``: one row per run (group, kind, sweep values, seed, status, best fitness, final
   behaviour metrics and class, ...);
@@ -16,7 +17,10 @@ per-evaluation files, and writes into ``DIR/report/``:
   random runs per condition (same scenario, setting and sweep values), Kruskal-Wallis across the
   conditions of one kind, Fisher's exact test on the behaviour counts of evolved against random
   per condition; p-values Bonferroni-corrected within each test's family;
-* ``figures/``: best fitness over evaluations with medians (the paper's Fig. 11), rotation
+* ``problems.txt``: one line per run left out (failed; a recorded run missing, unfinished or
+  unreadable), naming it and why;
+* ``figures/``: best fitness over evaluations with medians (the paper's Fig. 11; recorded groups
+  dashed, "real robots" in the legend), rotation
   against mean cluster size with the class lines (Fig. 13), distance covered against box
   displacement with the pushing threshold (Fig. 14), mean predicted against real value per
   sensor, and the grid world's figures for grid runs; each as PNG and PDF.
