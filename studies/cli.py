@@ -192,6 +192,8 @@ def _report(args: argparse.Namespace) -> int:
         f"wrote {result['report']}: {result['done']} of {result['runs']} runs, "
         f"{result['groups']} groups, {result['tests']} tests, {len(result['figures'])} figure files"
     )
+    for line in result["problems"]:  # also in the report's problems.txt
+        print(f"  left out: {line}")
     return 0
 
 

@@ -1,7 +1,8 @@
 """``surprise-study report``: a study's runs as tables, statistics and the paper's figures.
 
 It never reruns anything: it reads each run's ``summary.json`` (and ``failed.json``) and the
-per-evaluation files, and writes into ``DIR/report/``:
+per-evaluation files, a recorded run's afresh from its own directory (:mod:`studies.recorded`),
+and writes into ``DIR/report/``:
 
 * ``runs.csv``: one row per run (group, kind, sweep values, seed, status, best fitness, final
   behaviour metrics and class, ...);
@@ -16,7 +17,10 @@ per-evaluation files, and writes into ``DIR/report/``:
   random runs per condition (same scenario, setting and sweep values), Kruskal-Wallis across the
   conditions of one kind, Fisher's exact test on the behaviour counts of evolved against random
   per condition; p-values Bonferroni-corrected within each test's family;
-* ``figures/``: best fitness over evaluations with medians (the paper's Fig. 11), rotation
+* ``problems.txt``: one line per run left out (failed; a recorded run missing, unfinished or
+  unreadable), naming it and why;
+* ``figures/``: best fitness over evaluations with medians (the paper's Fig. 11; recorded groups
+  dashed, "real robots" in the legend), rotation
   against mean cluster size with the class lines (Fig. 13), distance covered against box
   displacement with the pushing threshold (Fig. 14), mean predicted against real value per
   sensor, and the grid world's figures for grid runs; each as PNG and PDF.
@@ -37,13 +41,16 @@ from minimize_surprise.errors import ConfigError
 from minimize_surprise.figures import save_figure
 from simulator import metrics as sim_metrics
 from studies import tables
+from studies.recorded import RECORDED, refreshed
 from studies.runner import STUDY_FILE, TASKS_FILE
 from studies.spec import load_study
 from studies.tasks import FAILED, SUMMARY, run_dir
 
-__all__ = ["REPORT_DIR", "load_runs", "write_study_report"]
+__all__ = ["PROBLEMS", "REPORT_DIR", "load_runs", "write_study_report"]
 
 REPORT_DIR = "report"
+#: In the report's directory: one line per run left out, and why (none: no file).
+PROBLEMS = "problems.txt"
 
 
 def load_runs(out: str | Path):
@@ -67,6 +74,8 @@ def load_runs(out: str | Path):
                 break
         if summary is None:
             continue
+        if task["kind"] == RECORDED:  # read where it is: it may have gained a class since
+            summary = refreshed(task, summary)
         row: dict[str, Any] = {
             "group": task["group"],
             "kind": task["kind"],
@@ -78,7 +87,9 @@ def load_runs(out: str | Path):
             row[key.split(".")[-1]] = value
         for key in (
             "scenario", "setting", "robots", "evaluations", "best_fitness", "fitness",
-            "post_fitness", "pattern", "quality", "size", "seconds", "batch", "host", "error",
+            "post_fitness", "pattern", "quality", "size", "safety_share",
+            "evolution_safety_share", "real", "source", "behaviour_missing", "seconds", "batch",
+            "host", "error",
         ):  # fmt: skip
             if key in summary:
                 row[key] = summary[key]
@@ -92,6 +103,8 @@ def load_runs(out: str | Path):
             row["behaviour"] = tables.behaviour_class(behaviour)
         elif "pattern" in summary:
             row["behaviour"] = summary["pattern"]
+        elif summary.get("behaviour_missing"):
+            row["behaviour"] = tables.UNKNOWN
         row["_summary"] = summary
         rows.append(row)
     frame = pd.DataFrame(rows)
@@ -109,7 +122,7 @@ def _evaluations_table(out: Path, done):
         name = row["_summary"].get("evaluations_file") or row["_summary"].get("generations_file")
         if not name:
             continue
-        path = out / "runs" / row["run"] / name
+        path = out / "runs" / row["run"] / name  # a recorded run's is absolute: its own
         if not path.is_file():
             continue
         # The run's own "kind" column (initial, offspring, reevaluation) is the candidate's.
@@ -136,6 +149,10 @@ def write_study_report(out: str | Path) -> dict[str, Any]:
         raise ConfigError(f"{out}: no run has finished yet")
     public = frame.drop(columns=["_summary"])
     public.to_csv(target / "runs.csv", index=False)
+    problems = _problems(frame)
+    (target / PROBLEMS).unlink(missing_ok=True)  # an earlier report's
+    if problems:
+        (target / PROBLEMS).write_text("".join(f"{line}\n" for line in problems), "utf-8")
     done = frame[frame["status"] == "done"].copy()
     done.attrs = frame.attrs
     summary = tables.summary_table(done) if len(done) else pd.DataFrame()
@@ -158,8 +175,18 @@ def write_study_report(out: str | Path) -> dict[str, Any]:
         "groups": len(summary),
         "tests": len(tests),
         "figures": figures,
+        "problems": problems,
         "report": str(target),
     }
+
+
+def _problems(frame) -> list[str]:
+    """One line per run the report leaves out, naming it and why: a run that failed, a recorded
+    run that is missing, unfinished or unreadable (its error names the directory)."""
+    failed = frame[frame["status"] != "done"]
+    if "error" not in failed.columns:
+        return [f"{row['run']}: failed" for _, row in failed.iterrows()]
+    return [f"{row['run']}: {row['error']}" for _, row in failed.iterrows()]
 
 
 def _paper_sections(out: Path) -> dict[str, dict[str, Any]]:
@@ -189,27 +216,48 @@ def _save(fig, directory: Path, name: str) -> list[str]:
     return [str(path) for path in save_figure(fig, directory / name)]
 
 
+#: The scatter figures' marker per kind (recorded: the lab's runs, most often real).
+_MARKERS = (("evolved", "o"), ("random", "x"), (RECORDED, "s"))
+
+
+def _group_words(done) -> dict[str, tuple[str, str]]:
+    """Per group, what its fitness curve's legend says it is and its line's style: recorded
+    groups dashed, "real robots" when every run of them ran on robots (no simulation.json)."""
+    words = {}
+    for group, rows in done.groupby("group", sort=False):
+        if (rows["kind"] != RECORDED).any():
+            continue
+        real = "real" in rows.columns and rows["real"].fillna(False).astype(bool).all()
+        words[str(group)] = ("real robots" if real else "recorded", "--")
+    return words
+
+
 def _figures(out: Path, directory: Path, done, evaluations) -> list[str]:
     if not len(done):
         return []
     from matplotlib.figure import Figure
 
     written: list[str] = []
-    thymio = done[done["kind"].isin(["evolved", "random"])]
+    thymio = done[done["kind"].isin(["evolved", "random", RECORDED])]
     sweep = tables.sweep_columns(done)
-    # Fig. 11: best fitness over evaluations, medians and quartiles per group and sweep value.
-    # (The grid world's runs count generations: its figures draw them.)
+    # Fig. 11: best fitness over evaluations, medians and quartiles per group and sweep value,
+    # recorded (real) groups beside simulated ones. (The grid world's runs count generations:
+    # its figures draw them.)
     if evaluations is not None:
         if "evaluation" in evaluations.columns:
-            evaluations = evaluations[evaluations["kind"] == "evolved"]
+            evaluations = evaluations[evaluations["kind"].isin(["evolved", RECORDED])]
         else:
             evaluations = None
     if evaluations is not None and len(evaluations) and "best_fitness" in evaluations.columns:
         fig = Figure(figsize=(7, 4.2))
         ax = fig.add_subplot()
-        for label, median, q1, q3 in tables.fitness_curves(evaluations, ["group", *sweep]):
-            ax.plot(median.index, median.values, label=f"{label} (median)")
-            ax.fill_between(median.index, q1.values, q3.values, alpha=0.2)
+        what = _group_words(done)
+        for key, label, median, q1, q3 in tables.fitness_curves(evaluations, ["group", *sweep]):
+            words, style = what.get(key[0], ("simulated", "-"))
+            (line,) = ax.plot(
+                median.index, median.values, ls=style, label=f"{label} ({words}, median)"
+            )
+            ax.fill_between(median.index, q1.values, q3.values, alpha=0.2, color=line.get_color())
         ax.set(xlabel="evaluation", ylabel="best fitness", title="Best fitness over evaluations")
         ax.set_ylim(0, 1)
         ax.legend(fontsize=7, loc="lower right")
@@ -218,9 +266,9 @@ def _figures(out: Path, directory: Path, done, evaluations) -> list[str]:
         # Fig. 13: rotation against mean cluster size, evolved and random, with the class lines.
         fig = Figure(figsize=(6, 4.5))
         ax = fig.add_subplot()
-        for kind, marker in (("evolved", "o"), ("random", "x")):
+        for kind, marker in _MARKERS:
             sub = thymio[thymio["kind"] == kind]
-            if len(sub):
+            if len(sub) and sub["rotation"].notna().any():
                 ax.scatter(sub["mean_cluster_size"], sub["rotation"], marker=marker, label=kind)
         ax.axhline(sim_metrics.STOPPED_BELOW, color="grey", ls="--", lw=0.8)
         ax.axhline(sim_metrics.CIRCLING_ABOVE, color="grey", ls="--", lw=0.8)
@@ -234,7 +282,7 @@ def _figures(out: Path, directory: Path, done, evaluations) -> list[str]:
         # Fig. 14: distance covered against box displacement, with the pushing threshold.
         fig = Figure(figsize=(6, 4.5))
         ax = fig.add_subplot()
-        for kind, marker in (("evolved", "o"), ("random", "x")):
+        for kind, marker in _MARKERS:
             sub = boxes[boxes["kind"] == kind]
             if len(sub):
                 ax.scatter(

@@ -5,7 +5,9 @@ into the same directory is refused), ``tasks.json`` (every run, in order) and ``
 directory per run). A study killed and run again skips the runs whose summary exists and runs
 the others afresh, so each run is done once. A failed run is recorded (``failed.json`` and
 ``error.txt`` in its directory) and does not stop the others; it is run again next time. Groups
-that use other groups' runs (``after``) are submitted once those have ended.
+that use other groups' runs (``after``) are submitted once those have ended. The recorded runs
+of a study (:mod:`studies.recorded`) may differ between its starts: a run the lab recorded since
+joins it in the same directory.
 
 What a cluster loses, the runner does not take for a failed run:
 
@@ -34,6 +36,7 @@ from minimize_surprise.files import write_json
 from minimize_surprise.text import plural
 from studies.batches import BATCH_RUNS, plan_batches, run_tasks
 from studies.executors import Executor, SchedulerLostError
+from studies.recorded import RECORDED
 from studies.spec import expand, load_study, task_stages
 from studies.tasks import (
     FAILED,
@@ -114,7 +117,7 @@ def prepare(study_path: str | Path, out: str | Path) -> list[dict[str, Any]]:
     :class:`ConfigError` for a bad study file, or when ``out`` holds another study.
     """
     study_path, out = find_study(study_path), Path(out)
-    study = load_study(study_path)
+    study = load_study(study_path, find_runs=True)
     tasks = expand(study)
     kept = out / STUDY_FILE
     if kept.exists() and not _same_runs(out, tasks, study_path):
@@ -142,7 +145,13 @@ def _same_runs(out: Path, tasks: list[dict[str, Any]], study_path: Path) -> bool
         before = json.loads(kept_tasks.read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return False
-    return before == json.loads(json.dumps(tasks))
+    # Recorded runs aside: a lab that recorded another run goes on in the same directory.
+    return _run(before) == _run(json.loads(json.dumps(tasks)))
+
+
+def _run(tasks: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The tasks that run something (not those reading a recorded run)."""
+    return [task for task in tasks if task.get("kind") != RECORDED]
 
 
 def run_study(

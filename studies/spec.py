@@ -27,6 +27,11 @@ executor can run them and a task names its own run directory.
 A group may use the runs of others (the grid world's reruns and damage of evolved genomes): it
 names them in ``after`` and starts once every run of those groups has ended; a relative
 ``genome_run`` is a run below the study's ``runs/``, ``{seed}`` standing for the run's own seed.
+
+A ``recorded`` group runs nothing: its ``params`` are ``{runs: [path or glob, ...]}``, finished
+run directories relative to the study file (the lab's real-robot runs, :mod:`studies.recorded`);
+it takes neither ``seeds``, ``sweep``, ``after`` nor the study's ``defaults``, and each directory
+it matches is one task, ``<group>/<directory's name>``.
 """
 
 from __future__ import annotations
@@ -40,6 +45,13 @@ import msgspec
 
 from minimize_surprise.config import Strict, decode, read_yaml
 from minimize_surprise.errors import ConfigError
+from studies.recorded import (
+    RECORDED,
+    RecordedParams,
+    absolute_patterns,
+    matching_runs,
+    source_names,
+)
 from studies.slurm import SlurmOptions
 
 __all__ = [
@@ -94,10 +106,12 @@ class Group(Strict, frozen=True):
     #: the group's name (1 to 64 letters, digits, ``.``, ``_``, ``-``): its runs' directory
     name: _NAME
     #: the run kind: ``evolved`` (an evolved run on the engine), ``random`` (one random network
-    #: pair), or a kind another installed package adds
+    #: pair), ``recorded`` (finished run directories read, not run: the lab's real-robot runs),
+    #: or a kind another installed package adds
     kind: str
     #: the run kind's configuration (for ``evolved`` and ``random``: an experiment file's
-    #: content), merged over the study's ``defaults``
+    #: content), merged over the study's ``defaults``; for ``recorded``: ``runs``, the run
+    #: directories (paths or globs relative to the study file), without the defaults
     params: dict[str, Any] = msgspec.field(default_factory=dict)
     #: a list of seeds, a range, or a count N (seeds 1..N)
     seeds: list[Seed] | SeedRange | Annotated[int, msgspec.Meta(ge=1)] = 1
@@ -176,12 +190,17 @@ def _layers(needs: dict[str, set[str]]) -> list[list[str]]:
     return layers
 
 
-def load_study(path: str | Path) -> Study:
+def load_study(path: str | Path, *, find_runs: bool = False) -> Study:
     """Load a study file; every error names the file and the key. The run kinds are checked
-    against those this installation knows (:data:`studies.tasks.KINDS`)."""
+    against those this installation knows (:data:`studies.tasks.KINDS`).
+
+    A ``recorded`` group's paths are made absolute (relative ones are the study file's). With
+    ``find_runs`` (a study about to run) each of them must match a run directory; without, a
+    path that matches nothing yet adds no run (the shipped example lists a lab's runs)."""
     from studies.tasks import KINDS
 
-    study = decode(read_yaml(path), Study, file=path)
+    raw = read_yaml(path)
+    study = decode(raw, Study, file=path)
     for index, group in enumerate(study.groups):
         if group.kind not in KINDS:
             raise ConfigError(
@@ -189,8 +208,47 @@ def load_study(path: str | Path) -> Study:
                 file=str(path),
                 key=f"groups[{index}].kind",
             )
+    study = _recorded_groups(study, raw, path, find_runs=find_runs)
     _check_params(study, path)
     return study
+
+
+#: What a recorded group cannot have, and why: it runs nothing.
+_NOT_RECORDED = {
+    "seeds": "a recorded group's runs have run: it takes no seeds",
+    "sweep": "a recorded group's runs have run: it takes no sweep",
+    "after": "a recorded group runs nothing, so it waits for no group",
+}
+
+
+def _recorded_groups(
+    study: Study, raw: dict[str, Any], path: str | Path, *, find_runs: bool
+) -> Study:
+    # Checked against the file's own keys: `seeds: 1` and the default look alike once decoded.
+    groups = []
+    for index, group in enumerate(study.groups):
+        if group.kind != RECORDED:
+            groups.append(group)
+            continue
+        where = f"groups[{index}]"
+        for key, reason in _NOT_RECORDED.items():
+            if key in raw["groups"][index]:
+                raise ConfigError(reason, file=str(path), key=f"{where}.{key}")
+        try:
+            params = decode(group.params, RecordedParams)
+        except ConfigError as exc:
+            key = f"{where}.params" + (f".{exc.key}" if exc.key else "")
+            raise ConfigError(exc.reason, file=str(path), key=key) from None
+        patterns = absolute_patterns(params.runs, Path(path).parent)
+        for number, pattern in enumerate(patterns):
+            if find_runs and not matching_runs(pattern):
+                raise ConfigError(
+                    f"no run directory matches {params.runs[number]!r} ({pattern})",
+                    file=str(path),
+                    key=f"{where}.params.runs[{number}]",
+                )
+        groups.append(msgspec.structs.replace(group, params={"runs": patterns}))
+    return msgspec.structs.replace(study, groups=groups)
 
 
 def _check_params(study: Study, path: str | Path) -> None:
@@ -254,6 +312,9 @@ def expand(study: Study) -> list[dict[str, Any]]:
     the merged parameters and the run's directory (relative to the study's ``runs/``)."""
     tasks = []
     for group in study.groups:
+        if group.kind == RECORDED:
+            tasks += _recorded_tasks(study, group)
+            continue
         keys = list(group.sweep)
         combos = itertools.product(*(group.sweep[k] for k in keys)) if keys else [()]
         for combo in combos:
@@ -275,6 +336,27 @@ def expand(study: Study) -> list[dict[str, Any]]:
                     }
                 )
     return tasks
+
+
+def _recorded_tasks(study: Study, group: Group) -> list[dict[str, Any]]:
+    # One task per run directory the group's paths match, each once, in the paths' order; the
+    # "seed" only numbers them (a real run's randomness is the world's).
+    sources: list[Path] = []
+    for pattern in group.params.get("runs", []):
+        sources += [p for p in matching_runs(pattern) if p not in sources]
+    return [
+        {
+            "study": study.name,
+            "group": group.name,
+            "kind": group.kind,
+            "seed": number,
+            "sweep": {},
+            "params": {"source": str(source)},
+            "run": f"{group.name}/{name}",
+            "after": [],
+        }
+        for number, (source, name) in enumerate(zip(sources, source_names(sources), strict=True), 1)
+    ]
 
 
 def task_stages(tasks: list[dict[str, Any]]) -> list[list[dict[str, Any]]]:

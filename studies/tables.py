@@ -4,7 +4,8 @@
 sweep keys in ``frame.attrs["sweep"]``), calls these functions on the finished ones, and writes
 what they return:
 
-* :func:`behaviour_class`: a run's behaviour as one label (``circling/grouped/pushing``);
+* :func:`behaviour_class`: a run's behaviour as one label (``circling/grouped/pushing``; a run
+  without one, e.g. a real run without a tracker's positions, is :data:`UNKNOWN`);
 * :func:`summary_table`: one row per group and sweep value with the fitness's median, quartiles
   and range, and the count of each behaviour;
 * :func:`statistics`: the paper's tests (docs/studies.md, on top of :mod:`studies.stats`), each
@@ -27,6 +28,7 @@ from studies.stats import bonferroni, fisher, kruskal_wallis, mann_whitney
 
 __all__ = [
     "PAIRWISE_VALUES",
+    "UNKNOWN",
     "behaviour_class",
     "conditions",
     "fitness_curves",
@@ -35,6 +37,10 @@ __all__ = [
     "summary_table",
     "sweep_columns",
 ]
+
+#: The class of a run whose behaviour is not known (a real run without a tracker's positions):
+#: counted in the tables, left out of the tests on the classes.
+UNKNOWN = "unknown"
 
 #: Up to this many values of a sweep key are also compared two by two (more: Kruskal-Wallis only,
 #: as 20 grid sizes would make 190 tests).
@@ -151,8 +157,23 @@ def _test_row(
     }  # fmt: skip
 
 
+def _known(rows: Any) -> Any:
+    """The classes of ``rows`` that are known (not missing, not :data:`UNKNOWN`)."""
+    classes = rows["behaviour"].dropna()
+    return classes[classes != UNKNOWN]
+
+
+def _one_scheme(a: Any, b: Any) -> bool:
+    """Whether the classes ``a`` and ``b`` (both some) are of one kind, so that counting them
+    against each other means something: motion and grouping (``circling/dispersed``: a basic
+    run, or a real run among boxes whose boxes no tracker followed), or one label each (the
+    object-manipulation classes, the grid world's patterns)."""
+    kinds = {"/" in str(c) for c in (*a, *b)}
+    return len(b) > 0 and len(kinds) == 1
+
+
 def _behaviour_table(a: Any, b: Any) -> tuple[list[str], list[list[int]]]:
-    classes = sorted(set(a["behaviour"].dropna()) | set(b["behaviour"].dropna()))
+    classes = sorted(set(_known(a)) | set(_known(b)))
     table = [[int((s["behaviour"] == c).sum()) for c in classes] for s in (a, b)]
     return classes, table
 
@@ -207,12 +228,12 @@ def _two_samples(
                     p=u["p"],
                 )
             )
-    if "behaviour" in a.columns and a["behaviour"].notna().any() and b["behaviour"].notna().any():
+    if "behaviour" in a.columns and len(_known(a)) and _one_scheme(_known(a), _known(b)):
         classes, table = _behaviour_table(a, b)
         f = fisher(table)
         tests["fisher-exact"].append(
             _test_row(
-                "fisher-exact", "behaviour", label, samples, len(a), len(b),
+                "fisher-exact", "behaviour", label, samples, len(_known(a)), len(_known(b)),
                 statistic=f.get("odds_ratio"),
                 p=f["p"], classes=" ".join(classes),
             )
@@ -277,16 +298,18 @@ def statistics(done: Any) -> list[dict[str, Any]]:
 # --------------------------------------------------------------------------- for the figures
 
 
-def fitness_curves(evaluations: Any, keys: list[str]) -> Iterator[tuple[str, Any, Any, Any]]:
+def fitness_curves(
+    evaluations: Any, keys: list[str]
+) -> Iterator[tuple[tuple[Any, ...], str, Any, Any, Any]]:
     """Per combination of the values of ``keys`` (e.g. group and sweep values) in the table of
-    evaluations: its label and the best fitness's median, first and third quartile per
-    evaluation (pandas Series indexed by the evaluation)."""
-    for key in list(evaluations.groupby(keys, sort=False).groups):
+    evaluations: the values, its label and the best fitness's median, first and third quartile
+    per evaluation (pandas Series indexed by the evaluation). A group without a key another
+    group sweeps (its value missing) has its curve too, the key left out of its label."""
+    for key, rows in evaluations.groupby(keys, sort=False, dropna=False):
         key = key if isinstance(key, tuple) else (key,)
-        mask = (evaluations[keys] == list(key)).all(axis=1)
-        by = evaluations[mask].groupby("evaluation")["best_fitness"]
-        label = " ".join(str(k) for k in key)
-        yield label, by.median(), by.quantile(0.25), by.quantile(0.75)
+        by = rows.groupby("evaluation")["best_fitness"]
+        label = " ".join(str(k) for k in key if k == k)  # NaN != NaN: a key it does not sweep
+        yield key, label, by.median(), by.quantile(0.25), by.quantile(0.75)
 
 
 def mean_sensor_values(runs: Any) -> tuple[list[str], Any, Any] | None:

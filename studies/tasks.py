@@ -23,6 +23,8 @@ Kinds:
   fitness, the behaviour metrics of the post-evaluation and the mean predicted and real value of
   each sensor.
 * ``random``: one random network pair in a freshly reset arena (``surprise-master baseline``).
+* ``recorded``: a finished run directory read, not run (the lab's real-robot runs;
+  :mod:`studies.recorded`): its summary is the run's, with ``source`` saying where it is.
 * ``grid-*``: the grid world's kinds (``gridworld.tasks``), when that package is installed. A
   relative ``genome_run`` (reruns and damage of an evolved genome) names another run of the
   study below its ``runs/``, e.g. ``evolved/size=16/seed-{seed}`` with the run's own seed.
@@ -49,6 +51,7 @@ from typing import Any, Final
 
 from minimize_surprise.errors import ConfigError, FileWriteError
 from minimize_surprise.files import write_json
+from studies.recorded import RECORDED, read_recorded
 
 __all__ = [
     "ERROR",
@@ -144,7 +147,7 @@ def _grid_kinds() -> tuple[str, ...]:
 
 
 #: Every run kind this installation can run.
-KINDS: tuple[str, ...] = ("evolved", "random", *_grid_kinds())
+KINDS: tuple[str, ...] = ("evolved", "random", RECORDED, *_grid_kinds())
 
 
 def run_dir(root: str | Path, task: dict[str, Any]) -> Path:
@@ -258,6 +261,8 @@ def check_task(task: dict[str, Any]) -> None:
     ``params``), or naming the kind when it is none of :data:`KINDS`."""
     kind = task["kind"]
     _runner(kind)
+    if kind == RECORDED:
+        return  # its params are checked with the study file (studies.spec), its run when read
     if kind in _KIND_RUNNERS:
         task_experiment(task)
     else:
@@ -433,7 +438,13 @@ def _study_run(task: dict[str, Any], directory: Path, name: str) -> Path:
     return runs_root / name
 
 
-_KIND_RUNNERS = {"evolved": _run_evolved, "random": _run_random}
+def _run_recorded(task: dict[str, Any], directory: Path) -> dict[str, Any]:
+    # Reads the run where it is and writes nothing there; this directory keeps the summary.
+    directory.mkdir(parents=True, exist_ok=True)
+    return read_recorded(task["params"]["source"])
+
+
+_KIND_RUNNERS = {"evolved": _run_evolved, "random": _run_random, RECORDED: _run_recorded}
 
 
 def _runner(kind: str) -> Callable[[dict[str, Any], Path], dict[str, Any]]:

@@ -52,6 +52,7 @@ from robot_agent.config import AgentConfig
 from simulator.arenas import Arena, shipped_arenas
 from simulator.experiment import safety_config, world_overrides
 from simulator.scenarios import SCENARIOS, WorldConfig, scenario_config
+from studies.recorded import RecordedParams
 from studies.spec import Study
 from telemetry.config import TelemetryConfig
 
@@ -552,6 +553,15 @@ def documents() -> list[Document]:
             intro=(
                 "`studies.spec.Study`, with `Group` for each item of `groups` and `SeedRange` for "
                 "a range of seeds: `surprise-study run FILE` (docs/studies.md)."
+            ),
+        ),
+        Document(
+            title="The params of recorded groups",
+            anchor="the-params-of-recorded-groups",
+            root=RecordedParams,
+            intro=(
+                "`studies.recorded.RecordedParams`: the run directories a `recorded` group reads "
+                "(the lab's real-robot runs beside simulated ones; docs/studies.md)."
             ),
         ),
         *_grid_documents(),
