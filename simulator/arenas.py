@@ -190,7 +190,7 @@ class Arena(Strict, frozen=True):
         if start.kind == "fixed":
             if not poses:
                 raise ValueError("`start.poses`: a fixed start needs a pose per robot")
-            centres = []
+            centres: list[tuple[float, float]] = []
             for i, (x, y, heading) in enumerate(poses):
                 if abs(x) >= half_w or abs(y) >= half_h:
                     raise ValueError(
