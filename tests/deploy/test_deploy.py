@@ -35,7 +35,7 @@ def test_example_agent_configurations_load(path):
 
 
 def test_example_master_configuration_loads_with_the_example_experiment(tmp_path):
-    for name in ("master.yaml", "experiment.yaml"):
+    for name in ("master.yaml", "experiment.yaml", "fleet.yaml"):
         shutil.copy(EXAMPLES / name, tmp_path / name)
     (tmp_path / "secret.key").write_text("lab secret\n")
     config = load_master_config(tmp_path / "master.yaml")
@@ -53,7 +53,7 @@ def test_every_example_experiment_names_its_setting():
 
 
 def test_example_robot_ids_are_the_masters_allow_list(tmp_path):
-    for name in ("master.yaml", "experiment.yaml"):
+    for name in ("master.yaml", "experiment.yaml", "fleet.yaml"):
         shutil.copy(EXAMPLES / name, tmp_path / name)
     (tmp_path / "secret.key").write_text("s")
     allowed = set(load_master_config(tmp_path / "master.yaml").allowed_robots)
@@ -66,7 +66,7 @@ def test_the_readmes_rehearsal_runs_the_example_files_as_they_are(tmp_path):
     their names, and runs the experiment's number of robots."""
     import re
 
-    for name in ("master.yaml", "experiment.yaml"):
+    for name in ("master.yaml", "experiment.yaml", "fleet.yaml"):
         shutil.copy(EXAMPLES / name, tmp_path / name)
     (tmp_path / "secret.key").write_text("s")
     config = load_master_config(tmp_path / "master.yaml")
