@@ -511,10 +511,13 @@ def read_events(run_dir: str | Path) -> list[Event]:
 
 class RunConfig(msgspec.Struct, frozen=True, kw_only=True):
     """What a reader below the master needs of ``config.yaml`` (the master's whole configuration,
-    ``master_service.config.MasterConfig``): the experiment and the swarm's size."""
+    ``master_service.config.MasterConfig``): the experiment, the swarm's size and the fleet's
+    inventory."""
 
     experiment: ExperimentConfig | None = None
     expected_robots: int | None = None
+    #: the fleet's inventory file the master file named (absolute), None when it named none
+    inventory: str | None = None
 
     @property
     def robot_count(self) -> int | None:

@@ -171,3 +171,36 @@ async def test_the_master_admits_the_inventory_s_swarm_only(lab, tmp_path):
         await robot.connect()
         assert master.connected_robots == ["r1"]
         await robot.close()
+
+
+def test_the_tracker_takes_the_markers_from_the_inventory(lab, tmp_path):
+    """``track --inventory FILE``, or the inventory the run's master file named; a tracking file
+    that lists its own markers keeps them unless ``--inventory`` is given."""
+    import argparse
+
+    import yaml
+
+    from master_service.cli_lab import _marker_inventory
+
+    run = tmp_path / "run"
+    run.mkdir()
+    snapshot = {"experiment": {"robots": 3}, "inventory": str(lab / "fleet.yaml")}
+    (run / "config.yaml").write_text(yaml.safe_dump(snapshot))
+    every = {"r0": 10, "r1": 11, "r2": 12, "r4": 14}  # not the disabled r3 (it has none anyway)
+
+    def markers(**given):
+        args = argparse.Namespace(**{"inventory": None, "run": run, **given})
+        return _marker_inventory(args, has_ids=given.pop("has_ids", False))
+
+    assert markers() == every  # the run's
+    assert markers(has_ids=True) is None  # the tracking file's own
+    other = write(lab, "robots:\n  - {name: r0, address: a, marker: 30}\n", "other.yaml")
+    assert markers(inventory=other, has_ids=True) == {"r0": 30}
+    assert markers(run=None) is None
+    # With a post-evaluation, only its robots: a spare's marker is not in the video.
+    (run / "post_evaluation.json").write_text(
+        '{"format": 1, "evaluation_id": 9, "steps": 4, "genome_fitness": null, '
+        '"swarm_fitness": null, "robots": {"r0": {"fitness": 0.5, "stats": {"steps_run": 4, '
+        '"overruns": 0, "interventions": {}}}}}'
+    )
+    assert markers() == {"r0": 10}
