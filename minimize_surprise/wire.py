@@ -170,8 +170,8 @@ PROTOCOL_VERSION: Final = 2
 MAX_FRAME_SIZE: Final = 8 * 1024 * 1024
 #: Upper bound of one frame until the handshake is complete, on both sides. The largest handshake
 #: message (a Hello of 16 sensor names and 16 features of 32 characters, a 64-character version,
-#: an 80-character commit; a refusal of 512 characters) takes well under 3 KiB; a peer that has not authenticated can make us buffer no
-#: more than this per connection.
+#: an 80-character commit; a refusal of 512 characters) takes well under 3 KiB; a peer that has
+#: not authenticated can make us buffer no more than this per connection.
 HANDSHAKE_MAX_FRAME_SIZE: Final = 4 * 1024
 
 #: Refused codes: the shared secret did not match.

@@ -541,10 +541,10 @@ def documents() -> list[Document]:
             anchor="the-inventory-file",
             root=Inventory,
             intro=(
-                "`master_service.inventory.Inventory`, with `Robot` for each item of `robots` and "
-                "`Calibration` under its `calibration`: the lab's fleet, named by the master file's "
-                "`inventory` (example: `deploy/examples/fleet.yaml`; docs/fleet.md). Names and "
-                "marker ids are unique, and a spare must be enabled."
+                "`master_service.inventory.Inventory`, with `Robot` for each item of `robots` "
+                "and `Calibration` under its `calibration`: the lab's fleet, named by the master "
+                "file's `inventory` (example: `deploy/examples/fleet.yaml`; docs/fleet.md). "
+                "Names and marker ids are unique, and a spare must be enabled."
             ),
         ),
         Document(

@@ -24,9 +24,9 @@ from agent_fakes import (
 )
 
 import minimize_surprise
-from minimize_surprise.provenance import software_commit
 from minimize_surprise.backoff import Backoff
 from minimize_surprise.errors import ConnectionClosedError
+from minimize_surprise.provenance import software_commit
 from minimize_surprise.session import NONCE_SIZE, master_proof, new_nonce
 from minimize_surprise.wire import (
     FEATURE_ESCAPE,
@@ -153,7 +153,6 @@ async def test_the_hello_names_the_firmware_once_the_robot_answers(master):
             stream, hello = await connect(master)
             assert hello.thymio_firmware == 14
             await stream.close()
-
 
 
 async def test_a_wrong_secret_is_found_out_and_the_robot_backs_off_and_retries(master, caplog):

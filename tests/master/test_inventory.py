@@ -118,8 +118,7 @@ def test_the_master_file_takes_its_robots_from_the_inventory(lab):
 def test_allowed_robots_that_agree_with_the_inventory_are_fine(lab):
     path = write(
         lab,
-        "experiment_file: experiment.yaml\ninventory: fleet.yaml\n"
-        "allowed_robots: [r2, r1, r0]\n",
+        "experiment_file: experiment.yaml\ninventory: fleet.yaml\nallowed_robots: [r2, r1, r0]\n",
         "master.yaml",
     )
     assert load_master_config(path).allowed_robots == ["r2", "r1", "r0"]
