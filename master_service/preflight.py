@@ -306,7 +306,16 @@ async def _check_one(checker: _Checker, config: MasterConfig, session: Session) 
         hello.software_commit,
         hello.thymio_firmware,
     )
+    await _measure(checker, config, session, row)
+    # Last: the body's findings come first in the row, as before robots reported their commit.
     _compare_software(row, checker.fleet)
+    return row
+
+
+async def _measure(
+    checker: _Checker, config: MasterConfig, session: Session, row: RobotCheck
+) -> None:
+    assert config.experiment is not None
     lacking = [s for s in config.experiment.sensors if s not in session.hello.sensors]
     if lacking:
         row.problems.append(f"lacks sensors the experiment uses: {', '.join(lacking)}")
@@ -324,10 +333,9 @@ async def _check_one(checker: _Checker, config: MasterConfig, session: Session) 
             f"no answer to the check within {CHECK_TIMEOUT:.0f} s (an agent older than the "
             "check, or a hung robot: see its log)"
         )
-        return row
+        return
     report, midpoint = exchange
     _judge(row, report, midpoint, config)
-    return row
 
 
 def _compare_software(row: RobotCheck, fleet: Inventory | None) -> None:
