@@ -24,16 +24,30 @@ copy_source() {
     . | tar -C "$2" -xf - --no-same-owner
 }
 
+# The commit checked out in $1 ("-dirty" with uncommitted changes to tracked files), or nothing
+# when $1 is no git checkout. safe.directory: as root, git refuses the pi user's checkout.
+checkout_commit() {
+  local commit
+  commit=$(git -c safe.directory="$1" -C "$1" rev-parse --verify HEAD 2>/dev/null) || return 0
+  if ! git -c safe.directory="$1" -C "$1" diff --quiet HEAD -- 2>/dev/null; then
+    commit="$commit-dirty"
+  fi
+  echo "$commit"
+}
+
 # Install the package from the checkout $2, with the robot extra, into the virtual environment
 # $1. pip builds inside the tree it is given (build/, *.egg-info): given the checkout, as root,
 # it would leave root-owned files in the pi user's tree, and the next `git pull` or install there
-# would fail. So it builds from a throw-away copy.
+# would fail. So it builds from a throw-away copy, which has no .git: the checkout's commit goes
+# to the build through MINIMIZE_SURPRISE_COMMIT (setup.py bakes it in; docs/fleet.md).
 install_package() {
+  local commit
+  commit=$(checkout_commit "$2")
   build_dir=$(mktemp -d)
   trap 'rm -rf -- "$build_dir"' EXIT
   copy_source "$2" "$build_dir"
   "$1/bin/pip" install -q --upgrade pip
-  "$1/bin/pip" install -q "${build_dir}[robot]"
+  MINIMIZE_SURPRISE_COMMIT="$commit" "$1/bin/pip" install -q "${build_dir}[robot]"
 }
 
 # Generate the en_US.UTF-8 locale. Debian's asebamedulla needs it: without it, medulla aborts

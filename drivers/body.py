@@ -87,6 +87,12 @@ class Body(ABC):
         """
         return None
 
+    async def read_firmware(self) -> int | None:
+        """The robot's firmware version (a Thymio's ``_fwversion[0]``), or None where this body
+        has none to tell (a simulated robot). Raises ``HardwareError`` when the robot does not
+        answer. Read when the agent introduces itself, not per step."""
+        return None
+
     @abstractmethod
     async def drive(self, left: float, right: float) -> None:
         """Set the wheel speeds, normalised to [-1, 1]."""

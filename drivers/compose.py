@@ -126,6 +126,11 @@ class RobotBody(Body):
         """The Thymio's battery voltage (None where medulla's robot does not declare ``_vbat``)."""
         return await self.thymio.read_battery()
 
+    async def read_firmware(self) -> int | None:
+        """The Thymio's firmware version (None where medulla's robot does not declare
+        ``_fwversion``)."""
+        return await self.thymio.read_firmware()
+
     async def drive(self, left: float, right: float) -> None:
         """Set the wheel speeds (normalised; clamped, NaN is 0)."""
         await self.thymio.set_speeds(left, right)

@@ -82,6 +82,9 @@ GROUND_MAX = 1023.0
 #: battery's voltage (docs/thymio.md). Aseba Playground's Thymio does not declare it.
 VBAT = "_vbat"
 VBAT_SCALE = 397.8
+#: The firmware's version, two values: the version in ``[0]`` (Aseba Playground's Thymio answers
+#: ``[11, 0]``; docs/thymio.md). Read once when the agent says Hello (docs/fleet.md).
+FWVERSION = "_fwversion"
 #: How medulla answers ``GetVariable`` for a name the robot does not declare, at once and without
 #: asking the robot: ``variable _vbat does not exists in node thymio-II`` (sic).
 UNKNOWN_VARIABLE_ERROR = "org.freedesktop.DBus.Error.InvalidArgs"
@@ -299,6 +302,17 @@ class ThymioBase:
                 return None
             raise
         return round((raw[0] + raw[1]) / VBAT_SCALE, 3)
+
+    async def read_firmware(self) -> int | None:
+        """The firmware's version (``_fwversion[0]``), or None when the robot does not declare
+        it; a robot that does not answer raises as any read does."""
+        try:
+            raw = await self._get(FWVERSION)
+        except DBusReplyError as exc:
+            if exc.name == UNKNOWN_VARIABLE_ERROR:
+                return None
+            raise
+        return int(raw[0]) if raw else None
 
     # -- motors ------------------------------------------------------------------------------------
 

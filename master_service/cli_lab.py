@@ -216,6 +216,13 @@ def add_track_parser(sub: Any) -> None:
     track.add_argument("--floor", metavar="WxH", help="metres between the corner markers")
     track.add_argument("--markers", metavar="ROBOT=ID,...", help="each robot's marker id")
     track.add_argument(
+        "--inventory",
+        type=Path,
+        metavar="FILE",
+        help="take the markers from this fleet inventory (default: the run's, if its master file "
+        "names one; docs/fleet.md)",
+    )
+    track.add_argument(
         "--camera-height", type=float, metavar="M", help="the lens's height above the floor"
     )
     track.add_argument(
@@ -250,6 +257,10 @@ def track_command(args: argparse.Namespace) -> int:
     robots = config.robots
     if args.markers is not None:
         robots = msgspec.structs.replace(robots, ids=parse_markers(args.markers))
+    else:
+        inventory = _marker_inventory(args, has_ids=bool(robots.ids))
+        if inventory is not None:
+            robots = msgspec.structs.replace(robots, ids=inventory)
     updates: dict[str, Any] = {"robots": robots}
     if args.floor is not None:
         updates["floor"] = parse_floor(args.floor)
@@ -339,3 +350,23 @@ def track_command(args: argparse.Namespace) -> int:
     if args.run is not None:
         print(f"next: surprise-master report {args.run} --positions {out}")
     return 0
+
+
+def _marker_inventory(args: argparse.Namespace, *, has_ids: bool) -> dict[str, int] | None:
+    """The robots' markers from an inventory: ``--inventory``, or else, when the tracking file
+    gives none, the one the run's master file names; only the run's robots when it has a
+    post-evaluation (a spare's marker is not expected in its video). None: no inventory."""
+    from master_service.inventory import load_inventory
+    from runfiles import schema
+
+    path = args.inventory
+    if path is None and not has_ids and args.run is not None:
+        named = schema.read_config(args.run).inventory
+        path = None if named is None else Path(named)
+    if path is None:
+        return None
+    markers = load_inventory(path).markers()
+    post = None if args.run is None else schema.read_if_readable(args.run, schema.PostEvaluation)
+    if post is not None:
+        markers = {robot: marker for robot, marker in markers.items() if robot in post.robots}
+    return markers

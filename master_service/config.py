@@ -12,7 +12,7 @@ Example::
     host: 0.0.0.0
     port: 7474
     secret_file: secret.txt
-    allowed_robots: [thymio-1, thymio-2, thymio-3, thymio-4]
+    inventory: fleet.yaml     # the fleet (docs/fleet.md); or allowed_robots: [thymio-1, ...]
     round_margin: 5.0
     heartbeat_interval: 2.0
     telemetry: {broker: mqtt://localhost:1883}   # optional; see docs/telemetry.md
@@ -26,6 +26,7 @@ from typing import Annotated, Final
 
 import msgspec
 
+from master_service.inventory import Inventory, load_inventory
 from minimize_surprise.config import (
     ExperimentConfig,
     Strict,
@@ -55,6 +56,7 @@ __all__ = [
     "DEFAULT_ROUND_MARGIN",
     "MasterConfig",
     "build_ssl_context",
+    "inventory_of",
     "load_master_config",
     "load_secret",
     "required_secret",
@@ -92,7 +94,9 @@ class MasterConfig(Strict, frozen=True):
     """Everything the master needs besides the run directory.
 
     ``experiment`` or ``experiment_file`` (exactly one) defines the experiment. ``port`` 0 picks
-    any free port (tests). ``allowed_robots`` empty admits any authenticated robot.
+    any free port (tests). ``allowed_robots`` empty admits any authenticated robot; with an
+    ``inventory`` (docs/fleet.md) it is the inventory's swarm (its enabled robots that are not
+    spares) unless given, and given it must be that swarm.
     ``expected_robots`` (default: the experiment's ``robots``) is how many robots form the swarm:
     a round starts only when that many are connected. The swarm is fixed when it first completes
     (those robots' ids are the CSV's columns); from then on only its members are admitted, so
@@ -117,7 +121,11 @@ class MasterConfig(Strict, frozen=True):
     #: the file holding the shared secret (surrounding whitespace is ignored); every robot has
     #: a copy
     secret_file: str | None = None
-    #: the robot ids that may join; empty: any robot that proves the secret
+    #: the fleet's inventory file (docs/fleet.md), relative to this file; its enabled robots that
+    #: are not spares are the ``allowed_robots``, the preflight checks them and its spares
+    inventory: str | None = None
+    #: the robot ids that may join; empty: any robot that proves the secret (with an
+    #: ``inventory``: its swarm, unless given)
     allowed_robots: list[_RobotId] = msgspec.field(default_factory=list)
     #: how many robots form the swarm; a round starts only when that many are connected
     #: (``null``: the experiment's ``robots``)
@@ -197,6 +205,8 @@ def load_master_config(path: str | Path) -> MasterConfig:
                 key="experiment_file",
             )
         experiment = load_experiment(experiment_path)
+    inventory_path = _resolve(base, config.inventory)
+    allowed = _allowed_robots(path, config, inventory_path)
     tls = config.tls
     if tls is not None:
         tls = ServerTlsConfig(
@@ -209,6 +219,8 @@ def load_master_config(path: str | Path) -> MasterConfig:
         experiment=msgspec.to_builtins(experiment),
         experiment_file=None,
         secret_file=_resolve(base, config.secret_file),
+        inventory=inventory_path,
+        allowed_robots=allowed,
         tls=None if tls is None else msgspec.to_builtins(tls),
     )
     # Decode again so the checks that need the experiment (robots vs allow-list) run now.
@@ -219,8 +231,47 @@ def load_master_config(path: str | Path) -> MasterConfig:
     return resolved
 
 
+def _allowed_robots(path: Path, config: MasterConfig, inventory: str | None) -> list[str]:
+    """The robots the master admits: ``allowed_robots``, or the inventory's swarm; both given,
+    they must agree (a ConfigError naming this file and the key)."""
+    if inventory is None:
+        return list(config.allowed_robots)
+    if not Path(inventory).is_file():
+        raise ConfigError(
+            f"the inventory file {inventory} does not exist", file=str(path), key="inventory"
+        )
+    swarm = load_inventory(inventory).swarm
+    if not swarm:
+        raise ConfigError(
+            f"the inventory {inventory} has no enabled robot that is not a spare",
+            file=str(path),
+            key="inventory",
+        )
+    given = config.allowed_robots
+    if given and set(given) != set(swarm):
+        extra = sorted(set(given) - set(swarm))
+        lacking = sorted(set(swarm) - set(given))
+        parts = [f"{', '.join(extra)} not in its swarm"] if extra else []
+        parts += [f"{', '.join(lacking)} of its swarm not listed"] if lacking else []
+        raise ConfigError(
+            f"disagrees with the inventory {inventory} ({'; '.join(parts)}): leave "
+            "`allowed_robots` out to take the inventory's enabled robots that are not spares",
+            file=str(path),
+            key="allowed_robots",
+        )
+    return list(given) if given else swarm
+
+
+def inventory_of(config: MasterConfig) -> Inventory | None:
+    """The inventory a resolved configuration names (read again: a ConfigError names it when
+    it changed for the worse since), None when it names none."""
+    return None if config.inventory is None else load_inventory(config.inventory)
+
+
 def _named_files(config: MasterConfig) -> list[tuple[str, str]]:
     files = []
+    if config.inventory is not None:
+        files.append(("inventory", config.inventory))
     if config.secret_file is not None:
         files.append(("secret_file", config.secret_file))
     if config.tls is not None:

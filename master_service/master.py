@@ -51,8 +51,10 @@ from master_service.replay import ReplaySource, write_replay_file
 from master_service.rounds import RoundRunner
 from master_service.rundir import FILE_ONLY, RunDir, RunState
 from master_service.server import Answer, RobotServer, Session
+from minimize_surprise import __version__
 from minimize_surprise.errors import ConfigError
 from minimize_surprise.network import GenomeLayout, spec_from_config
+from minimize_surprise.provenance import software_commit
 from minimize_surprise.session import TAG_SIZE
 from minimize_surprise.wire import (
     REFUSED_UNKNOWN_ROBOT,
@@ -61,7 +63,14 @@ from minimize_surprise.wire import (
     Evaluate,
     encode_payload,
 )
-from runfiles.schema import EVENT_POST_EVALUATION, LIVE_INTERVAL, Event, Live, append_event
+from runfiles.schema import (
+    EVENT_POST_EVALUATION,
+    LIVE_INTERVAL,
+    Event,
+    Live,
+    Software,
+    append_event,
+)
 from telemetry.config import require_client_library
 from telemetry.payloads import RunStatus, master_status_suffix, now, run_status_suffix
 from telemetry.publisher import TelemetryPublisher
@@ -208,6 +217,9 @@ class Master:
             self.evolution.open(resume=self.resume)
             if self.replay is not None and not self.resume:
                 write_replay_file(self.run_dir, self.replay)
+            self.run_dir.record_master_software(
+                Software(version=__version__, commit=software_commit())
+            )
         except BaseException:
             await self.server.close()
             raise
@@ -425,6 +437,22 @@ class Master:
         return None
 
     def _on_join(self, session: Session) -> None:
+        hello = session.hello
+        software = Software(
+            version=hello.software_version,
+            commit=hello.software_commit,
+            firmware=hello.thymio_firmware,
+        )
+        try:
+            before = self.run_dir.record_robot_software(session.robot_id, software, time.time())
+        except OSError as exc:  # a record for people: never a reason to refuse a robot
+            self.log.warning("software.json not written: %s", exc)
+        else:
+            if before is not None:
+                self.log.warning(
+                    "robot %s joined with other software than before: %s", session.robot_id,
+                    f"{before} -> {software}",
+                )  # fmt: skip
         self._swarm_changed.set()
         self.evolution.emit()
 

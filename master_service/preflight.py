@@ -9,10 +9,16 @@ the robot's clock offset. Then it says goodbye; the agents reconnect to the run 
 
 A robot is **unfit** (the exit status is 1) when it did not connect, lacks a sensor the experiment
 uses, is busy with another master's evaluation, has a part that does not answer or answers out of
-range, reads a battery below ``battery_min_v``, or stands on a floor that its safety layer takes
+range, reads a battery below ``battery_min_v``, stands on a floor that its safety layer takes
 for the arena's boundary (it would never drive forward: the lab's floor is too bright for the
-ground rule's threshold). A slow link, a clock far off, an unknown battery, something in front of
-the robot or another software version are **notes**: worth knowing, no reason to stop.
+ground rule's threshold), or runs other software than the master: another version, another
+commit, or no commit to compare (an agent built before it reported one); its row then says the
+command that updates it (docs/fleet.md). A slow link, a clock far off, an unknown battery,
+something in front of the robot, a master whose own commit is unknown or has uncommitted changes,
+and an inventory's spare that did not connect are **notes**: worth knowing, no reason to stop.
+
+With an inventory (docs/fleet.md) the check waits for its swarm, admits its spares too, and gives
+a spare that has not come with the swarm :data:`SPARE_GRACE` seconds more.
 """
 
 from __future__ import annotations
@@ -28,8 +34,10 @@ from dataclasses import dataclass, field
 from typing import Any, Final
 
 import minimize_surprise
-from master_service.config import MasterConfig
+from master_service.config import MasterConfig, inventory_of
+from master_service.inventory import Inventory
 from master_service.server import Answer, RobotServer, Session
+from minimize_surprise.provenance import DIRTY, software_commit
 from minimize_surprise.wire import (
     REFUSED_UNKNOWN_ROBOT,
     Check,
@@ -45,9 +53,11 @@ __all__ = [
     "CONNECT_TIMEOUT",
     "PINGS",
     "RTT_NOTE",
+    "SPARE_GRACE",
     "RobotCheck",
     "format_table",
     "run_check",
+    "update_command",
 ]
 
 #: Seconds to wait for the robots to connect: an agent that found no master backs off up to 30 s
@@ -65,6 +75,11 @@ PING_TIMEOUT: Final = 2.0
 RTT_NOTE: Final = 0.1
 #: A clock offset above this is noted: the robots' logs and the master's no longer line up.
 CLOCK_OFFSET_NOTE: Final = 1.0
+#: Seconds a spare that has not connected with the swarm gets: a spare is often switched off on
+#: the shelf, which must not hold every check for the whole connect timeout.
+SPARE_GRACE: Final = 3.0
+#: Characters of a commit shown in the table (git accepts them as the commit's name).
+SHORT_COMMIT: Final = 10
 
 
 @dataclass
@@ -76,6 +91,9 @@ class RobotCheck:
     connected: bool = False
     peer: str | None = None
     software: str | None = None
+    commit: str | None = None
+    firmware: int | None = None
+    spare: bool = False
     rtt_s: float | None = None
     clock_offset_s: float | None = None
     battery_v: float | None = None
@@ -83,6 +101,8 @@ class RobotCheck:
     ground_rule: str = ""
     problems: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    #: the command that brings its software in step with the master's, when it is not
+    fix: str | None = None
 
     @property
     def fit(self) -> bool:
@@ -97,6 +117,9 @@ class RobotCheck:
             "connected": self.connected,
             "peer": self.peer,
             "software": self.software,
+            "commit": self.commit,
+            "firmware": self.firmware,
+            "spare": self.spare,
             "rtt_ms": None if self.rtt_s is None else round(1000 * self.rtt_s, 1),
             "clock_offset_s": None
             if self.clock_offset_s is None
@@ -106,15 +129,25 @@ class RobotCheck:
             "ground_rule": self.ground_rule,
             "problems": self.problems,
             "notes": self.notes,
+            "fix": self.fix,
         }
 
 
 class _Checker:
     """The server side of one check: sessions, pings and reports by robot."""
 
-    def __init__(self, config: MasterConfig, secret: bytes, log: logging.Logger) -> None:
+    def __init__(
+        self,
+        config: MasterConfig,
+        secret: bytes,
+        log: logging.Logger,
+        fleet: Inventory | None = None,
+    ) -> None:
         self.config = config
         self.log = log
+        self.fleet = fleet
+        #: robots admitted besides ``allowed_robots``: the inventory's spares
+        self.spares = [] if fleet is None else fleet.spares
         self.joined = asyncio.Event()
         self._pongs: dict[tuple[str, int], asyncio.Future[float]] = {}
         self._reports: dict[tuple[str, int], asyncio.Future[CheckReport]] = {}
@@ -139,7 +172,7 @@ class _Checker:
 
     def _admit(self, robot_id: str) -> tuple[str, str] | None:
         allowed = self.config.allowed_robots
-        if allowed and robot_id not in allowed:
+        if allowed and robot_id not in allowed and robot_id not in self.spares:
             return REFUSED_UNKNOWN_ROBOT, f"{robot_id} is not among the allowed robots"
         return None
 
@@ -219,7 +252,7 @@ async def run_check(
     """
     assert config.experiment is not None, "the experiment must be loaded"
     log = log if log is not None else logging.getLogger("master_service.preflight")
-    checker = _Checker(config, secret, log)
+    checker = _Checker(config, secret, log, inventory_of(config))
     expected: Sequence[str] | int = list(config.allowed_robots) or config.robot_count
     await checker.server.bind()
     await checker.server.start_serving()
@@ -227,6 +260,8 @@ async def run_check(
         if on_listening is not None:
             on_listening(checker.server.port)
         await checker.wait_for_robots(expected, timeout)
+        if checker.spares:
+            await checker.wait_for_robots(checker.spares, SPARE_GRACE)
         sessions = dict(checker.server.sessions)
         rows = await asyncio.gather(
             *(_check_one(checker, config, session) for session in sessions.values())
@@ -234,6 +269,13 @@ async def run_check(
     finally:
         await checker.server.close("check done")
     by_robot = {row.robot: row for row in rows}
+    for spare in checker.spares:
+        row = by_robot.setdefault(spare, RobotCheck(spare))
+        row.spare = True
+        if not row.connected:
+            row.notes.append(
+                "spare, not connected: it is checked when it comes (switch it on, check again)"
+            )
     if isinstance(expected, int):
         ordered = sorted(by_robot.values(), key=lambda row: row.robot)
         missing = max(0, expected - len(ordered))
@@ -255,11 +297,25 @@ def _missing(robot: str, timeout: float) -> RobotCheck:
 
 async def _check_one(checker: _Checker, config: MasterConfig, session: Session) -> RobotCheck:
     assert config.experiment is not None
-    row = RobotCheck(session.robot_id, True, session.peer, session.hello.software_version)
-    if row.software != minimize_surprise.__version__:
-        row.notes.append(
-            f"agent software {row.software}, the master's {minimize_surprise.__version__}"
-        )
+    hello = session.hello
+    row = RobotCheck(
+        session.robot_id,
+        True,
+        session.peer,
+        hello.software_version,
+        hello.software_commit,
+        hello.thymio_firmware,
+    )
+    await _measure(checker, config, session, row)
+    # Last: the body's findings come first in the row, as before robots reported their commit.
+    _compare_software(row, checker.fleet)
+    return row
+
+
+async def _measure(
+    checker: _Checker, config: MasterConfig, session: Session, row: RobotCheck
+) -> None:
+    assert config.experiment is not None
     lacking = [s for s in config.experiment.sensors if s not in session.hello.sensors]
     if lacking:
         row.problems.append(f"lacks sensors the experiment uses: {', '.join(lacking)}")
@@ -277,10 +333,53 @@ async def _check_one(checker: _Checker, config: MasterConfig, session: Session) 
             f"no answer to the check within {CHECK_TIMEOUT:.0f} s (an agent older than the "
             "check, or a hung robot: see its log)"
         )
-        return row
+        return
     report, midpoint = exchange
     _judge(row, report, midpoint, config)
-    return row
+
+
+def _compare_software(row: RobotCheck, fleet: Inventory | None) -> None:
+    """UNFIT when the robot runs other software than the master, with the command that fixes it;
+    a note when the master cannot tell (its own commit unknown)."""
+    version, commit = minimize_surprise.__version__, software_commit()
+    differs: list[str] = []
+    if row.software != version:
+        differs.append(f"version {row.software}, the master's {version}")
+    if commit is None:
+        row.notes.append(
+            "the master's own commit is unknown (no git, no build stamp): robots' commits are "
+            "not compared"
+        )
+    elif row.commit is None:
+        differs.append("it reports no commit (an agent built before it reported one)")
+    elif row.commit != commit:
+        differs.append(f"commit {_short(row.commit)}, the master's {_short(commit)}")
+    elif commit.endswith(DIRTY):
+        row.notes.append(
+            "the master's checkout has uncommitted changes: the robot's may differ although "
+            "both name the same commit"
+        )
+    if not differs:
+        return
+    row.problems.append("other software than the master's: " + "; ".join(differs))
+    entry = None if fleet is None else fleet.robot(row.robot)
+    row.fix = update_command(row.robot, None if entry is None else entry.address, commit)
+
+
+def update_command(robot: str, address: str | None, commit: str | None) -> str:
+    """The command that installs the master's software on ``robot`` (docs/fleet.md): its
+    checkout on the Pi at the master's commit, then ``deploy/install-pi.sh``."""
+    where = f"ssh {address}" if address else f"on {robot}'s Pi"
+    checkout = "git pull"
+    if commit is not None:
+        # A dirty master's changes are nowhere to fetch: its commit is the nearest the robot gets.
+        checkout = f"git fetch && git checkout {commit.removesuffix(DIRTY)}"
+    return f"{where}, in its checkout: {checkout} && sudo deploy/install-pi.sh {robot}"
+
+
+def _short(commit: str) -> str:
+    dirty = commit.endswith(DIRTY)
+    return commit.removesuffix(DIRTY)[:SHORT_COMMIT] + (DIRTY if dirty else "")
 
 
 def _judge(row: RobotCheck, report: CheckReport, midpoint: float, config: MasterConfig) -> None:
@@ -336,15 +435,20 @@ def _judge(row: RobotCheck, report: CheckReport, midpoint: float, config: Master
 
 def format_table(rows: Sequence[RobotCheck]) -> str:
     """The rows as a table for a person, then each robot's problems and notes."""
-    header = ("robot", "verdict", "link", "clock", "battery", "IR max", "ground", "light", "force")
+    header = (
+        "robot", "verdict", "software", "firmware", "link", "clock", "battery", "IR max",
+        "ground", "light", "force",
+    )  # fmt: skip
     lines = [header]
     for row in rows:
         r = row.readings
         ir = [v for k, v in r.items() if k.startswith("ir.")]
         lines.append(
             (
-                row.robot,
+                row.robot + (" (spare)" if row.spare else ""),
                 "fit" if row.fit else "UNFIT",
+                _software(row),
+                "-" if row.firmware is None else str(row.firmware),
                 "-" if row.rtt_s is None else f"{1000 * row.rtt_s:.1f} ms",
                 "-" if row.clock_offset_s is None else f"{row.clock_offset_s:+.2f} s",
                 "?" if row.battery_v is None else f"{row.battery_v:.2f} V",
@@ -360,11 +464,19 @@ def format_table(rows: Sequence[RobotCheck]) -> str:
     for row in rows:
         text += [f"{row.robot}: {problem}" for problem in row.problems]
         text += [f"{row.robot}: note: {note}" for note in row.notes]
+        if row.fix is not None:
+            text.append(f"{row.robot}: fix: {row.fix}")
     fit = sum(row.fit for row in rows)
     text.append(
         f"{fit} of {len(rows)} robots fit" + ("" if fit == len(rows) else ": fix the above")
     )
     return "\n".join(text)
+
+
+def _software(row: RobotCheck) -> str:
+    if row.software is None:
+        return "-"
+    return row.software + ("" if row.commit is None else f" {_short(row.commit)}")
 
 
 def _values(readings: dict[str, float], names: tuple[str, ...]) -> str:

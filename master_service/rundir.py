@@ -67,6 +67,8 @@ from runfiles.schema import (
     PostEvaluation,
     PostRobot,
     RunDirError,
+    Software,
+    SoftwareRecord,
     evaluation_header,
     format_row,
     write_atomic,
@@ -194,6 +196,7 @@ class RunDir:
         self.path = Path(path)
         self._csv: Any = None
         self._log: RunLog | None = None
+        self._software: SoftwareRecord | None = None
 
     def file(self, name: str) -> Path:
         """The path of a file of the run directory."""
@@ -345,6 +348,34 @@ class RunDir:
             spec=spec,
         )
         schema.write(self.path, best, durable=False)
+
+    def record_master_software(self, master: Software) -> None:
+        """Write ``software.json`` with this master's software, keeping what the robots reported
+        before (a resumed run); not durable: a record, not a commit point."""
+        old = schema.read_if_readable(self.path, SoftwareRecord)
+        if old is None:
+            self._software = SoftwareRecord(master=master)
+        else:
+            self._software = msgspec.structs.replace(old, master=master)
+        schema.write(self.path, self._software, durable=False)
+
+    def record_robot_software(self, robot: str, software: Software, now: float) -> Software | None:
+        """Note ``robot``'s software as it joins; rewrites ``software.json`` only when it is new
+        or changed (reconnections cost no write). Returns the robot's software before when it
+        changed, None otherwise."""
+        record = self._software
+        if record is None:
+            raise RuntimeError("record_master_software first")
+        before = record.robots.get(robot)
+        if before == software:
+            return None
+        self._software = msgspec.structs.replace(
+            record,
+            robots={**record.robots, robot: software},
+            joined_at={**record.joined_at, robot: now},
+        )
+        schema.write(self.path, self._software, durable=False)
+        return before
 
     def write_live(self, live: Live) -> None:
         """Write ``live.json`` (not durable: it only describes the running process)."""

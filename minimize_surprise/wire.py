@@ -57,7 +57,9 @@ __all__ = [
     "HANDSHAKE_MAX_FRAME_SIZE",
     "LOGGED_TEXT_LIMIT",
     "MAX_BATTERY_V",
+    "MAX_COMMIT_LENGTH",
     "MAX_FEATURES",
+    "MAX_FIRMWARE",
     "MAX_FRAME_SIZE",
     "MAX_HEARTBEAT_INTERVAL",
     "MAX_NAME_LENGTH",
@@ -129,6 +131,11 @@ MAX_NAME_LENGTH: Final = 32
 MAX_REASONS: Final = 32
 #: The longest software version a robot may announce, in characters.
 MAX_VERSION_LENGTH: Final = 64
+#: The longest source commit a robot may announce, in characters: a SHA-256 name (64) and a
+#: ``-dirty`` mark (:mod:`minimize_surprise.provenance`), with room to spare.
+MAX_COMMIT_LENGTH: Final = 80
+#: The highest Thymio firmware version a robot may announce: one Aseba word.
+MAX_FIRMWARE: Final = 0xFFFF
 #: The longest run id, in characters: a run directory's name (file systems allow 255 bytes).
 MAX_RUN_ID_LENGTH: Final = 255
 #: The longest reason a Refused may give, in characters; the master cuts its reasons to it.
@@ -162,9 +169,9 @@ PROTOCOL_VERSION: Final = 2
 #: single (possibly hostile) connection can make us buffer.
 MAX_FRAME_SIZE: Final = 8 * 1024 * 1024
 #: Upper bound of one frame until the handshake is complete, on both sides. The largest handshake
-#: message (a Hello of 16 sensor names of 32 characters, a 64-character version, a refusal of 512
-#: characters) takes well under 3 KiB; a peer that has not authenticated can make us buffer no
-#: more than this per connection.
+#: message (a Hello of 16 sensor names and 16 features of 32 characters, a 64-character version,
+#: an 80-character commit; a refusal of 512 characters) takes well under 3 KiB; a peer that has
+#: not authenticated can make us buffer no more than this per connection.
 HANDSHAKE_MAX_FRAME_SIZE: Final = 4 * 1024
 
 #: Refused codes: the shared secret did not match.
@@ -262,6 +269,12 @@ class Hello(_Message, tag="hello", frozen=True):
     told about the version, not about a missing field). ``features`` lists the later additions to
     this version the robot handles (:data:`FEATURES`); a robot older than them sends none, and
     the master sends it none of their messages.
+
+    ``software_commit`` is the source's commit the agent was built from
+    (:func:`minimize_surprise.provenance.software_commit`) and ``thymio_firmware`` its Thymio's
+    firmware version (``_fwversion[0]``): None when unknown, and from a robot older than these
+    fields, which the master still accepts. The preflight compares the commit with the
+    master's; the run directory records both (docs/fleet.md).
     """
 
     robot_id: _RobotId
@@ -270,6 +283,8 @@ class Hello(_Message, tag="hello", frozen=True):
     sensors: Annotated[tuple[_Name, ...], msgspec.Meta(max_length=MAX_SENSORS)]
     nonce: _Nonce | None = None
     features: Annotated[tuple[_Name, ...], msgspec.Meta(max_length=MAX_FEATURES)] = ()
+    software_commit: Annotated[str, msgspec.Meta(max_length=MAX_COMMIT_LENGTH)] | None = None
+    thymio_firmware: Annotated[int, msgspec.Meta(ge=0, le=MAX_FIRMWARE)] | None = None
 
 
 class Challenge(_Message, tag="challenge", frozen=True):

@@ -7,9 +7,20 @@ from pathlib import Path
 
 from minimize_surprise.text import format_duration, plural
 from runfiles import schema
-from runfiles.schema import Checkpoint, Live, PauseFile, PostEvaluation, master_alive
+from runfiles.schema import (
+    Checkpoint,
+    Live,
+    PauseFile,
+    PostEvaluation,
+    Software,
+    SoftwareRecord,
+    master_alive,
+)
 
-__all__ = ["running_master", "status_text"]
+__all__ = ["running_master", "software_lines", "status_text"]
+
+#: Characters of a commit shown (git takes them as the commit's name).
+SHORT_COMMIT = 10
 
 
 def running_master(path: str | Path) -> Live | None:
@@ -68,6 +79,7 @@ def status_text(path: str | Path) -> str:
         lines.append(f"master: not running; continue with `surprise-master resume {path}`")
     else:
         lines.append("master: not running; the run is complete")
+    lines += software_lines(schema.read_if_readable(path, SoftwareRecord))
     post = schema.read(path, PostEvaluation)
     if post is not None:
         fitness = post.swarm_fitness
@@ -77,3 +89,31 @@ def status_text(path: str | Path) -> str:
             + f", traces of {len(post.robots)} robots"
         )
     return "\n".join(lines)
+
+
+def software_lines(record: SoftwareRecord | None) -> list[str]:
+    """The master's software and each robot's as it last joined (``software.json``), robots on
+    other software than the master's marked; nothing for a run that has no record."""
+    if record is None:
+        return []
+    lines = [f"software: master {_software(record.master)}"]
+    for robot, software in sorted(record.robots.items()):
+        differs = (software.version, software.commit) != (
+            record.master.version,
+            record.master.commit,
+        )
+        lines.append(
+            f"  {robot}: {_software(software)}, firmware "
+            + ("?" if software.firmware is None else str(software.firmware))
+            + (" (other software than the master's)" if differs else "")
+        )
+    return lines
+
+
+def _software(software: Software) -> str:
+    commit = software.commit
+    if commit is None:
+        return f"{software.version}, commit unknown"
+    dirty = commit.endswith("-dirty")
+    short = commit.removesuffix("-dirty")[:SHORT_COMMIT] + (" with changes" if dirty else "")
+    return f"{software.version} {short}"

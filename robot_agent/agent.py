@@ -126,6 +126,7 @@ class Agent:
             watchdog=self.watchdog,
             rng=rng,
             ssl_context=make_ssl_context(config),
+            read_firmware=body.read_firmware,
         )
         self._stack: contextlib.AsyncExitStack | None = None
         self._link_task: asyncio.Task[None] | None = None

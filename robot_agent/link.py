@@ -30,7 +30,7 @@ import contextlib
 import logging
 import random
 import ssl
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from typing import Any, Final, TypeVar
 
 import minimize_surprise
@@ -41,6 +41,7 @@ from minimize_surprise.errors import (
     ProtocolError,
     SurpriseError,
 )
+from minimize_surprise.provenance import software_commit
 from minimize_surprise.session import FrameAuth, master_proof, new_nonce, proof_matches, robot_proof
 from minimize_surprise.wire import (
     DEAD_AFTER_HEARTBEATS,
@@ -77,6 +78,7 @@ from transport.stream import MessageStream
 __all__ = [
     "CLOSE_TIMEOUT",
     "CONNECT_TIMEOUT",
+    "FIRMWARE_TIMEOUT",
     "HANDSHAKE_TIMEOUT",
     "PROBE_AFTER_HEARTBEATS",
     "Backoff",
@@ -102,6 +104,9 @@ HANDSHAKE_TIMEOUT: Final = 10.0
 PROBE_AFTER_HEARTBEATS: Final = 1.5
 #: Seconds to close a connection (TLS shutdown included) before it is abandoned.
 CLOSE_TIMEOUT: Final = 1.0
+#: Seconds the robot's firmware version may take to read before a Hello: one medulla round trip;
+#: a robot that is away costs each connection attempt no more than this.
+FIRMWARE_TIMEOUT: Final = 1.0
 
 _CODE_PROTOCOL: Final = "protocol"
 
@@ -142,8 +147,10 @@ class Link:
 
     ``runner`` runs the evaluations; ``sensors`` are the body's (sent in Hello); ``watchdog`` is
     tripped when the link is lost during an evaluation; ``ssl_context`` enables TLS; ``spawn``
-    creates the evaluation tasks (the agent passes its TaskGroup's ``create_task``).
-    :attr:`connected` is set while a session is welcomed.
+    creates the evaluation tasks (the agent passes its TaskGroup's ``create_task``);
+    ``read_firmware`` reads the robot's firmware version for the Hello (the body's
+    ``read_firmware``; read until it is known, before each connection, within
+    :data:`FIRMWARE_TIMEOUT`). :attr:`connected` is set while a session is welcomed.
     """
 
     def __init__(
@@ -157,6 +164,7 @@ class Link:
         rng: random.Random | None = None,
         ssl_context: ssl.SSLContext | None = None,
         spawn: Spawn | None = None,
+        read_firmware: Callable[[], Awaitable[int | None]] | None = None,
     ) -> None:
         if not secret:
             raise ValueError("the shared secret must not be empty")
@@ -167,6 +175,12 @@ class Link:
         self.watchdog = watchdog
         self.ssl_context = ssl_context
         self.spawn: Spawn = spawn if spawn is not None else asyncio.create_task
+        #: what the Hello announces of this installation (docs/fleet.md); tests change them
+        self.software_version: str = minimize_surprise.__version__
+        self.software_commit: str | None = software_commit()
+        #: the Thymio's firmware version, once read (None: not known yet, or the robot has none)
+        self.thymio_firmware: int | None = None
+        self._read_firmware = read_firmware
         self.backoff = Backoff(config.reconnect, rng)
         self.log = robot_logger(log, config.robot_id)
         #: set while the master has welcomed us
@@ -203,8 +217,19 @@ class Link:
             self.log.info("reconnecting in %.2f s", delay)
             await asyncio.sleep(delay)
 
+    async def _firmware(self) -> None:
+        """Read the firmware's version once it can be: the robot may be away at the start."""
+        if self.thymio_firmware is not None or self._read_firmware is None:
+            return
+        try:
+            async with asyncio.timeout(FIRMWARE_TIMEOUT):
+                self.thymio_firmware = await self._read_firmware()
+        except Exception as exc:  # unknown for this Hello, never a reason not to connect
+            self.log.debug("firmware version not read: %s", _describe(exc))
+
     async def _session(self) -> None:
         master = self.config.master
+        await self._firmware()
         self.log.info("connecting to %s:%d", master.host, master.port)
         extra: dict[str, Any] = {}
         if self.ssl_context is not None:
@@ -257,11 +282,13 @@ class Link:
                 await stream.send(
                     Hello(
                         robot_id=robot_id,
-                        software_version=minimize_surprise.__version__,
+                        software_version=self.software_version,
                         protocol_version=PROTOCOL_VERSION,
                         sensors=self.sensors,
                         nonce=robot_nonce,
                         features=FEATURES,
+                        software_commit=self.software_commit,
+                        thymio_firmware=self.thymio_firmware,
                     )
                 )
                 challenge = _expect(await stream.receive(), Challenge)

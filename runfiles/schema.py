@@ -32,6 +32,8 @@ Layout (docs/runs.md shows each file)::
     camera.json            CameraView: while ``surprise-master track --live`` watches the run,
                            where the camera sees the robots now (the dashboard shows it)
     replay.json            Replay: in a replay's directory, where its genome came from
+    software.json          SoftwareRecord: the master's software, and each robot's software and
+                           Thymio firmware as it last joined (docs/fleet.md)
 
 Versions. Each JSON file carries its ``format``, the version of its structure here (a file written
 before formats were written down has none and counts as format 1). :func:`read` decodes a file of
@@ -100,6 +102,8 @@ __all__ = [
     "RunFile",
     "SimulatedWorld",
     "Simulation",
+    "Software",
+    "SoftwareRecord",
     "TrackedBoxes",
     "append_event",
     "decode",
@@ -437,6 +441,29 @@ class Replay(RunFile, frozen=True, kw_only=True):
     genome_fitness: float | None
 
 
+class Software(msgspec.Struct, frozen=True, kw_only=True):
+    """One installation's software: the package's ``version``, the source's ``commit``
+    (``minimize_surprise.provenance``; None: unknown) and, for a robot, its Thymio's
+    ``firmware`` (``_fwversion[0]``; None: unknown or none)."""
+
+    version: str
+    commit: str | None
+    firmware: int | None = None
+
+
+class SoftwareRecord(RunFile, frozen=True, kw_only=True):
+    """``software.json``: what ran the run. The ``master``'s software (as this run's master
+    last started) and each robot's as it last joined, since when (``joined_at``, seconds since
+    the epoch); rewritten when a robot joins with other software than before."""
+
+    FILE: ClassVar[str] = "software.json"
+    FORMAT: ClassVar[int] = 1
+
+    master: Software
+    robots: dict[str, Software] = msgspec.field(default_factory=dict)
+    joined_at: dict[str, float] = msgspec.field(default_factory=dict)
+
+
 class EscapeRequest(RunFile, frozen=True, kw_only=True):
     """A request of ``surprise-master escape`` for the running master: robot ``robot`` is to run
     its safety layer's escape now. Written as ``requests/escape-<token>.json`` (``FILE`` is the
@@ -511,10 +538,13 @@ def read_events(run_dir: str | Path) -> list[Event]:
 
 class RunConfig(msgspec.Struct, frozen=True, kw_only=True):
     """What a reader below the master needs of ``config.yaml`` (the master's whole configuration,
-    ``master_service.config.MasterConfig``): the experiment and the swarm's size."""
+    ``master_service.config.MasterConfig``): the experiment, the swarm's size and the fleet's
+    inventory."""
 
     experiment: ExperimentConfig | None = None
     expected_robots: int | None = None
+    #: the fleet's inventory file the master file named (absolute), None when it named none
+    inventory: str | None = None
 
     @property
     def robot_count(self) -> int | None:

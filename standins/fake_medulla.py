@@ -50,6 +50,7 @@ from drivers.thymio import (
     ASEBA_PATH,
     ASEBA_SERVICE,
     FAILSAFE_TICK,
+    FWVERSION,
     HEARTBEAT,
     LEDS_TOP,
 )
@@ -61,6 +62,8 @@ DAEMON_TIMEOUT = 10.0
 IS_CONNECTED_LAG = 3.8
 GROUND_VARIABLES = ("prox.ground.reflected", "prox.ground.delta", "prox.ground.ambiant")
 MOTOR_TARGETS = {"motor.left.target": "left", "motor.right.target": "right"}
+#: What Aseba Playground's Thymio answers for ``_fwversion`` (Debian's aseba, measured).
+PLAYGROUND_FWVERSION = (11, 0)
 _VAR_RE = re.compile(r"^\s*var\s+([A-Za-z_][\w.]*)\s*(?:\[\s*(\d+)\s*\])?\s*(?:=\s*(-?\d+))?", re.M)
 
 _BUS_CONFIG = """<!DOCTYPE busconfig PUBLIC "-//freedesktop//DTD D-Bus Bus Configuration 1.0//EN"
@@ -116,7 +119,8 @@ class StaticThymioModel:
         self.target_log: list[tuple[str, int]] = []
         #: Every ``leds.top`` written, in order (three values 0..32).
         self.led_log: list[list[int]] = []
-        self.variables: dict[str, list[int]] = {}
+        #: The firmware's version as Playground's Thymio answers it; a test may change it.
+        self.variables: dict[str, list[int]] = {FWVERSION: list(PLAYGROUND_FWVERSION)}
 
     def prox_horizontal(self) -> list[int]:
         """The values in :attr:`prox`."""
@@ -247,8 +251,9 @@ class FakeMedulla:
         #: The program variables this medulla knows (declared by programs it loaded).
         self.known: set[str] = set()
         #: Variables of the robot's firmware besides the sensors and motors, read from
-        #: ``model.variables``: a real Thymio declares ``_vbat``; empty, as Aseba Playground's.
-        self.native: set[str] = set()
+        #: ``model.variables``: a real Thymio also declares ``_vbat``; only ``_fwversion``, as
+        #: Aseba Playground's.
+        self.native: set[str] = {FWVERSION}
         self._in_flight = 0
         self._hang = False
         self._robot_connected = True

@@ -31,7 +31,15 @@ from typing import Any
 import numpy as np
 
 from drivers.config import SPEED_SCALE
-from drivers.thymio import GROUND_MAX, IR_MAX, LEDS_TOP, PROX_HORIZONTAL, VBAT, VBAT_SCALE
+from drivers.thymio import (
+    FWVERSION,
+    GROUND_MAX,
+    IR_MAX,
+    LEDS_TOP,
+    PROX_HORIZONTAL,
+    VBAT,
+    VBAT_SCALE,
+)
 from minimize_surprise.sensors import GROUND_SENSORS, IR_SENSORS
 from simulator.battery import SimBattery
 from simulator.scenarios import WorldConfig
@@ -40,6 +48,7 @@ from standins.fake_medulla import GROUND_VARIABLES, FakeMedulla, serve_fake_medu
 
 __all__ = [
     "SENSOR_VARIABLES",
+    "SIM_FWVERSION",
     "STEP_WAIT_TIMEOUT",
     "SignallingWorld",
     "SimMedulla",
@@ -47,6 +56,9 @@ __all__ = [
     "serve_sim_thymio",
 ]
 
+#: What the simulated Thymio answers for ``_fwversion``: the version of a current Thymio II
+#: firmware (14) in ``[0]``; its ``[1]`` is 0, as Playground's.
+SIM_FWVERSION = (14, 0)
 #: The variables whose ``GetVariable`` waits for the next sensor update, as on the robot.
 SENSOR_VARIABLES = frozenset({PROX_HORIZONTAL, *GROUND_VARIABLES})
 #: Seconds a sensor read waits for the world's next step at most (five 10 Hz steps). Longer than
@@ -112,7 +124,8 @@ class SimThymio:
         self.world = world
         self.index = index
         self.speed_scale = float(speed_scale)
-        self.variables: dict[str, list[int]] = {}
+        #: A current Thymio II firmware's version (not measured on a lab robot here; docs/thymio.md)
+        self.variables: dict[str, list[int]] = {FWVERSION: list(SIM_FWVERSION)}
         #: Its battery, read as a real Thymio's ``_vbat`` (two halves of volts x 397.8); it
         #: drains while the motors are commanded (by nothing, with SimBattery's default).
         self.battery = battery if battery is not None else SimBattery()

@@ -100,7 +100,9 @@ class ScriptedRobot:
     ``evaluations`` and ``aborts`` record what the master sent; ``closed`` is set when the
     connection ends. After it ended, :meth:`connect` may be called again (a robot coming back).
     ``local_address`` binds its connections to that source address (``127.0.0.2``: a robot on
-    another machine, seen from a master on loopback).
+    another machine, seen from a master on loopback). ``software`` is the version, commit and
+    firmware its Hello announces (a version of its own, neither commit nor firmware: an agent
+    that names none).
     """
 
     def __init__(
@@ -121,6 +123,7 @@ class ScriptedRobot:
         ssl_context: ssl.SSLContext | None = None,
         verify_master: bool = True,
         local_address: str | None = None,
+        software: tuple[str, str | None, int | None] = ("scripted", None, None),
     ) -> None:
         self.robot_id = robot_id
         self.secret = secret
@@ -137,6 +140,7 @@ class ScriptedRobot:
         self.ssl_context = ssl_context
         self.verify_master = verify_master
         self.local_address = local_address
+        self.software = software
         self.welcome: Welcome | None = None
         self.evaluations: list[Evaluate] = []
         self.aborts: list[Abort] = []
@@ -166,10 +170,12 @@ class ScriptedRobot:
             await stream.send(
                 Hello(
                     robot_id=robot_id,
-                    software_version="scripted",
+                    software_version=self.software[0],
                     protocol_version=self.protocol_version,
                     sensors=self.sensors,
                     nonce=robot_nonce,
+                    software_commit=self.software[1],
+                    thymio_firmware=self.software[2],
                 )
             )
             challenge = _expect(await stream.receive(), Challenge)

@@ -44,6 +44,7 @@ import msgspec
 import yaml
 
 from master_service.config import MasterConfig as MasterFileConfig
+from master_service.inventory import Inventory
 from minimize_surprise.config import ExperimentConfig, with_setting
 from minimize_surprise.safety import SafetyConfig
 from minimize_surprise.sensors import ALL_SENSORS
@@ -534,6 +535,17 @@ def documents() -> list[Document]:
                 "the resolved file (the experiment inline, every path absolute)."
             ),
             elsewhere={ExperimentConfig: _EXPERIMENT, TelemetryConfig: _TELEMETRY},
+        ),
+        Document(
+            title="The inventory file",
+            anchor="the-inventory-file",
+            root=Inventory,
+            intro=(
+                "`master_service.inventory.Inventory`, with `Robot` for each item of `robots` "
+                "and `Calibration` under its `calibration`: the lab's fleet, named by the master "
+                "file's `inventory` (example: `deploy/examples/fleet.yaml`; docs/fleet.md). "
+                "Names and marker ids are unique, and a spare must be enabled."
+            ),
         ),
         Document(
             title="The telemetry section",

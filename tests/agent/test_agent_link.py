@@ -26,6 +26,7 @@ from agent_fakes import (
 import minimize_surprise
 from minimize_surprise.backoff import Backoff
 from minimize_surprise.errors import ConnectionClosedError
+from minimize_surprise.provenance import software_commit
 from minimize_surprise.session import NONCE_SIZE, master_proof, new_nonce
 from minimize_surprise.wire import (
     FEATURE_ESCAPE,
@@ -124,10 +125,34 @@ async def test_handshake_introduces_the_robot_and_answers_the_challenge(master):
             sensors=THYMIO,
             nonce=hello.nonce,
             features=(FEATURE_ESCAPE,),
+            software_commit=software_commit(),
+            thymio_firmware=None,  # a body without firmware
         )
         assert hello.nonce is not None and len(hello.nonce) == NONCE_SIZE
         await asyncio.wait_for(agent.connected.wait(), 5)
         assert agent.link.run_id == "run-7" and agent.link.heartbeat_interval == 2.0
+
+
+async def test_the_hello_names_the_firmware_once_the_robot_answers(master):
+    """Read before a connection until known: a robot away at the start is named later."""
+    answers = iter([RuntimeError("robot away"), 14])
+
+    class FirmwareBody(FakeBody):
+        async def read_firmware(self) -> int | None:
+            answer = next(answers, 99)  # read once known: never 99
+            if isinstance(answer, Exception):
+                raise answer
+            return answer
+
+    agent, _ = make_agent(master.port, body=FirmwareBody(0.0))
+    async with running(agent):
+        stream, hello = await connect(master)
+        assert hello.thymio_firmware is None
+        await stream.close()
+        for _ in range(2):
+            stream, hello = await connect(master)
+            assert hello.thymio_firmware == 14
+            await stream.close()
 
 
 async def test_a_wrong_secret_is_found_out_and_the_robot_backs_off_and_retries(master, caplog):

@@ -20,7 +20,9 @@ from minimize_surprise.session import NONCE_SIZE, PROOF_SIZE, TAG_SIZE
 from minimize_surprise.wire import (
     FEATURE_ESCAPE,
     HANDSHAKE_MAX_FRAME_SIZE,
+    MAX_COMMIT_LENGTH,
     MAX_FEATURES,
+    MAX_FIRMWARE,
     MAX_FRAME_SIZE,
     MAX_HEARTBEAT_INTERVAL,
     MAX_NAME_LENGTH,
@@ -121,6 +123,8 @@ messages: st.SearchStrategy[Message] = st.one_of(
         sensors=st.lists(small_text, max_size=MAX_SENSORS).map(tuple),
         nonce=st.none() | st.binary(min_size=NONCE_SIZE, max_size=NONCE_SIZE),
         features=st.lists(small_text, max_size=MAX_FEATURES).map(tuple),
+        software_commit=st.none() | small_text,
+        thymio_firmware=st.none() | st.integers(0, MAX_FIRMWARE),
     ),
     st.builds(
         Challenge,
@@ -517,6 +521,9 @@ def hello_payload(**changes: object) -> bytes:
         ({"robot_id": "r" * 65}, "robot_id"),
         ({"robot_id": "no spaces"}, "robot_id"),
         ({"software_version": "v" * 65}, "software_version"),
+        ({"software_commit": "c" * (MAX_COMMIT_LENGTH + 1)}, "software_commit"),
+        ({"thymio_firmware": MAX_FIRMWARE + 1}, "thymio_firmware"),
+        ({"thymio_firmware": -1}, "thymio_firmware"),
         ({"nonce": bytes(NONCE_SIZE - 1)}, "nonce"),
         ({"nonce": bytes(NONCE_SIZE + 1)}, "nonce"),
     ],
@@ -555,6 +562,8 @@ def test_the_largest_handshake_messages_fit_the_small_handshake_frames() -> None
             sensors=tuple("\u00e9" * MAX_NAME_LENGTH for _ in range(MAX_SENSORS)),
             nonce=bytes(NONCE_SIZE),
             features=tuple("\u00e9" * MAX_NAME_LENGTH for _ in range(MAX_FEATURES)),
+            software_commit="\u00e9" * MAX_COMMIT_LENGTH,
+            thymio_firmware=MAX_FIRMWARE,
         ),
         Challenge(nonce=bytes(NONCE_SIZE), proof=bytes(PROOF_SIZE)),
         Authenticate(proof=bytes(PROOF_SIZE)),
@@ -565,6 +574,13 @@ def test_the_largest_handshake_messages_fit_the_small_handshake_frames() -> None
         # Tagged (Welcome, a late Refused) or not: either way within the limit, and decodable.
         data = encode(msg, max_frame_size=HANDSHAKE_MAX_FRAME_SIZE - TAG_SIZE)
         assert decode_frame(data) == msg
+
+
+def test_a_hello_of_a_robot_older_than_its_commit_and_firmware_says_neither() -> None:
+    # An agent deployed before the fields existed is still accepted: they are unknown.
+    msg = decode_payload(hello_payload())
+    assert isinstance(msg, Hello)
+    assert msg.software_commit is None and msg.thymio_firmware is None
 
 
 def test_a_hello_of_a_robot_older_than_its_features_offers_none() -> None:

@@ -137,6 +137,8 @@ def current_cases() -> dict[str, Message]:
                 sensors=SENSORS,
                 nonce=NONCE,
                 features=(FEATURE_ESCAPE,),
+                software_commit="3f2a9c4e1b7d8a6f5e4c3b2a1908f7e6d5c4b3a2-dirty",
+                thymio_firmware=14,
             ),
         ),
         (

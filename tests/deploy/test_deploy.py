@@ -35,7 +35,7 @@ def test_example_agent_configurations_load(path):
 
 
 def test_example_master_configuration_loads_with_the_example_experiment(tmp_path):
-    for name in ("master.yaml", "experiment.yaml"):
+    for name in ("master.yaml", "experiment.yaml", "fleet.yaml"):
         shutil.copy(EXAMPLES / name, tmp_path / name)
     (tmp_path / "secret.key").write_text("lab secret\n")
     config = load_master_config(tmp_path / "master.yaml")
@@ -53,7 +53,7 @@ def test_every_example_experiment_names_its_setting():
 
 
 def test_example_robot_ids_are_the_masters_allow_list(tmp_path):
-    for name in ("master.yaml", "experiment.yaml"):
+    for name in ("master.yaml", "experiment.yaml", "fleet.yaml"):
         shutil.copy(EXAMPLES / name, tmp_path / name)
     (tmp_path / "secret.key").write_text("s")
     allowed = set(load_master_config(tmp_path / "master.yaml").allowed_robots)
@@ -66,7 +66,7 @@ def test_the_readmes_rehearsal_runs_the_example_files_as_they_are(tmp_path):
     their names, and runs the experiment's number of robots."""
     import re
 
-    for name in ("master.yaml", "experiment.yaml"):
+    for name in ("master.yaml", "experiment.yaml", "fleet.yaml"):
         shutil.copy(EXAMPLES / name, tmp_path / name)
     (tmp_path / "secret.key").write_text("s")
     config = load_master_config(tmp_path / "master.yaml")
@@ -206,6 +206,7 @@ for arg in "$@"; do
     *"[robot]")
       tree=${{arg%"[robot]"}}
       echo "$tree" > {where}
+      echo "${{MINIMIZE_SURPRISE_COMMIT-unset}}" > {where}.commit
       (cd "$tree" && find . -mindepth 1 | sort) > {seen}
       mkdir -p "$tree/build/lib" "$tree/minimize_surprise.egg-info"
       ;;
@@ -277,3 +278,64 @@ def test_the_package_is_built_outside_the_checkout(tmp_path, checkout):
     assert "./drivers/failsafe.aesl" in copied  # package data
     for excluded in (".git", ".venv", "runs", "build", "minimize_surprise.egg-info"):
         assert f"./{excluded}" not in copied
+    # The fixture's .git is no repository: the build is told that no commit is known.
+    assert Path(f"{where}.commit").read_text() == "\n"
+
+
+def test_the_checkout_s_commit_goes_to_the_build(tmp_path):
+    """The copy pip builds from has no .git, so install-pi.sh passes the checkout's commit to
+    the build (setup.py), "-dirty" with uncommitted changes."""
+    root = tmp_path / "checkout"
+    root.mkdir()
+    git = ["git", "-C", str(root), "-c", "user.name=t", "-c", "user.email=t@t"]
+    subprocess.run([*git, "init", "-q"], check=True)
+    (root / "file").write_text("a")
+    subprocess.run([*git, "add", "file"], check=True)
+    subprocess.run([*git, "commit", "-qm", "one"], check=True)
+    head = subprocess.run(
+        [*git, "rev-parse", "HEAD"], check=True, capture_output=True, text=True
+    ).stdout.strip()
+
+    def commit() -> str:
+        script = f'source {INSTALL} && checkout_commit "$1"'
+        return subprocess.run(
+            ["bash", "-c", script, "install-pi.sh", str(root)],
+            check=True, capture_output=True, text=True,
+        ).stdout.strip()  # fmt: skip
+
+    assert commit() == head
+    (root / "file").write_text("b")
+    assert commit() == f"{head}-dirty"
+    (root / "untracked").write_text("runs leave files")
+    (root / "file").write_text("a")
+    assert commit() == head
+
+
+def _setup_module():
+    """The repository's setup.py as a module (its setup() runs only as a script)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("setup_under_test", REPO / "setup.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_build_bakes_in_the_commit_it_is_given_or_finds(tmp_path, monkeypatch):
+    setup = _setup_module()
+    given = "0123456789abcdef0123456789abcdef01234567"
+    monkeypatch.setenv(setup.COMMIT_ENV, given)
+    assert setup.source_commit(tmp_path) == given
+    monkeypatch.setenv(setup.COMMIT_ENV, "not a commit")
+    with pytest.raises(SystemExit, match="not a commit"):
+        setup.source_commit(tmp_path)
+    monkeypatch.setenv(setup.COMMIT_ENV, "")  # install-pi.sh outside a checkout: none known
+    assert setup.source_commit(tmp_path) is None
+    # An sdist's tree carries the stamp of the build that made it.
+    setup.stamp(tmp_path, given + "-dirty")
+    assert setup.source_commit(tmp_path) == given + "-dirty"
+    assert setup.source_commit(REPO) is not None  # this checkout, from git
+    setup.stamp(tmp_path / "build", None)
+    text = (tmp_path / "build/minimize_surprise/_build.py").read_text()
+    assert "COMMIT = None" in text

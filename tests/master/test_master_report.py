@@ -14,8 +14,13 @@ from master_helpers import SECRET, close, experiment, make_robots, master_config
 from master_service import Master, Progress
 from master_service.cli import main
 from master_service.progress import ProgressDisplay, describe
+from minimize_surprise import __version__
+from minimize_surprise.provenance import software_commit
 from reporting.report import compute_metrics, write_report
 from reporting.status import status_text
+from runfiles import schema
+from runfiles.schema import Software, SoftwareRecord
+from standins.scripted_robots import ScriptedRobot
 
 
 @pytest.fixture
@@ -99,6 +104,45 @@ async def test_status_and_metrics_while_running(tmp_path):
         assert compute_metrics(run)["evaluations"] == 0
         await close(robots)
     assert "not running; continue with `surprise-master resume" in status_text(run)
+
+
+async def test_status_shows_the_software_each_robot_joined_with(tmp_path):
+    """software.json records the master's and each robot's version, commit and firmware as it
+    joins; ``status`` shows them and marks a robot on other software."""
+    run = tmp_path / "run"
+    commit = software_commit()
+    assert commit is not None, "the tests run from a git checkout"
+    old = "0123456789abcdef0123456789abcdef01234567"
+    async with Master(master_config(experiment(evaluations=5)), run, secret=SECRET) as master:
+        robots = [
+            ScriptedRobot("r0", SECRET, master.port, software=(__version__, commit, 14)),
+            ScriptedRobot("r1", SECRET, master.port, software=(__version__, old, 11)),
+        ]
+        for robot in robots:
+            await robot.connect()
+        await robots[1].close()
+        # The same robot back with another build: recorded, and the master log says so.
+        robots[1] = ScriptedRobot("r1", SECRET, master.port, software=("0.0.9", None, None))
+        await robots[1].connect()
+        await close(robots)
+    record = schema.read(run, SoftwareRecord)
+    assert record is not None
+    assert record.master == Software(version=__version__, commit=commit)
+    assert record.robots == {
+        "r0": Software(version=__version__, commit=commit, firmware=14),
+        "r1": Software(version="0.0.9", commit=None),
+    }
+    assert set(record.joined_at) == {"r0", "r1"}
+    assert "robot r1 joined with other software than before" in (run / "master.log").read_text()
+    lines = status_text(run).splitlines()
+    short = commit.removesuffix("-dirty")[:10]
+    start = lines.index(next(line for line in lines if line.startswith("software: master")))
+    assert lines[start].startswith(f"software: master {__version__} {short}")
+    assert lines[start + 1].startswith(f"  r0: {__version__} {short}")
+    assert lines[start + 1].endswith(", firmware 14")
+    assert lines[start + 2] == (
+        "  r1: 0.0.9, commit unknown, firmware ? (other software than the master's)"
+    )
 
 
 async def test_report_of_real_robots_says_why_there_is_no_behaviour(tmp_path, capsys):

@@ -26,6 +26,7 @@ from master_service.config import MasterConfig
 from master_service.preflight import format_table, run_check
 from minimize_surprise.backoff import BackoffConfig
 from minimize_surprise.config import ExperimentConfig
+from minimize_surprise.provenance import software_commit
 from robot_agent.agent import Agent
 from robot_agent.config import AgentConfig
 from robot_agent.config import MasterConfig as AgentMasterConfig
@@ -133,9 +134,11 @@ async def test_the_check_finds_what_keeps_a_robot_from_a_run():
 
     table = format_table(rows)
     assert table.splitlines()[0].split() == [
-        "robot", "verdict", "link", "clock", "battery", "IR", "max", "ground", "light", "force"
+        "robot", "verdict", "software", "firmware", "link", "clock", "battery", "IR", "max",
+        "ground", "light", "force",
     ]  # fmt: skip
     assert "good        fit" in table and "dead-light  UNFIT" in table
+    assert good.firmware == 11 and good.commit == software_commit()  # the fake medulla's
     assert table.endswith("1 of 5 robots fit: fix the above")
 
 

@@ -37,6 +37,8 @@ from runfiles.schema import (
     RunFile,
     SimulatedWorld,
     Simulation,
+    Software,
+    SoftwareRecord,
     TrackedBoxes,
     master_alive,
 )
@@ -143,6 +145,25 @@ GOLDEN: dict[type[RunFile], tuple[RunFile, str]] = {
         Replay(source="/runs/a", source_run="/runs/a", genome_fitness=None),
         '{\n  "format": 1,\n  "source": "/runs/a",\n  "source_run": "/runs/a",\n'
         '  "genome_fitness": null\n}',
+    ),
+    SoftwareRecord: (
+        SoftwareRecord(
+            master=Software(version="0.1.0", commit="3f2a9c4e1b7d8a6f5e4c3b2a1908f7e6d5c4b3a2"),
+            robots={
+                "thymio-1": Software(
+                    version="0.1.0",
+                    commit="3f2a9c4e1b7d8a6f5e4c3b2a1908f7e6d5c4b3a2-dirty",
+                    firmware=14,
+                ),
+                "thymio-2": Software(version="0.0.9", commit=None),
+            },
+            joined_at={"thymio-1": 1700000001.5, "thymio-2": 1700000002.0},
+        ),
+        '{"format": 1, "master": {"version": "0.1.0", "commit": '
+        '"3f2a9c4e1b7d8a6f5e4c3b2a1908f7e6d5c4b3a2", "firmware": null}, "robots": {"thymio-1": '
+        '{"version": "0.1.0", "commit": "3f2a9c4e1b7d8a6f5e4c3b2a1908f7e6d5c4b3a2-dirty", '
+        '"firmware": 14}, "thymio-2": {"version": "0.0.9", "commit": null, "firmware": null}}, '
+        '"joined_at": {"thymio-1": 1700000001.5, "thymio-2": 1700000002.0}}',
     ),
     CameraView: (
         CameraView(
