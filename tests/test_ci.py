@@ -35,5 +35,5 @@ def test_fresh_root_extracts_the_quick_start_command():
 
 
 def test_ci_scripts_parse():
-    for name in ("run", "fresh-root", "roots.sh"):
+    for name in ("run", "fresh-root", "roots.sh", "pi-root", "fleet-roots"):
         subprocess.run(["bash", "-n", str(ROOT / ".ci" / name)], check=True)
