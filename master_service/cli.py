@@ -27,8 +27,6 @@ Subcommands::
                                                     live view of a run's MQTT telemetry
     surprise-master dashboard DIR [--host H] [--port P] [--open] [--broker URL [--prefix P]]
                                                     live web page of a run (only reads DIR)
-    surprise-master fleet inventory FLEET          the fleet file as an Ansible inventory
-                                                    (deploy/ansible, docs/fleet.md)
 
 Exit status: 0 done; 1 the run stopped on an error (a busy port, a full disk: one line naming the
 file and what to do, the run can be resumed); 2 bad configuration or run directory (one message
@@ -56,7 +54,6 @@ from master_service import cli_lab
 from master_service.config import load_master_config, required_secret
 from master_service.console import Console
 from master_service.escape import escape_from_console
-from master_service.fleet_hosts import fleet_inventory_command
 from master_service.master import Master
 from master_service.progress import ProgressDisplay
 from master_service.rundir import RunDir, RunDirError
@@ -220,15 +217,6 @@ def _parser() -> argparse.ArgumentParser:
     )
     dashboard.add_argument("--prefix", help="the telemetry's topic prefix (default: surprise)")
     dashboard.set_defaults(handler=cli_lab.dashboard_command)
-
-    fleet = sub.add_parser("fleet", help="the fleet of robots (the inventory file)")
-    fleet_sub = fleet.add_subparsers(dest="fleet_command", required=True, metavar="COMMAND")
-    fleet_inventory = fleet_sub.add_parser(
-        "inventory",
-        help="print the fleet file as an Ansible inventory (for deploy/ansible's playbook)",
-    )
-    fleet_inventory.add_argument("file", type=Path, metavar="FLEET", help="the fleet file")
-    fleet_inventory.set_defaults(handler=fleet_inventory_command)
     return parser
 
 
