@@ -40,7 +40,18 @@ from minimize_surprise.fitness import swarm_fitness
 from minimize_surprise.network import GenomeLayout, NetworkSpec
 from minimize_surprise.text import format_duration
 from runfiles import schema
-from runfiles.schema import ROBOT_STAT_PREFIXES, PostEvaluation, evaluation_header, format_row
+from runfiles.schema import (
+    EVENT_SWARM_CHANGE,
+    ROBOT_STAT_PREFIXES,
+    Event,
+    PostEvaluation,
+    SwarmChange,
+    append_event,
+    evaluation_header,
+    render_row,
+    row_cells,
+    widen_header,
+)
 
 __all__ = ["ETA_WINDOW", "RETRY_PAUSE", "RETRY_PAUSE_MAX", "EvolutionRun"]
 
@@ -91,7 +102,15 @@ class EvolutionRun:
         self._on_change = on_change
         self._listeners: list[Callable[[Progress], None]] = []
         self._write: asyncio.Future[None] | None = None
-        self._rows: list[str] = []
+        # Rows by column, rendered at their commit against the file's header then: the header
+        # may widen between (a spare joined the swarm).
+        self._rows: list[dict[str, str]] = []
+        #: the CSV's header as written or to be written (None: the swarm's, once fixed)
+        self._header: list[str] | None = None
+        # The header widened since the last commit: the commit rewrites the file's.
+        self._widen = False
+        # The swarm changed since the last commit: the next point between evaluations commits.
+        self._swarm_dirty = False
         self._best_changed = False
         self._last_commit = 0.0
         self._started_at = 0.0
@@ -167,6 +186,7 @@ class EvolutionRun:
         header = self.run_dir.csv_header()
         if header is not None:
             self._robot_stats = any(c.startswith(ROBOT_STAT_PREFIXES[1]) for c in header)
+            self._header = header
         self.pauses.clear_stale()
         self.run_dir.open_log(self.log)
         if self.log.getEffectiveLevel() > logging.INFO:
@@ -267,7 +287,7 @@ class EvolutionRun:
             # Each in [0, 1]: the codec refuses anything else, so the mean is one too.
             outcome = opt.tell(swarm_fitness(attempt.fitnesses))
             self._rows.append(
-                format_row(
+                row_cells(
                     outcome.evaluation,
                     outcome.kind,
                     outcome.fitness,
@@ -276,8 +296,10 @@ class EvolutionRun:
                     state.attempts,
                     attempt.seconds,
                     attempt.safety_share,
+                    attempt.robots,
                     attempt.fitnesses,
                     attempt.stats if self._robot_stats else None,
+                    swarm=state.swarm_number,
                 )
             )
             self._best_changed |= outcome.accepted
@@ -356,11 +378,12 @@ class EvolutionRun:
         state.attempts = 0
         await self._commit()
 
-    async def _pause(self, pause: Pause) -> None:
-        """Wait for a person with the checkpoint on disk (docs/runs.md)."""
+    async def _pause(self, pause: Pause, over: Callable[[], bool] | None = None) -> None:
+        """Wait for a person with the checkpoint on disk (docs/runs.md); ``over()`` ends the
+        wait when what it waits for was settled otherwise."""
         await self._commit()
         await self._flush()
-        await self.pauses.wait(pause, self.emit)
+        await self.pauses.wait(pause, self.emit, over)
         # The wait is no evaluation's duration: keep it out of the time-left estimate.
         self._last_counted_at = None
 
@@ -394,6 +417,96 @@ class EvolutionRun:
         if pause:
             await asyncio.sleep(pause)
 
+    # -- the swarm's changes -------------------------------------------------------------------
+
+    def change_swarm(self, left: str, joined: str | None) -> SwarmChange:
+        """Take ``left`` out of the swarm, ``joined`` (a spare) in its place or none; the change.
+
+        Called between evaluations, with ``left`` away (so no attempt of it is in flight: the
+        one it left failed and goes out again to the new swarm, counted once). The change is in
+        the state at once and on disk with the next commit (:meth:`commit_swarm`), the CSV's
+        header widened then for a robot that joined (:func:`runfiles.schema.widen_header`).
+        """
+        state = self._require_state()
+        roster = list(state.roster or [])
+        if left not in roster:
+            raise ValueError(f"{left} is not in the swarm")
+        if joined is None:
+            roster.remove(left)
+        else:
+            roster[roster.index(left)] = joined
+        base = self._header or evaluation_header(state.roster or [], robot_stats=self._robot_stats)
+        self._header = widen_header(base, roster, robot_stats=self._robot_stats)
+        self._widen = True
+        change = SwarmChange(
+            from_evaluation=state.optimizer.evaluations + 1,
+            robots=roster,
+            left=left,
+            joined=joined,
+            time=time.time(),
+        )
+        state.roster = roster
+        state.swarms.append(change)
+        self._swarm_dirty = True
+        self.emit()
+        return change
+
+    async def commit_swarm(self) -> None:
+        """Commit a change of the swarm made since the last commit (none: nothing to do); only
+        from the loop's own task, between evaluations."""
+        if self._swarm_dirty:
+            await self._commit()
+            await self._flush()
+
+    async def robots_gone(self, gone: list[str], away_s: float) -> None:
+        """``gone`` have been away for ``away_s`` seconds: go on without them where the
+        experiment's ``min_robots`` allows, else pause naming them until a spare takes their
+        place (``surprise-master swap``) or a person lets the run wait on (``continue``)."""
+        state = self._require_state()
+        minimum = self.experiment.min_robots
+        left = len(state.roster or []) - len(gone)
+        if minimum is not None and left >= minimum:
+            for robot in gone:
+                change = self.change_swarm(robot, None)
+                self.log.warning(
+                    "robot %s gone for %.0f s: the run goes on without it from evaluation %d, "
+                    "with %d robots (min_robots %d)",
+                    robot,
+                    away_s,
+                    change.from_evaluation,
+                    len(change.robots),
+                    minimum,
+                )
+                event = Event(
+                    time=change.time,
+                    kind=EVENT_SWARM_CHANGE,
+                    robot=robot,
+                    accepted=True,
+                    evaluation_id=change.from_evaluation,
+                    detail=f"gone for {away_s:.0f} s; min_robots {minimum}",
+                )
+                try:
+                    await asyncio.to_thread(append_event, self.run_dir.path, event)
+                except OSError as exc:
+                    self.log.warning("the swarm's change could not be logged: %s", exc)
+            await self.commit_swarm()
+            return
+        names = ", ".join(gone)
+        path = self.run_dir.path
+        spare = "SPARE" if len(gone) == 1 else "SPARE (one robot at a time)"
+        text = (
+            f"{names} gone for {away_s:.0f} s: bring in a spare with `surprise-master swap "
+            f"{path} {gone[0]} {spare}`, or get it back"
+        )
+
+        def settled() -> bool:
+            # Each swapped out, or back: the swap's desk changes the swarm while this waits.
+            missing = self.evaluator.missing_robots()
+            return not any(robot in missing for robot in gone)
+
+        await self._pause(Pause("robot-gone", text, tuple(gone)), settled)
+        await self.commit_swarm()
+
     # -- commits -----------------------------------------------------------------------------
 
     def _commit_due(self) -> bool:
@@ -417,13 +530,17 @@ class EvolutionRun:
         if simulation is not None:
             state.simulation = simulation
         data = state.to_checkpoint()
-        header = evaluation_header(state.roster or [], robot_stats=self._robot_stats)
+        if self._header is None and state.roster is not None:
+            self._header = evaluation_header(state.roster, robot_stats=self._robot_stats)
+        header = list(self._header or [])
+        widen, self._widen = self._widen, False
+        self._swarm_dirty = False
         best = _best(state.optimizer) if best_changed else None
-        text = "".join(rows) or None
+        text = "".join(render_row(cells, header) for cells in rows) or None
         self._last_commit = time.monotonic()
 
         def write() -> None:
-            self.run_dir.commit(data, text, header)
+            self.run_dir.commit(data, text, header, widen=widen)
             if best is not None:
                 self.run_dir.write_best(*best, self.spec)
 

@@ -4,8 +4,10 @@ One round: wait until the swarm is complete -> send the genome with a fresh eval
 collect one fitness per robot within the deadline -> if all arrived, tell the algorithm their mean
 and log the row; otherwise the round does not count and the same genome goes out again once the
 swarm is complete. A robot that drops out pauses the run; it never fails
-it. After the last counted evaluation, the best genome is post-evaluated with ``record=True`` and
-every robot's trace is stored.
+it. One away for longer than ``robot_gone_after`` is gone for good: the run pauses naming it until
+a spare takes its place (:mod:`master_service.swap`), or goes on without it where the experiment's
+``min_robots`` allows. After the last counted evaluation, the best genome is post-evaluated with
+``record=True`` and every robot's trace is stored.
 
 The loop itself, with its commits, resume and progress, is
 :class:`~master_service.evolution_run.EvolutionRun`, shared with the compiled engine; the master is
@@ -51,6 +53,7 @@ from master_service.replay import ReplaySource, write_replay_file
 from master_service.rounds import RoundRunner
 from master_service.rundir import FILE_ONLY, RunDir, RunState
 from master_service.server import Answer, RobotServer, Session
+from master_service.swap import SwapDesk
 from minimize_surprise.errors import ConfigError
 from minimize_surprise.network import GenomeLayout, spec_from_config
 from minimize_surprise.session import TAG_SIZE
@@ -189,6 +192,20 @@ class Master:
             evaluating=self._evaluating,
         )
         self._escape_task: asyncio.Task[None] | None = None
+        #: spares brought in for robots gone for good (``surprise-master swap``)
+        self.swaps = SwapDesk(
+            self.run_dir,
+            self.server,
+            self.log,
+            members=self._members_fixed,
+            allowed=config.allowed_robots,
+            done=lambda: self.state is None or self.state.phase == "done",
+            apply=self._swap,
+        )
+        self._swap_task: asyncio.Task[None] | None = None
+        # Since when (monotonic) each robot of the swarm has been away: one away for
+        # ``robot_gone_after`` is gone for good.
+        self._away_since: dict[str, float] = {}
         self._swarm_changed = asyncio.Event()
         self._waiting = False
         self._live_task: asyncio.Task[None] | None = None
@@ -216,9 +233,13 @@ class Master:
         self._write_live()
         self._live_task = asyncio.create_task(self._refresh_live(), name="live.json")
         self._escape_task = asyncio.create_task(self.escapes.run(), name="escapes")
+        self._swap_task = asyncio.create_task(self.swaps.run(), name="swaps")
+        # A resumed swarm's robots are all away until they reconnect.
+        started = time.monotonic()
+        self._away_since = dict.fromkeys(self._require_state().roster or [], started)
         optimizer = self._require_state().optimizer
         self.log.info(
-            "%s run %s: listening on %s:%d%s; %d/%d evaluations done, swarm of %d robots",
+            "%s run %s: listening on %s:%d%s; %d/%d evaluations done, swarm of %d robots%s",
             "resumed" if self.resume else "started",
             self.run_id,
             self.host,
@@ -226,7 +247,8 @@ class Master:
             " (TLS)" if self._ssl else "",
             optimizer.evaluations,
             self.experiment.evolution.evaluations,
-            self.config.robot_count,
+            self.robots_expected,
+            _swarm_text(self._require_state()),
         )
         if self.telemetry is not None:
             self.telemetry.start()  # connects in the background; returns at once
@@ -234,12 +256,12 @@ class Master:
 
     async def close(self) -> None:
         """Finish pending writes, say Bye to the robots, close the connections and the log."""
-        for task in (self._live_task, self._escape_task):
+        for task in (self._live_task, self._escape_task, self._swap_task):
             if task is not None:
                 task.cancel()
                 with contextlib.suppress(asyncio.CancelledError):
                     await task
-        self._live_task = self._escape_task = None
+        self._live_task = self._escape_task = self._swap_task = None
         await self.server.close()
         await self.evolution.close()
         self.run_dir.close()
@@ -303,13 +325,17 @@ class Master:
 
     @property
     def robots_connected(self) -> int:
-        """Robots connected now."""
-        return len(self.server.sessions)
+        """Robots of the swarm connected now (before it is fixed: every robot connected)."""
+        roster = self.state.roster if self.state is not None else None
+        if roster is None:
+            return len(self.server.sessions)
+        return sum(robot in self.server.sessions for robot in roster)
 
     @property
     def robots_expected(self) -> int:
-        """Robots the swarm has."""
-        return self.config.robot_count
+        """Robots the swarm has (fewer than configured once robots went for good)."""
+        roster = self.state.roster if self.state is not None else None
+        return self.config.robot_count if roster is None else len(roster)
 
     @property
     def waiting(self) -> bool:
@@ -324,24 +350,67 @@ class Master:
         return [robot for robot in roster if robot not in self.server.sessions]
 
     async def swarm(self, state: RunState) -> list[str]:
-        """Wait until every robot of the swarm is connected; fix the swarm the first time."""
+        """Wait until every robot of the swarm is connected; fix the swarm the first time.
+
+        A robot away for ``robot_gone_after`` is gone for good: the evolution goes on without
+        it or pauses for a spare (:meth:`EvolutionRun.robots_gone`), and the wait goes on for
+        the swarm as it is then.
+        """
         logged = False
         while True:
             if state.roster is None and len(self.server.sessions) >= self.config.robot_count:
                 state.roster = sorted(self.server.sessions)[: self.config.robot_count]
                 self.log.info("the swarm is %s", ", ".join(state.roster))
+            await self.evolution.commit_swarm()
             if state.roster is not None and not self.missing_robots():
                 if self._waiting:
                     self._waiting = False
                     self.evolution.emit()
                 return state.roster
+            gone, wake_in = self._gone()
+            if gone:
+                away = time.monotonic() - min(self._away_since[robot] for robot in gone)
+                await self.evolution.robots_gone(gone, away)
+                # Let a person who let the run wait on have another spell before the next pause.
+                now = time.monotonic()
+                for robot in self.missing_robots():
+                    self._away_since[robot] = now
+                logged = False
+                continue
             if not logged:
                 self._waiting = True
                 self.log.info("waiting for robots: %s", self._robots_text())
                 self.evolution.emit()
                 logged = True
             self._swarm_changed.clear()
-            await self._swarm_changed.wait()
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(wake_in):
+                    await self._swarm_changed.wait()
+
+    def _gone(self) -> tuple[list[str], float | None]:
+        """The swarm's robots away for ``robot_gone_after`` or longer, and the seconds until the
+        next one will be (None: nobody away, or no limit)."""
+        limit = self.config.robot_gone_after
+        if limit is None:
+            return [], None
+        now = time.monotonic()
+        gone, wake_in = [], None
+        for robot in self.missing_robots():
+            since = self._away_since.setdefault(robot, now)
+            left = since + limit - now
+            if left <= 0:
+                gone.append(robot)
+            else:
+                wake_in = left if wake_in is None else min(wake_in, left)
+        return gone, wake_in
+
+    def _swap(self, gone: str, spare: str) -> int:
+        """The swap desk's change of the swarm: ``spare`` in ``gone``'s place; the counted
+        evaluation the new swarm starts at."""
+        change = self.evolution.change_swarm(gone, spare)
+        self._away_since.pop(gone, None)
+        self._swarm_changed.set()
+        return change.from_evaluation
 
     async def evaluate(
         self, evaluation_id: int, genome: np.ndarray, steps: int, *, record: bool
@@ -415,7 +484,10 @@ class Master:
             return REFUSED_UNKNOWN_ROBOT, f"{robot_id} is not among the allowed robots"
         roster = self.state.roster if self.state is not None else None
         if roster is not None:
-            if robot_id not in roster:
+            # Spares: the allowed robots outside the swarm, and one a swap waits for, stand by
+            # connected, ready to take a gone robot's place.
+            spare = bool(allowed) or robot_id in self.swaps.expecting
+            if robot_id not in roster and not spare:
                 return REFUSED_UNKNOWN_ROBOT, f"{robot_id} is not in this run's swarm"
         elif (
             robot_id not in self.server.sessions
@@ -425,10 +497,14 @@ class Master:
         return None
 
     def _on_join(self, session: Session) -> None:
+        self._away_since.pop(session.robot_id, None)
         self._swarm_changed.set()
         self.evolution.emit()
 
     def _on_leave(self, session: Session, reason: str) -> None:
+        roster = self.state.roster if self.state is not None else None
+        if roster is not None and session.robot_id in roster:
+            self._away_since.setdefault(session.robot_id, time.monotonic())
         self.rounds.on_leave(session, reason)
         self._swarm_changed.set()
         self.evolution.emit()
@@ -449,6 +525,11 @@ class Master:
         if state is not None and state.roster is not None:
             return list(state.roster)
         return list(self.config.allowed_robots or self.connected_robots)
+
+    def _members_fixed(self) -> list[str]:
+        """The swarm once fixed, else none (a swap changes a fixed swarm only)."""
+        state = self.state
+        return [] if state is None or state.roster is None else list(state.roster)
 
     def _evaluating(self, robot: str) -> bool:
         """Whether ``robot`` runs an evaluation of the current attempt it has not answered."""
@@ -477,8 +558,7 @@ class Master:
         return self.evolution.progress
 
     def _robots_text(self) -> str:
-        connected = len(self.server.sessions)
-        text = f"{connected}/{self.config.robot_count} connected"
+        text = f"{self.robots_connected}/{self.robots_expected} connected"
         missing = self.missing_robots()
         if missing:
             text += f", missing {', '.join(missing)}"
@@ -559,3 +639,14 @@ class Master:
         if self.state is None:
             raise RuntimeError("the master is not started")
         return self.state
+
+
+def _swarm_text(state: RunState) -> str:
+    """How the swarm changed, for the start's log line (nothing while it never did)."""
+    if not state.swarms:
+        return ""
+    last = state.swarms[-1]
+    return (
+        f" ({', '.join(last.robots)} since evaluation {last.from_evaluation}, after "
+        f"{len(state.swarms)} change{'s' if len(state.swarms) > 1 else ''})"
+    )
