@@ -33,6 +33,7 @@ from master_service.evaluation import Evaluation, Evaluator, Progress, RunSummar
 from master_service.pause import Pause, PauseGate, low_batteries
 from master_service.replay import ReplaySource, check_spec
 from master_service.rundir import FILE_ONLY, RunDir, RunState
+from master_service.swarm import changed, dropped_event, gone_text
 from minimize_surprise.dominance import dominance, ground_at_start
 from minimize_surprise.errors import FileWriteError
 from minimize_surprise.evolution import OnePlusOne
@@ -41,9 +42,7 @@ from minimize_surprise.network import GenomeLayout, NetworkSpec
 from minimize_surprise.text import format_duration
 from runfiles import schema
 from runfiles.schema import (
-    EVENT_SWARM_CHANGE,
     ROBOT_STAT_PREFIXES,
-    Event,
     PostEvaluation,
     SwarmChange,
     append_event,
@@ -102,15 +101,12 @@ class EvolutionRun:
         self._on_change = on_change
         self._listeners: list[Callable[[Progress], None]] = []
         self._write: asyncio.Future[None] | None = None
-        # Rows by column, rendered at their commit against the file's header then: the header
-        # may widen between (a spare joined the swarm).
+        # Rows by column, rendered at commit against the header then (a spare may widen it).
         self._rows: list[dict[str, str]] = []
         #: the CSV's header as written or to be written (None: the swarm's, once fixed)
         self._header: list[str] | None = None
-        # The header widened since the last commit: the commit rewrites the file's.
-        self._widen = False
-        # The swarm changed since the last commit: the next point between evaluations commits.
-        self._swarm_dirty = False
+        # Since the last commit the header widened (rewrite the file's), the swarm changed.
+        self._widen = self._swarm_dirty = False
         self._best_changed = False
         self._last_commit = 0.0
         self._started_at = 0.0
@@ -422,38 +418,23 @@ class EvolutionRun:
     def change_swarm(self, left: str, joined: str | None) -> SwarmChange:
         """Take ``left`` out of the swarm, ``joined`` (a spare) in its place or none; the change.
 
-        Called between evaluations, with ``left`` away (so no attempt of it is in flight: the
-        one it left failed and goes out again to the new swarm, counted once). The change is in
-        the state at once and on disk with the next commit (:meth:`commit_swarm`), the CSV's
-        header widened then for a robot that joined (:func:`runfiles.schema.widen_header`).
+        Between evaluations, with ``left`` away: the attempt it left failed and goes out again
+        to the new swarm, counted once. On disk with the next commit (:meth:`commit_swarm`),
+        the CSV's header widened for a robot that joined (:func:`runfiles.schema.widen_header`).
         """
         state = self._require_state()
-        roster = list(state.roster or [])
-        if left not in roster:
-            raise ValueError(f"{left} is not in the swarm")
-        if joined is None:
-            roster.remove(left)
-        else:
-            roster[roster.index(left)] = joined
+        change = changed(state.roster or [], left, joined, state.optimizer.evaluations + 1)
         base = self._header or evaluation_header(state.roster or [], robot_stats=self._robot_stats)
-        self._header = widen_header(base, roster, robot_stats=self._robot_stats)
-        self._widen = True
-        change = SwarmChange(
-            from_evaluation=state.optimizer.evaluations + 1,
-            robots=roster,
-            left=left,
-            joined=joined,
-            time=time.time(),
-        )
-        state.roster = roster
+        self._header = widen_header(base, change.robots, robot_stats=self._robot_stats)
+        self._widen = self._swarm_dirty = True
+        state.roster = change.robots
         state.swarms.append(change)
-        self._swarm_dirty = True
         self.emit()
         return change
 
     async def commit_swarm(self) -> None:
-        """Commit a change of the swarm made since the last commit (none: nothing to do); only
-        from the loop's own task, between evaluations."""
+        """Commit a change of the swarm made since the last commit, if any (from the loop's
+        own task, between evaluations)."""
         if self._swarm_dirty:
             await self._commit()
             await self._flush()
@@ -462,48 +443,22 @@ class EvolutionRun:
         """``gone`` have been away for ``away_s`` seconds: go on without them where the
         experiment's ``min_robots`` allows, else pause naming them until a spare takes their
         place (``surprise-master swap``) or a person lets the run wait on (``continue``)."""
-        state = self._require_state()
         minimum = self.experiment.min_robots
-        left = len(state.roster or []) - len(gone)
-        if minimum is not None and left >= minimum:
+        if minimum is not None and len(self._require_state().roster or []) - len(gone) >= minimum:
             for robot in gone:
-                change = self.change_swarm(robot, None)
-                self.log.warning(
-                    "robot %s gone for %.0f s: the run goes on without it from evaluation %d, "
-                    "with %d robots (min_robots %d)",
-                    robot,
-                    away_s,
-                    change.from_evaluation,
-                    len(change.robots),
-                    minimum,
-                )
-                event = Event(
-                    time=change.time,
-                    kind=EVENT_SWARM_CHANGE,
-                    robot=robot,
-                    accepted=True,
-                    evaluation_id=change.from_evaluation,
-                    detail=f"gone for {away_s:.0f} s; min_robots {minimum}",
-                )
+                event = dropped_event(self.change_swarm(robot, None), away_s, minimum)
+                self.log.warning("%s", event.detail)
                 try:
-                    await asyncio.to_thread(append_event, self.run_dir.path, event)
+                    append_event(self.run_dir.path, event)  # one line, as the flash's event
                 except OSError as exc:
                     self.log.warning("the swarm's change could not be logged: %s", exc)
             await self.commit_swarm()
             return
-        names = ", ".join(gone)
-        path = self.run_dir.path
-        spare = "SPARE" if len(gone) == 1 else "SPARE (one robot at a time)"
-        text = (
-            f"{names} gone for {away_s:.0f} s: bring in a spare with `surprise-master swap "
-            f"{path} {gone[0]} {spare}`, or get it back"
-        )
 
-        def settled() -> bool:
-            # Each swapped out, or back: the swap's desk changes the swarm while this waits.
-            missing = self.evaluator.missing_robots()
-            return not any(robot in missing for robot in gone)
+        def settled() -> bool:  # each swapped out (the swap's desk works meanwhile), or back
+            return not set(gone) & set(self.evaluator.missing_robots())
 
+        text = gone_text(gone, away_s, self.run_dir.path)
         await self._pause(Pause("robot-gone", text, tuple(gone)), settled)
         await self.commit_swarm()
 

@@ -3,11 +3,9 @@
 One round: wait until the swarm is complete -> send the genome with a fresh evaluation id ->
 collect one fitness per robot within the deadline -> if all arrived, tell the algorithm their mean
 and log the row; otherwise the round does not count and the same genome goes out again once the
-swarm is complete. A robot that drops out pauses the run; it never fails
-it. One away for longer than ``robot_gone_after`` is gone for good: the run pauses naming it until
-a spare takes its place (:mod:`master_service.swap`), or goes on without it where the experiment's
-``min_robots`` allows. After the last counted evaluation, the best genome is post-evaluated with
-``record=True`` and every robot's trace is stored.
+swarm is complete. A robot that drops out pauses the run; it never fails it; one gone for good
+is swapped or let go (:mod:`master_service.swap`). After the last counted evaluation, the best
+genome is post-evaluated with ``record=True`` and every robot's trace is stored.
 
 The loop itself, with its commits, resume and progress, is
 :class:`~master_service.evolution_run.EvolutionRun`, shared with the compiled engine; the master is
@@ -54,6 +52,7 @@ from master_service.rounds import RoundRunner
 from master_service.rundir import FILE_ONLY, RunDir, RunState
 from master_service.server import Answer, RobotServer, Session
 from master_service.swap import SwapDesk
+from master_service.swarm import AwayClock, changes_text
 from minimize_surprise.errors import ConfigError
 from minimize_surprise.network import GenomeLayout, spec_from_config
 from minimize_surprise.session import TAG_SIZE
@@ -193,19 +192,11 @@ class Master:
         )
         self._escape_task: asyncio.Task[None] | None = None
         #: spares brought in for robots gone for good (``surprise-master swap``)
-        self.swaps = SwapDesk(
-            self.run_dir,
-            self.server,
-            self.log,
-            members=self._members_fixed,
-            allowed=config.allowed_robots,
-            done=lambda: self.state is None or self.state.phase == "done",
-            apply=self._swap,
-        )
+        desk = (self.run_dir, self.server, self.log)
+        self.swaps = SwapDesk(*desk, lambda: self.state, config.allowed_robots, self._swap)
         self._swap_task: asyncio.Task[None] | None = None
-        # Since when (monotonic) each robot of the swarm has been away: one away for
-        # ``robot_gone_after`` is gone for good.
-        self._away_since: dict[str, float] = {}
+        #: since when each robot of the swarm has been away (gone for good: robot_gone_after)
+        self.away = AwayClock(config.robot_gone_after)
         self._swarm_changed = asyncio.Event()
         self._waiting = False
         self._live_task: asyncio.Task[None] | None = None
@@ -234,9 +225,7 @@ class Master:
         self._live_task = asyncio.create_task(self._refresh_live(), name="live.json")
         self._escape_task = asyncio.create_task(self.escapes.run(), name="escapes")
         self._swap_task = asyncio.create_task(self.swaps.run(), name="swaps")
-        # A resumed swarm's robots are all away until they reconnect.
-        started = time.monotonic()
-        self._away_since = dict.fromkeys(self._require_state().roster or [], started)
+        self.away.start(self._require_state().roster or [])  # a resumed swarm's: not back yet
         optimizer = self._require_state().optimizer
         self.log.info(
             "%s run %s: listening on %s:%d%s; %d/%d evaluations done, swarm of %d robots%s",
@@ -248,7 +237,7 @@ class Master:
             optimizer.evaluations,
             self.experiment.evolution.evaluations,
             self.robots_expected,
-            _swarm_text(self._require_state()),
+            changes_text(self._require_state().swarms),
         )
         if self.telemetry is not None:
             self.telemetry.start()  # connects in the background; returns at once
@@ -350,12 +339,8 @@ class Master:
         return [robot for robot in roster if robot not in self.server.sessions]
 
     async def swarm(self, state: RunState) -> list[str]:
-        """Wait until every robot of the swarm is connected; fix the swarm the first time.
-
-        A robot away for ``robot_gone_after`` is gone for good: the evolution goes on without
-        it or pauses for a spare (:meth:`EvolutionRun.robots_gone`), and the wait goes on for
-        the swarm as it is then.
-        """
+        """Wait until every robot of the swarm is connected; fix the swarm the first time. One
+        away for ``robot_gone_after`` is gone for good (:meth:`EvolutionRun.robots_gone`)."""
         logged = False
         while True:
             if state.roster is None and len(self.server.sessions) >= self.config.robot_count:
@@ -367,14 +352,11 @@ class Master:
                     self._waiting = False
                     self.evolution.emit()
                 return state.roster
-            gone, wake_in = self._gone()
+            gone, away, wake_in = self.away.gone(self.missing_robots())
             if gone:
-                away = time.monotonic() - min(self._away_since[robot] for robot in gone)
                 await self.evolution.robots_gone(gone, away)
-                # Let a person who let the run wait on have another spell before the next pause.
-                now = time.monotonic()
-                for robot in self.missing_robots():
-                    self._away_since[robot] = now
+                # A person who let the run wait on gives the robots another spell.
+                self.away.restart(self.missing_robots())
                 logged = False
                 continue
             if not logged:
@@ -387,28 +369,10 @@ class Master:
                 async with asyncio.timeout(wake_in):
                     await self._swarm_changed.wait()
 
-    def _gone(self) -> tuple[list[str], float | None]:
-        """The swarm's robots away for ``robot_gone_after`` or longer, and the seconds until the
-        next one will be (None: nobody away, or no limit)."""
-        limit = self.config.robot_gone_after
-        if limit is None:
-            return [], None
-        now = time.monotonic()
-        gone, wake_in = [], None
-        for robot in self.missing_robots():
-            since = self._away_since.setdefault(robot, now)
-            left = since + limit - now
-            if left <= 0:
-                gone.append(robot)
-            else:
-                wake_in = left if wake_in is None else min(wake_in, left)
-        return gone, wake_in
-
     def _swap(self, gone: str, spare: str) -> int:
-        """The swap desk's change of the swarm: ``spare`` in ``gone``'s place; the counted
-        evaluation the new swarm starts at."""
+        """The swap desk's change: ``spare`` in ``gone``'s place from the evaluation returned."""
         change = self.evolution.change_swarm(gone, spare)
-        self._away_since.pop(gone, None)
+        self.away.back(gone)
         self._swarm_changed.set()
         return change.from_evaluation
 
@@ -484,8 +448,7 @@ class Master:
             return REFUSED_UNKNOWN_ROBOT, f"{robot_id} is not among the allowed robots"
         roster = self.state.roster if self.state is not None else None
         if roster is not None:
-            # Spares: the allowed robots outside the swarm, and one a swap waits for, stand by
-            # connected, ready to take a gone robot's place.
+            # Spares (allowed, or one a swap waits for) stand by, to take a gone robot's place.
             spare = bool(allowed) or robot_id in self.swaps.expecting
             if robot_id not in roster and not spare:
                 return REFUSED_UNKNOWN_ROBOT, f"{robot_id} is not in this run's swarm"
@@ -497,14 +460,12 @@ class Master:
         return None
 
     def _on_join(self, session: Session) -> None:
-        self._away_since.pop(session.robot_id, None)
+        self.away.back(session.robot_id)
         self._swarm_changed.set()
         self.evolution.emit()
 
     def _on_leave(self, session: Session, reason: str) -> None:
-        roster = self.state.roster if self.state is not None else None
-        if roster is not None and session.robot_id in roster:
-            self._away_since.setdefault(session.robot_id, time.monotonic())
+        self.away.left(session.robot_id, self.state.roster if self.state is not None else None)
         self.rounds.on_leave(session, reason)
         self._swarm_changed.set()
         self.evolution.emit()
@@ -525,11 +486,6 @@ class Master:
         if state is not None and state.roster is not None:
             return list(state.roster)
         return list(self.config.allowed_robots or self.connected_robots)
-
-    def _members_fixed(self) -> list[str]:
-        """The swarm once fixed, else none (a swap changes a fixed swarm only)."""
-        state = self.state
-        return [] if state is None or state.roster is None else list(state.roster)
 
     def _evaluating(self, robot: str) -> bool:
         """Whether ``robot`` runs an evaluation of the current attempt it has not answered."""
@@ -639,14 +595,3 @@ class Master:
         if self.state is None:
             raise RuntimeError("the master is not started")
         return self.state
-
-
-def _swarm_text(state: RunState) -> str:
-    """How the swarm changed, for the start's log line (nothing while it never did)."""
-    if not state.swarms:
-        return ""
-    last = state.swarms[-1]
-    return (
-        f" ({', '.join(last.robots)} since evaluation {last.from_evaluation}, after "
-        f"{len(state.swarms)} change{'s' if len(state.swarms) > 1 else ''})"
-    )

@@ -28,7 +28,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Final
 
-from master_service.rundir import RunDir, RunDirError, pending_requests, request_path
+from master_service.rundir import RunDir, RunDirError, RunState, pending_requests, request_path
 from master_service.server import RobotServer
 from minimize_surprise.wire import is_valid_robot_id
 from runfiles import schema
@@ -118,8 +118,8 @@ class SwapDesk:
     """The master's side: takes the swap requests in ``run_dir``'s ``requests/`` and answers
     each with a ``swarm-change`` event (see the module docstring); :meth:`run` until cancelled.
 
-    ``members()`` names the swarm (empty before it is fixed); ``allowed`` the master file's
-    ``allowed_robots`` (empty: any robot with the secret); ``done()`` whether the run is over;
+    ``state()`` is the run's (None before it is loaded; a swap changes a fixed swarm only);
+    ``allowed`` the master file's ``allowed_robots`` (empty: any robot with the secret);
     ``apply(gone, spare)`` changes the swarm between evaluations and returns the counted
     evaluation the new swarm starts at. While a spare is waited for, :attr:`expecting` names it,
     and the master admits it though it is not in the swarm.
@@ -130,18 +130,15 @@ class SwapDesk:
         run_dir: RunDir,
         server: RobotServer,
         log: logging.Logger,
-        *,
-        members: Callable[[], Sequence[str]],
+        state: Callable[[], RunState | None],
         allowed: Sequence[str],
-        done: Callable[[], bool],
         apply: Callable[[str, str], int],
     ) -> None:
         self.run_dir = run_dir
         self.server = server
         self.log = log
-        self._members = members
+        self._state = state
         self._allowed = list(allowed)
-        self._done = done
         self._apply = apply
         #: spares a swap waits for: admitted while they are
         self.expecting: set[str] = set()
@@ -208,9 +205,10 @@ class SwapDesk:
     def _check(self, gone: str, spare: str) -> str | None:
         if not (is_valid_robot_id(gone) and is_valid_robot_id(spare)) or gone == spare:
             return "the request names no robot and spare"
-        if self._done():
+        state = self._state()
+        if state is not None and state.phase == "done":
             return "the run is done: its swarm no longer changes"
-        members = list(self._members())
+        members = [] if state is None or state.roster is None else list(state.roster)
         if gone not in members:
             known = ", ".join(members) if members else "none yet"
             return f"{gone} is not in this run's swarm (its robots: {known})"
