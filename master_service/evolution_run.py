@@ -103,8 +103,7 @@ class EvolutionRun:
         self._write: asyncio.Future[None] | None = None
         # Rows by column, rendered at commit against the header then (a spare may widen it).
         self._rows: list[dict[str, str]] = []
-        #: the CSV's header as written or to be written (None: the swarm's, once fixed)
-        self._header: list[str] | None = None
+        self._header: list[str] | None = None  # the CSV's as written (None: the swarm's, later)
         # Since the last commit the header widened (rewrite the file's), the swarm changed.
         self._widen = self._swarm_dirty = False
         self._best_changed = False
@@ -458,8 +457,8 @@ class EvolutionRun:
         def settled() -> bool:  # each swapped out (the swap's desk works meanwhile), or back
             return not set(gone) & set(self.evaluator.missing_robots())
 
-        text = gone_text(gone, away_s, self.run_dir.path)
-        await self._pause(Pause("robot-gone", text, tuple(gone)), settled)
+        pause = Pause("robot-gone", gone_text(gone, away_s, self.run_dir.path), tuple(gone))
+        await self._pause(pause, settled)
         await self.commit_swarm()
 
     # -- commits -----------------------------------------------------------------------------
@@ -488,14 +487,15 @@ class EvolutionRun:
         if self._header is None and state.roster is not None:
             self._header = evaluation_header(state.roster, robot_stats=self._robot_stats)
         header = list(self._header or [])
-        widen, self._widen = self._widen, False
-        self._swarm_dirty = False
+        widen, self._widen, self._swarm_dirty = self._widen, False, False
         best = _best(state.optimizer) if best_changed else None
         text = "".join(render_row(cells, header) for cells in rows) or None
         self._last_commit = time.monotonic()
 
         def write() -> None:
-            self.run_dir.commit(data, text, header, widen=widen)
+            if widen:  # before the rows it heads
+                self.run_dir.rewrite_header(header)
+            self.run_dir.commit(data, text, header)
             if best is not None:
                 self.run_dir.write_best(*best, self.spec)
 

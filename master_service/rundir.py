@@ -295,26 +295,16 @@ class RunDir:
 
     # -- committing --------------------------------------------------------------------------
 
-    def commit(
-        self,
-        checkpoint: Checkpoint,
-        row: str | None,
-        header: Sequence[str],
-        *,
-        widen: bool = False,
-    ) -> None:
+    def commit(self, checkpoint: Checkpoint, row: str | None, header: Sequence[str]) -> None:
         """Append ``row`` (if any) to the CSV durably, then write the checkpoint atomically.
 
         ``checkpoint`` must already count the row (``csv_rows``). ``header`` is written before
-        the first row; with ``widen`` (the swarm changed) an existing file's header is replaced
-        by ``header`` first (:meth:`rewrite_header`). A line the log could not take since is
-        raised first (:class:`FileWriteError`), so a run stops when its disk is full even if the
-        commit itself would still fit.
+        the first row. A line the log could not take since is raised first
+        (:class:`FileWriteError`), so a run stops when its disk is full even if the commit itself
+        would still fit.
         """
         if self._log is not None and self._log.error is not None:
             raise self._log.error
-        if widen:
-            self.rewrite_header(header)
         if row is not None:
             with writing(self.file(EVALUATIONS)):
                 self._append_row(row, header)
