@@ -14,6 +14,7 @@ Subcommands::
     surprise-master continue DIR                    let a paused run go on (a battery swapped,
                                                     the robots placed: --pause-before-post)
     surprise-master escape DIR ROBOT                make a robot of a running run escape now
+    surprise-master swap DIR GONE SPARE             a spare in place of a robot gone for good
     surprise-master sim [--scenario S] [--robots N] [--evaluations N] [--seed S] [--out DIR]
                         [--realtime] [--config FILE]
                                                     a whole experiment on a simulated swarm
@@ -110,7 +111,7 @@ def _parser() -> argparse.ArgumentParser:
     check.add_argument("--json", action="store_true", help="print the rows as JSON")
     check.set_defaults(handler=cli_lab.check_command)
 
-    cli_lab.add_hand_commands(sub)  # continue, escape
+    cli_lab.add_hand_commands(sub)  # continue, escape, swap
     cli_lab.add_track_parser(sub)
 
     report = sub.add_parser("report", help="write metrics.json and plots of a run")
