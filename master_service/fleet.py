@@ -218,9 +218,9 @@ class _FleetServer:
         except OSError as exc:
             if exc.errno == errno.EADDRINUSE:
                 raise RunDirError(
-                    f"{self.server.host}:{self.server.requested_port} is taken: a master runs "
-                    "there? Reach its robots through it: `surprise-master fleet stop --run "
-                    "RUN_DIR`"
+                    f"{self.server.host}:{self.server.requested_port} is taken: is a run "
+                    "going? Its master holds the robots: `surprise-master fleet stop --run "
+                    "RUN_DIR` stops them through it, `surprise-master status RUN_DIR` shows them"
                 ) from exc
             raise
         await self.server.start_serving()
