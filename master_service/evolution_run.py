@@ -317,7 +317,7 @@ class EvolutionRun:
             self.emit()
             pause = low_batteries(attempt.robots, attempt.stats, self.config.battery_min_v)
             if pause is not None:
-                await self._pause(pause)
+                await self.pause(pause)
         state.phase = "post-evaluation" if experiment.post_evaluation_steps > 0 else "done"
         state.attempts = 0
         await self._commit()
@@ -330,7 +330,7 @@ class EvolutionRun:
         steps = self.experiment.post_evaluation_steps
         if self.pause_before_post:
             text = "the evolution is done: place the robots for the post-evaluation"
-            await self._pause(Pause("before-post-evaluation", text))
+            await self.pause(Pause("before-post-evaluation", text))
         self.log.info("post-evaluation of the best genome for %d steps", steps)
         while True:
             evaluation_id = self._reserve_attempt()
@@ -373,7 +373,7 @@ class EvolutionRun:
         state.attempts = 0
         await self._commit()
 
-    async def _pause(self, pause: Pause, over: Callable[[], bool] | None = None) -> None:
+    async def pause(self, pause: Pause, over: Callable[[], bool] | None = None) -> None:
         """Wait for a person with the checkpoint on disk (docs/runs.md); ``over()`` ends the
         wait when what it waits for was settled otherwise."""
         await self._commit()
@@ -458,7 +458,7 @@ class EvolutionRun:
             return not set(gone) & set(self.evaluator.missing_robots())
 
         pause = Pause("robot-gone", gone_text(gone, away_s, self.run_dir.path), tuple(gone))
-        await self._pause(pause, settled)
+        await self.pause(pause, settled)
         await self.commit_swarm()
 
     # -- commits -----------------------------------------------------------------------------

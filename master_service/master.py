@@ -8,7 +8,8 @@ is swapped or let go (:mod:`master_service.swap`). After the last counted evalua
 genome is post-evaluated with ``record=True`` and every robot's trace is stored.
 
 Why one file of over 600 lines: :class:`Master` is one object, the robots' side of one run; what
-could stand alone already does (the loop, the rounds, the escape and swap desks, the run directory).
+could stand alone already does (the loop, the rounds, the escape, swap and stop desks, the run
+directory).
 
 The loop itself, with its commits, resume and progress, is
 :class:`~master_service.evolution_run.EvolutionRun`, shared with the compiled engine; the master is
@@ -50,11 +51,13 @@ from master_service.config import MasterConfig, build_ssl_context, inventory_of
 from master_service.escape import EscapeDesk
 from master_service.evaluation import Evaluation, Progress, RunSummary
 from master_service.evolution_run import EvolutionRun
+from master_service.pause import Pause
 from master_service.progress import run_status
 from master_service.replay import ReplaySource, write_replay_file
 from master_service.rounds import RoundRunner
 from master_service.rundir import FILE_ONLY, RunDir, RunState
 from master_service.server import Answer, RobotServer, Session
+from master_service.stopall import STOP_PAUSE_TEXT, StopDesk
 from master_service.swap import SwapDesk
 from master_service.swarm import AwayClock, changes_text
 from minimize_surprise import __version__
@@ -67,6 +70,7 @@ from minimize_surprise.wire import (
     CheckReport,
     EscapeReply,
     Evaluate,
+    Stopped,
     encode_payload,
 )
 from runfiles.schema import (
@@ -212,6 +216,13 @@ class Master:
             self.run_dir, self.server, self.log, lambda: self.state, allowed, self._swap
         )
         self._swap_task: asyncio.Task[None] | None = None
+        #: every robot stopped (``surprise-master fleet stop --run``): the run pauses
+        self.stops = StopDesk(
+            self.run_dir, self.server, self.log, members=self._members, on_stop=self._fleet_stop
+        )
+        self._stop_task: asyncio.Task[None] | None = None
+        #: the pause a fleet stop asked for, taken by the next swarm()
+        self._stop_pause: Pause | None = None
         #: since when each robot of the swarm has been away (gone for good: robot_gone_after)
         self.away = AwayClock(config.robot_gone_after)
         self._swarm_changed = asyncio.Event()
@@ -245,6 +256,7 @@ class Master:
         self._live_task = asyncio.create_task(self._refresh_live(), name="live.json")
         self._escape_task = asyncio.create_task(self.escapes.run(), name="escapes")
         self._swap_task = asyncio.create_task(self.swaps.run(), name="swaps")
+        self._stop_task = asyncio.create_task(self.stops.run(), name="fleet-stops")
         self.away.start(self._require_state().roster or [])  # a resumed swarm's: not back yet
         optimizer = self._require_state().optimizer
         self.log.info(
@@ -265,12 +277,12 @@ class Master:
 
     async def close(self) -> None:
         """Finish pending writes, say Bye to the robots, close the connections and the log."""
-        for task in (self._live_task, self._escape_task, self._swap_task):
+        for task in (self._live_task, self._escape_task, self._swap_task, self._stop_task):
             if task is not None:
                 task.cancel()
                 with contextlib.suppress(asyncio.CancelledError):
                     await task
-        self._live_task = self._escape_task = self._swap_task = None
+        self._live_task = self._escape_task = self._swap_task = self._stop_task = None
         await self.server.close()
         await self.evolution.close()
         self.run_dir.close()
@@ -363,6 +375,9 @@ class Master:
         away for ``robot_gone_after`` is gone for good (:meth:`EvolutionRun.robots_gone`)."""
         logged = False
         while True:
+            if self._stop_pause is not None:
+                await self.evolution.pause(self._stop_pause)
+                self._stop_pause = None
             if state.roster is None and len(self.server.sessions) >= self.config.robot_count:
                 state.roster = sorted(self.server.sessions)[: self.config.robot_count]
                 self.log.info("the swarm is %s", ", ".join(state.roster))
@@ -402,6 +417,8 @@ class Master:
         """One round: ``genome`` out to every robot of the swarm, their answers back."""
         state = self._require_state()
         assert state.roster is not None, "swarm() fixes the swarm first"
+        if self._stop_pause is not None:  # stopped between swarm() and here: nothing goes out
+            return Evaluation(evaluation_id, tuple(state.roster), STOP_PAUSE_TEXT)
         # The loop records only the post-evaluation (a replay's too): its robots flash.
         post = record
         attempt = await self.rounds.run(
@@ -504,6 +521,9 @@ class Master:
         if isinstance(msg, EscapeReply):
             self.escapes.on_reply(session, msg)
             return
+        if isinstance(msg, Stopped):
+            self.stops.on_reply(session, msg)
+            return
         self.rounds.on_message(session, msg)
 
     def _members(self) -> list[str]:
@@ -522,6 +542,15 @@ class Master:
             and robot in attempt.members
             and robot not in attempt.results
         )
+
+    def _fleet_stop(self) -> None:
+        """A fleet stop: the running attempt fails (it does not count) and the run pauses before
+        the next; the desk stops the motors. A run paused already stays in its pause."""
+        if self.evolution.pauses.current is None:
+            self._stop_pause = Pause("fleet-stop", STOP_PAUSE_TEXT)
+        if self.rounds.current is not None:
+            self.rounds.current.fail(STOP_PAUSE_TEXT)
+        self._swarm_changed.set()
 
     def _paused(self) -> str | None:
         pause = self.evolution.pauses.current

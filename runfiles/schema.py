@@ -17,8 +17,8 @@ Layout (docs/runs.md shows each file)::
     pause.json             PauseFile: while the run waits for a person
     events.jsonl           Event lines: what happened when (the experimenter's escapes, the
                            post-evaluation's start, the swarm's changes), appended by the master
-    requests/              EscapeRequest and SwapRequest files a person's command drops for the
-                           running master
+    requests/              EscapeRequest, SwapRequest and StopRequest files a person's command
+                           drops for the running master
     post_evaluation.json   PostEvaluation: the post-evaluation's per-robot fitness and statistics
     traces/<robot>.npz     the post-evaluation trace of each robot
     metrics.json, plots/   written by ``surprise-master report`` (and at the end of ``sim``)
@@ -75,6 +75,7 @@ __all__ = [
     "EVALUATION_COLUMNS",
     "EVENTS",
     "EVENT_ESCAPE",
+    "EVENT_FLEET_STOP",
     "EVENT_POST_EVALUATION",
     "EVENT_SWARM_CHANGE",
     "LIVE_INTERVAL",
@@ -107,6 +108,7 @@ __all__ = [
     "Simulation",
     "Software",
     "SoftwareRecord",
+    "StopRequest",
     "SwapRequest",
     "SwarmChange",
     "TrackedBoxes",
@@ -149,6 +151,8 @@ EVENTS: Final = "events.jsonl"
 REQUESTS: Final = "requests"
 #: Event kinds: the experimenter asked for a robot's escape, and how it went.
 EVENT_ESCAPE: Final = "escape"
+#: Event kinds: ``surprise-master fleet stop`` stopped every robot's motors and paused the run.
+EVENT_FLEET_STOP: Final = "fleet-stop"
 #: Event kinds: an attempt of the post-evaluation went out to the robots (they flash).
 EVENT_POST_EVALUATION: Final = "post-evaluation-start"
 #: Event kinds: the swarm changed (a robot gone, a spare swapped in), or a swap was refused.
@@ -523,6 +527,20 @@ class SwapRequest(RunFile, frozen=True, kw_only=True):
     requested_at: float
 
 
+class StopRequest(RunFile, frozen=True, kw_only=True):
+    """A request of ``surprise-master fleet stop --run`` for the running master: every robot's
+    motors are to stop now and the run to pause. Written as ``requests/stop-request-<token>.json``;
+    the master takes it away and appends an :class:`Event` of kind ``fleet-stop`` naming the same
+    ``token``, the answer the command waits for."""
+
+    FILE: ClassVar[str] = "stop-request.json"
+    FORMAT: ClassVar[int] = 1
+
+    token: str
+    #: when the person asked (seconds since the epoch)
+    requested_at: float
+
+
 class Event(msgspec.Struct, frozen=True, kw_only=True):
     """One line of ``events.jsonl``: something that happened to the run, at ``time`` (seconds
     since the epoch, the master's clock).
@@ -537,6 +555,9 @@ class Event(msgspec.Struct, frozen=True, kw_only=True):
     ``evaluation_id`` on, ``joined`` the spare that took its place (none: the run goes on
     without it); asked by ``surprise-master swap`` (``request`` its token), ``accepted`` says
     whether the swarm changed, or why not (``detail``).
+    ``fleet-stop``: ``surprise-master fleet stop`` asked (``request`` its token); the robots
+    that ``confirmed`` their motors stopped and those that did not answer (``unanswered``);
+    ``accepted`` when every robot confirmed.
     """
 
     #: the version of a line's structure; each line carries it as ``format``
@@ -550,6 +571,8 @@ class Event(msgspec.Struct, frozen=True, kw_only=True):
     evaluation_id: int | None = None
     detail: str = ""
     joined: str | None = None
+    confirmed: list[str] | None = None
+    unanswered: list[str] | None = None
 
 
 def append_event(run_dir: str | Path, event: Event) -> None:

@@ -39,6 +39,7 @@ from runfiles.schema import (
     Simulation,
     Software,
     SoftwareRecord,
+    StopRequest,
     SwapRequest,
     SwarmChange,
     TrackedBoxes,
@@ -134,6 +135,10 @@ GOLDEN: dict[type[RunFile], tuple[RunFile, str]] = {
         ),
         '{"format": 1, "gone": "thymio-3", "spare": "thymio-9", "token": "1a2b3c4d5e6f7081", '
         '"requested_at": 1700000006.5}',
+    ),
+    StopRequest: (
+        StopRequest(token="2b3c4d5e6f708192", requested_at=1700000007.5),
+        '{"format": 1, "token": "2b3c4d5e6f708192", "requested_at": 1700000007.5}',
     ),
     Simulation: (
         Simulation(
@@ -291,6 +296,15 @@ EVENTS = [
         accepted=True,
         evaluation_id=212,
     ),
+    Event(
+        time=1700000007.75,
+        kind="fleet-stop",
+        request="2b3c4d5e6f708192",
+        accepted=False,
+        confirmed=["thymio-1", "thymio-2"],
+        unanswered=["thymio-3"],
+        detail="thymio-3 is not connected",
+    ),
 ]
 EVENT_LINES = (
     '{"format": 1, "time": 1700000004.5, "kind": "post-evaluation-start", "evaluation_id": 41, '
@@ -300,6 +314,9 @@ EVENT_LINES = (
     '{"format": 1, "time": 1700000006.25, "kind": "swarm-change", "robot": "thymio-3", '
     '"request": "1a2b3c4d5e6f7081", "accepted": true, "evaluation_id": 212, "detail": "", '
     '"joined": "thymio-9"}\n'
+    '{"format": 1, "time": 1700000007.75, "kind": "fleet-stop", "request": "2b3c4d5e6f708192", '
+    '"accepted": false, "detail": "thymio-3 is not connected", "confirmed": ["thymio-1", '
+    '"thymio-2"], "unanswered": ["thymio-3"]}\n'
 )
 
 
