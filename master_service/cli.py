@@ -14,6 +14,8 @@ Subcommands::
     surprise-master continue DIR                    let a paused run go on (a battery swapped,
                                                     the robots placed: --pause-before-post)
     surprise-master escape DIR ROBOT                make a robot of a running run escape now
+    surprise-master swap DIR GONE SPARE             a spare in place of a robot gone for good
+    surprise-master fleet status|stop|logs|inventory  the whole fleet at once (docs/fleet.md)
     surprise-master sim [--scenario S] [--robots N] [--evaluations N] [--seed S] [--out DIR]
                         [--realtime] [--config FILE]
                                                     a whole experiment on a simulated swarm
@@ -50,7 +52,7 @@ from typing import TYPE_CHECKING, Final, TypeVar
 
 import msgspec
 
-from master_service import cli_lab
+from master_service import cli_fleet, cli_lab
 from master_service.config import load_master_config, required_secret
 from master_service.console import Console
 from master_service.escape import escape_from_console
@@ -110,7 +112,8 @@ def _parser() -> argparse.ArgumentParser:
     check.add_argument("--json", action="store_true", help="print the rows as JSON")
     check.set_defaults(handler=cli_lab.check_command)
 
-    cli_lab.add_hand_commands(sub)  # continue, escape
+    cli_lab.add_hand_commands(sub)  # continue, escape, swap
+    cli_fleet.add_fleet_parser(sub)  # fleet status, stop, logs
     cli_lab.add_track_parser(sub)
 
     report = sub.add_parser("report", help="write metrics.json and plots of a run")
@@ -194,7 +197,6 @@ def _parser() -> argparse.ArgumentParser:
     status = sub.add_parser("status", help="show where a run stands")
     status.add_argument("dir", type=Path, metavar="DIR", help="the run directory")
     status.set_defaults(handler=cli_lab.status_command)
-
     watch = sub.add_parser("watch", help="live view of a swarm's MQTT telemetry")
     watch.add_argument("--broker", required=True, metavar="URL", help="mqtt://host[:port]")
     watch.add_argument("--prefix", default="surprise", help="topic prefix (default: surprise)")

@@ -1,5 +1,6 @@
 """The handlers of ``surprise-master``'s commands around a run: ``report``, ``status``,
 ``check`` (the preflight), ``continue`` (after a pause), ``escape`` (the experimenter's hand),
+``swap`` (a spare for a robot gone for good),
 ``watch``, ``dashboard`` and ``track`` (the overhead camera, with its options here), and the
 parsers of a person's actions on a running run (:func:`add_hand_commands`); the rest of the
 parser and the commands that run experiments are in :mod:`master_service.cli`."""
@@ -28,6 +29,7 @@ __all__ = [
     "report_command",
     "secret_command",
     "status_command",
+    "swap_command",
     "track_command",
     "watch_command",
 ]
@@ -129,9 +131,30 @@ def escape_command(args: argparse.Namespace) -> int:
     return 0
 
 
+def swap_command(args: argparse.Namespace) -> int:
+    """``surprise-master swap``: 0 when the spare took the gone robot's place, 1 with one line
+    when the master refused (a RunDirError, exit 2, when no master runs or none answered)."""
+    from master_service.swap import request_swap
+
+    event = request_swap(RunDir(args.dir), args.gone, args.spare, timeout=args.timeout)
+    if not event.accepted:
+        print(
+            f"surprise-master: swap of {args.gone} for {args.spare}: {event.detail}",
+            file=sys.stderr,
+        )
+        return 1
+    print(
+        f"{args.spare} takes the place of {args.gone} from evaluation {event.evaluation_id} on "
+        f"(logged in {args.dir}/events.jsonl)"
+    )
+    return 0
+
+
 def add_hand_commands(sub: argparse._SubParsersAction) -> None:
-    """Add the commands by which a person acts on a running run: ``continue`` and ``escape``."""
+    """Add the commands by which a person acts on a running run: ``continue``, ``escape`` and
+    ``swap``."""
     from master_service.escape import ANSWER_TIMEOUT
+    from master_service.swap import ANSWER_TIMEOUT as SWAP_TIMEOUT
 
     go_on = sub.add_parser(
         "continue", help="let a paused run go on (after a battery swap, or the robots placed)"
@@ -154,6 +177,21 @@ def add_hand_commands(sub: argparse._SubParsersAction) -> None:
         help=f"seconds to wait for the master's answer (default: {ANSWER_TIMEOUT:g})",
     )
     escape.set_defaults(handler=escape_command)
+
+    swap = sub.add_parser(
+        "swap", help="bring a spare into a running run in place of a robot gone for good"
+    )
+    swap.add_argument("dir", type=Path, metavar="DIR", help="the run directory")
+    swap.add_argument("gone", metavar="GONE", help="the robot gone for good")
+    swap.add_argument("spare", metavar="SPARE", help="the spare robot taking its place")
+    swap.add_argument(
+        "--timeout",
+        type=float,
+        default=SWAP_TIMEOUT,
+        metavar="S",
+        help=f"seconds to wait for the master's answer (default: {SWAP_TIMEOUT:g})",
+    )
+    swap.set_defaults(handler=swap_command)
 
 
 def status_command(args: argparse.Namespace) -> int:

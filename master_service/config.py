@@ -53,6 +53,7 @@ __all__ = [
     "DEFAULT_HANDSHAKE_TIMEOUT",
     "DEFAULT_HEARTBEAT_INTERVAL",
     "DEFAULT_MAX_PENDING_CONNECTIONS",
+    "DEFAULT_ROBOT_GONE_AFTER",
     "DEFAULT_ROUND_MARGIN",
     "MasterConfig",
     "build_ssl_context",
@@ -82,6 +83,11 @@ DEFAULT_ROUND_MARGIN: Final = 5.0
 #: low-battery step (its steps are 3.9, 3.6 and 3.4 V; at 3.4 V it soon switches itself off, and
 #: a robot that dies mid-evaluation costs the round).
 DEFAULT_BATTERY_MIN_V: Final = 3.6
+#: Seconds a robot of the swarm may be away before the run stops waiting for it as for a
+#: reconnect and pauses for a person (a spare, or going on without it). A Pi that reboots is
+#: back in about a minute and an agent reconnects within its backoff's 30 s; three minutes tell
+#: a robot that is gone for good (a dead battery, a crashed Pi) from one that is coming back.
+DEFAULT_ROBOT_GONE_AFTER: Final = 180.0
 
 _PositiveSeconds = Annotated[float, msgspec.Meta(gt=0.0, le=86400.0)]
 _HeartbeatInterval = Annotated[
@@ -100,7 +106,9 @@ class MasterConfig(Strict, frozen=True):
     ``expected_robots`` (default: the experiment's ``robots``) is how many robots form the swarm:
     a round starts only when that many are connected. The swarm is fixed when it first completes
     (those robots' ids are the CSV's columns); from then on only its members are admitted, so
-    with spares in ``allowed_robots`` the first robots to connect take part. ``round_margin`` is
+    with spares in ``allowed_robots`` the first robots to connect take part, and the others can
+    replace a robot gone for longer than ``robot_gone_after`` (``surprise-master swap``,
+    docs/runs.md). ``round_margin`` is
     added to ``steps * step_period`` (the experiment's) for a round's deadline;
     ``heartbeat_interval`` is how often the master pings (a link is dead after three silent
     intervals; robots accept 0.05 s to 60 s); ``handshake_timeout`` bounds a whole handshake;
@@ -151,6 +159,10 @@ class MasterConfig(Strict, frozen=True):
     battery_min_v: Annotated[float, msgspec.Meta(ge=0.0, le=MAX_BATTERY_V)] | None = (
         DEFAULT_BATTERY_MIN_V
     )
+    #: seconds a robot of the swarm may be away before the run pauses naming it, for
+    #: ``surprise-master swap`` to bring in a spare, or goes on without it where the
+    #: experiment's ``min_robots`` allows (docs/runs.md); ``null``: wait for it forever
+    robot_gone_after: _PositiveSeconds | None = DEFAULT_ROBOT_GONE_AFTER
 
     def __post_init__(self) -> None:
         if (self.experiment is None) == (self.experiment_file is None):
@@ -163,6 +175,12 @@ class MasterConfig(Strict, frozen=True):
             raise ValueError(
                 f"`expected_robots`: the swarm needs {self.robot_count} robots but "
                 f"`allowed_robots` lists only {len(allowed)}"
+            )
+        minimum = None if self.experiment is None else self.experiment.min_robots
+        if minimum is not None and minimum > self.robot_count:
+            raise ValueError(
+                f"`experiment.min_robots`: {minimum} is more than the swarm's "
+                f"{self.robot_count} robots"
             )
 
     @property

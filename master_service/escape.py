@@ -29,7 +29,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Final
 
-from master_service.rundir import RunDir, RunDirError
+from master_service.rundir import RunDir, RunDirError, pending_requests, request_path
 from master_service.server import RobotServer, Session
 from minimize_surprise.wire import (
     ESCAPE_REFUSED_IDLE,
@@ -79,8 +79,7 @@ _ANSWER_POLL: Final = 0.1
 
 
 def _request_path(run_dir: Path, token: str) -> Path:
-    stem = EscapeRequest.FILE.removesuffix(".json")
-    return run_dir / REQUESTS / f"{stem}-{token}.json"
+    return request_path(run_dir, EscapeRequest, token)
 
 
 def drop_request(run_dir: RunDir, robot: str) -> tuple[str, Path]:
@@ -174,7 +173,7 @@ class EscapeDesk:
         folder = self.run_dir.path / REQUESTS
         while True:
             try:
-                for path in await asyncio.to_thread(_pending, folder):
+                for path in await asyncio.to_thread(pending_requests, folder, EscapeRequest):
                     await self._take(path)
             except Exception:  # a bug must cost one request, never the desk or the run
                 self.log.exception("the experimenter's escape: a request failed")
@@ -289,20 +288,3 @@ class EscapeDesk:
                 return None
         finally:
             del self._waiting[key]
-
-
-def _pending(folder: Path) -> list[Path]:
-    """The requests waiting in ``folder``, oldest first (none when it does not exist; a file
-    being written has a ``.tmp`` name until it is whole)."""
-    try:
-        paths = [p for p in folder.iterdir() if p.suffix == ".json"]
-    except FileNotFoundError:
-        return []
-
-    def written(path: Path) -> tuple[float, str]:
-        try:
-            return path.stat().st_mtime, path.name
-        except OSError:  # taken back meanwhile: _take finds it gone
-            return 0.0, path.name
-
-    return sorted(paths, key=written)

@@ -33,6 +33,7 @@ from master_service.evaluation import Evaluation, Evaluator, Progress, RunSummar
 from master_service.pause import Pause, PauseGate, low_batteries
 from master_service.replay import ReplaySource, check_spec
 from master_service.rundir import FILE_ONLY, RunDir, RunState
+from master_service.swarm import changed, dropped_event, gone_text
 from minimize_surprise.dominance import dominance, ground_at_start
 from minimize_surprise.errors import FileWriteError
 from minimize_surprise.evolution import OnePlusOne
@@ -40,7 +41,16 @@ from minimize_surprise.fitness import swarm_fitness
 from minimize_surprise.network import GenomeLayout, NetworkSpec
 from minimize_surprise.text import format_duration
 from runfiles import schema
-from runfiles.schema import ROBOT_STAT_PREFIXES, PostEvaluation, evaluation_header, format_row
+from runfiles.schema import (
+    ROBOT_STAT_PREFIXES,
+    PostEvaluation,
+    SwarmChange,
+    append_event,
+    evaluation_header,
+    render_row,
+    row_cells,
+    widen_header,
+)
 
 __all__ = ["ETA_WINDOW", "RETRY_PAUSE", "RETRY_PAUSE_MAX", "EvolutionRun"]
 
@@ -91,7 +101,11 @@ class EvolutionRun:
         self._on_change = on_change
         self._listeners: list[Callable[[Progress], None]] = []
         self._write: asyncio.Future[None] | None = None
-        self._rows: list[str] = []
+        # Rows by column, rendered at commit against the header then (a spare may widen it).
+        self._rows: list[dict[str, str]] = []
+        self._header: list[str] | None = None  # the CSV's as written (None: the swarm's, later)
+        # Since the last commit the header widened (rewrite the file's), the swarm changed.
+        self._widen = self._swarm_dirty = False
         self._best_changed = False
         self._last_commit = 0.0
         self._started_at = 0.0
@@ -167,6 +181,7 @@ class EvolutionRun:
         header = self.run_dir.csv_header()
         if header is not None:
             self._robot_stats = any(c.startswith(ROBOT_STAT_PREFIXES[1]) for c in header)
+            self._header = header
         self.pauses.clear_stale()
         self.run_dir.open_log(self.log)
         if self.log.getEffectiveLevel() > logging.INFO:
@@ -267,7 +282,7 @@ class EvolutionRun:
             # Each in [0, 1]: the codec refuses anything else, so the mean is one too.
             outcome = opt.tell(swarm_fitness(attempt.fitnesses))
             self._rows.append(
-                format_row(
+                row_cells(
                     outcome.evaluation,
                     outcome.kind,
                     outcome.fitness,
@@ -276,8 +291,10 @@ class EvolutionRun:
                     state.attempts,
                     attempt.seconds,
                     attempt.safety_share,
+                    attempt.robots,
                     attempt.fitnesses,
                     attempt.stats if self._robot_stats else None,
+                    swarm=state.swarm_number,
                 )
             )
             self._best_changed |= outcome.accepted
@@ -300,7 +317,7 @@ class EvolutionRun:
             self.emit()
             pause = low_batteries(attempt.robots, attempt.stats, self.config.battery_min_v)
             if pause is not None:
-                await self._pause(pause)
+                await self.pause(pause)
         state.phase = "post-evaluation" if experiment.post_evaluation_steps > 0 else "done"
         state.attempts = 0
         await self._commit()
@@ -313,7 +330,7 @@ class EvolutionRun:
         steps = self.experiment.post_evaluation_steps
         if self.pause_before_post:
             text = "the evolution is done: place the robots for the post-evaluation"
-            await self._pause(Pause("before-post-evaluation", text))
+            await self.pause(Pause("before-post-evaluation", text))
         self.log.info("post-evaluation of the best genome for %d steps", steps)
         while True:
             evaluation_id = self._reserve_attempt()
@@ -356,11 +373,12 @@ class EvolutionRun:
         state.attempts = 0
         await self._commit()
 
-    async def _pause(self, pause: Pause) -> None:
-        """Wait for a person with the checkpoint on disk (docs/runs.md)."""
+    async def pause(self, pause: Pause, over: Callable[[], bool] | None = None) -> None:
+        """Wait for a person with the checkpoint on disk (docs/runs.md); ``over()`` ends the
+        wait when what it waits for was settled otherwise."""
         await self._commit()
         await self._flush()
-        await self.pauses.wait(pause, self.emit)
+        await self.pauses.wait(pause, self.emit, over)
         # The wait is no evaluation's duration: keep it out of the time-left estimate.
         self._last_counted_at = None
 
@@ -394,6 +412,55 @@ class EvolutionRun:
         if pause:
             await asyncio.sleep(pause)
 
+    # -- the swarm's changes -------------------------------------------------------------------
+
+    def change_swarm(self, left: str, joined: str | None) -> SwarmChange:
+        """Take ``left`` out of the swarm, ``joined`` (a spare) in its place or none; the change.
+
+        Between evaluations, with ``left`` away: the attempt it left failed and goes out again
+        to the new swarm, counted once. On disk with the next commit (:meth:`commit_swarm`),
+        the CSV's header widened for a robot that joined (:func:`runfiles.schema.widen_header`).
+        """
+        state = self._require_state()
+        change = changed(state.roster or [], left, joined, state.optimizer.evaluations + 1)
+        base = self._header or evaluation_header(state.roster or [], robot_stats=self._robot_stats)
+        self._header = widen_header(base, change.robots, robot_stats=self._robot_stats)
+        self._widen = self._swarm_dirty = True
+        state.roster = change.robots
+        state.swarms.append(change)
+        self.emit()
+        return change
+
+    async def commit_swarm(self) -> None:
+        """Commit a change of the swarm made since the last commit, if any (from the loop's
+        own task, between evaluations)."""
+        if self._swarm_dirty:
+            await self._commit()
+            await self._flush()
+
+    async def robots_gone(self, gone: list[str], away_s: float) -> None:
+        """``gone`` have been away for ``away_s`` seconds: go on without them where the
+        experiment's ``min_robots`` allows, else pause naming them until a spare takes their
+        place (``surprise-master swap``) or a person lets the run wait on (``continue``)."""
+        minimum = self.experiment.min_robots
+        if minimum is not None and len(self._require_state().roster or []) - len(gone) >= minimum:
+            for robot in gone:
+                event = dropped_event(self.change_swarm(robot, None), away_s, minimum)
+                self.log.warning("%s", event.detail)
+                try:
+                    append_event(self.run_dir.path, event)  # one line, as the flash's event
+                except OSError as exc:
+                    self.log.warning("the swarm's change could not be logged: %s", exc)
+            await self.commit_swarm()
+            return
+
+        def settled() -> bool:  # each swapped out (the swap's desk works meanwhile), or back
+            return not set(gone) & set(self.evaluator.missing_robots())
+
+        pause = Pause("robot-gone", gone_text(gone, away_s, self.run_dir.path), tuple(gone))
+        await self.pause(pause, settled)
+        await self.commit_swarm()
+
     # -- commits -----------------------------------------------------------------------------
 
     def _commit_due(self) -> bool:
@@ -417,12 +484,17 @@ class EvolutionRun:
         if simulation is not None:
             state.simulation = simulation
         data = state.to_checkpoint()
-        header = evaluation_header(state.roster or [], robot_stats=self._robot_stats)
+        if self._header is None and state.roster is not None:
+            self._header = evaluation_header(state.roster, robot_stats=self._robot_stats)
+        header = list(self._header or [])
+        widen, self._widen, self._swarm_dirty = self._widen, False, False
         best = _best(state.optimizer) if best_changed else None
-        text = "".join(rows) or None
+        text = "".join(render_row(cells, header) for cells in rows) or None
         self._last_commit = time.monotonic()
 
         def write() -> None:
+            if widen:  # before the rows it heads
+                self.run_dir.rewrite_header(header)
             self.run_dir.commit(data, text, header)
             if best is not None:
                 self.run_dir.write_best(*best, self.spec)

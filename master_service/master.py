@@ -3,9 +3,13 @@
 One round: wait until the swarm is complete -> send the genome with a fresh evaluation id ->
 collect one fitness per robot within the deadline -> if all arrived, tell the algorithm their mean
 and log the row; otherwise the round does not count and the same genome goes out again once the
-swarm is complete. A robot that drops out pauses the run; it never fails
-it. After the last counted evaluation, the best genome is post-evaluated with ``record=True`` and
-every robot's trace is stored.
+swarm is complete. A robot that drops out pauses the run; it never fails it; one gone for good
+is swapped or let go (:mod:`master_service.swap`). After the last counted evaluation, the best
+genome is post-evaluated with ``record=True`` and every robot's trace is stored.
+
+Why one file of over 600 lines: :class:`Master` is one object, the robots' side of one run; what
+could stand alone already does (the loop, the rounds, the escape, swap and stop desks, the run
+directory).
 
 The loop itself, with its commits, resume and progress, is
 :class:`~master_service.evolution_run.EvolutionRun`, shared with the compiled engine; the master is
@@ -43,14 +47,19 @@ from typing import Any, Final
 
 import numpy as np
 
-from master_service.config import MasterConfig, build_ssl_context
+from master_service.config import MasterConfig, build_ssl_context, inventory_of
 from master_service.escape import EscapeDesk
 from master_service.evaluation import Evaluation, Progress, RunSummary
 from master_service.evolution_run import EvolutionRun
+from master_service.pause import Pause
+from master_service.progress import run_status
 from master_service.replay import ReplaySource, write_replay_file
 from master_service.rounds import RoundRunner
 from master_service.rundir import FILE_ONLY, RunDir, RunState
 from master_service.server import Answer, RobotServer, Session
+from master_service.stopall import STOP_PAUSE_TEXT, StopDesk
+from master_service.swap import SwapDesk
+from master_service.swarm import AwayClock, changes_text
 from minimize_surprise import __version__
 from minimize_surprise.errors import ConfigError
 from minimize_surprise.network import GenomeLayout, spec_from_config
@@ -61,6 +70,7 @@ from minimize_surprise.wire import (
     CheckReport,
     EscapeReply,
     Evaluate,
+    Stopped,
     encode_payload,
 )
 from runfiles.schema import (
@@ -72,7 +82,7 @@ from runfiles.schema import (
     append_event,
 )
 from telemetry.config import require_client_library
-from telemetry.payloads import RunStatus, master_status_suffix, now, run_status_suffix
+from telemetry.payloads import master_status_suffix, run_status_suffix
 from telemetry.publisher import TelemetryPublisher
 
 __all__ = ["Master", "Progress", "RunSummary"]
@@ -198,6 +208,23 @@ class Master:
             evaluating=self._evaluating,
         )
         self._escape_task: asyncio.Task[None] | None = None
+        # The inventory's spares stand by once the swarm is fixed, never in it from the start.
+        self._spares = [] if (inventory := inventory_of(config)) is None else inventory.spares
+        allowed = [*config.allowed_robots, *self._spares] if config.allowed_robots else []
+        #: spares brought in for robots gone for good (``surprise-master swap``)
+        self.swaps = SwapDesk(
+            self.run_dir, self.server, self.log, lambda: self.state, allowed, self._swap
+        )
+        self._swap_task: asyncio.Task[None] | None = None
+        #: every robot stopped (``surprise-master fleet stop --run``): the run pauses
+        self.stops = StopDesk(
+            self.run_dir, self.server, self.log, members=self._members, on_stop=self._fleet_stop
+        )
+        self._stop_task: asyncio.Task[None] | None = None
+        #: the pause a fleet stop asked for, taken by the next swarm()
+        self._stop_pause: Pause | None = None
+        #: since when each robot of the swarm has been away (gone for good: robot_gone_after)
+        self.away = AwayClock(config.robot_gone_after)
         self._swarm_changed = asyncio.Event()
         self._waiting = False
         self._live_task: asyncio.Task[None] | None = None
@@ -228,9 +255,12 @@ class Master:
         self._write_live()
         self._live_task = asyncio.create_task(self._refresh_live(), name="live.json")
         self._escape_task = asyncio.create_task(self.escapes.run(), name="escapes")
+        self._swap_task = asyncio.create_task(self.swaps.run(), name="swaps")
+        self._stop_task = asyncio.create_task(self.stops.run(), name="fleet-stops")
+        self.away.start(self._require_state().roster or [])  # a resumed swarm's: not back yet
         optimizer = self._require_state().optimizer
         self.log.info(
-            "%s run %s: listening on %s:%d%s; %d/%d evaluations done, swarm of %d robots",
+            "%s run %s: listening on %s:%d%s; %d/%d evaluations done, swarm of %d robots%s",
             "resumed" if self.resume else "started",
             self.run_id,
             self.host,
@@ -238,7 +268,8 @@ class Master:
             " (TLS)" if self._ssl else "",
             optimizer.evaluations,
             self.experiment.evolution.evaluations,
-            self.config.robot_count,
+            self.robots_expected,
+            changes_text(self._require_state().swarms),
         )
         if self.telemetry is not None:
             self.telemetry.start()  # connects in the background; returns at once
@@ -246,12 +277,12 @@ class Master:
 
     async def close(self) -> None:
         """Finish pending writes, say Bye to the robots, close the connections and the log."""
-        for task in (self._live_task, self._escape_task):
+        for task in (self._live_task, self._escape_task, self._swap_task, self._stop_task):
             if task is not None:
                 task.cancel()
                 with contextlib.suppress(asyncio.CancelledError):
                     await task
-        self._live_task = self._escape_task = None
+        self._live_task = self._escape_task = self._swap_task = self._stop_task = None
         await self.server.close()
         await self.evolution.close()
         self.run_dir.close()
@@ -315,13 +346,17 @@ class Master:
 
     @property
     def robots_connected(self) -> int:
-        """Robots connected now."""
-        return len(self.server.sessions)
+        """Robots of the swarm connected now (before it is fixed: every robot connected)."""
+        roster = self.state.roster if self.state is not None else None
+        if roster is None:
+            return len(self.server.sessions)
+        return sum(robot in self.server.sessions for robot in roster)
 
     @property
     def robots_expected(self) -> int:
-        """Robots the swarm has."""
-        return self.config.robot_count
+        """Robots the swarm has (fewer than configured once robots went for good)."""
+        roster = self.state.roster if self.state is not None else None
+        return self.config.robot_count if roster is None else len(roster)
 
     @property
     def waiting(self) -> bool:
@@ -336,24 +371,45 @@ class Master:
         return [robot for robot in roster if robot not in self.server.sessions]
 
     async def swarm(self, state: RunState) -> list[str]:
-        """Wait until every robot of the swarm is connected; fix the swarm the first time."""
+        """Wait until every robot of the swarm is connected; fix the swarm the first time. One
+        away for ``robot_gone_after`` is gone for good (:meth:`EvolutionRun.robots_gone`)."""
         logged = False
         while True:
+            if self._stop_pause is not None:
+                await self.evolution.pause(self._stop_pause)
+                self._stop_pause = None
             if state.roster is None and len(self.server.sessions) >= self.config.robot_count:
                 state.roster = sorted(self.server.sessions)[: self.config.robot_count]
                 self.log.info("the swarm is %s", ", ".join(state.roster))
+            await self.evolution.commit_swarm()
             if state.roster is not None and not self.missing_robots():
                 if self._waiting:
                     self._waiting = False
                     self.evolution.emit()
                 return state.roster
+            gone, away, wake_in = self.away.gone(self.missing_robots())
+            if gone:
+                await self.evolution.robots_gone(gone, away)
+                # A person who let the run wait on gives the robots another spell.
+                self.away.restart(self.missing_robots())
+                logged = False
+                continue
             if not logged:
                 self._waiting = True
                 self.log.info("waiting for robots: %s", self._robots_text())
                 self.evolution.emit()
                 logged = True
             self._swarm_changed.clear()
-            await self._swarm_changed.wait()
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(wake_in):
+                    await self._swarm_changed.wait()
+
+    def _swap(self, gone: str, spare: str) -> int:
+        """The swap desk's change: ``spare`` in ``gone``'s place from the evaluation returned."""
+        change = self.evolution.change_swarm(gone, spare)
+        self.away.back(gone)
+        self._swarm_changed.set()
+        return change.from_evaluation
 
     async def evaluate(
         self, evaluation_id: int, genome: np.ndarray, steps: int, *, record: bool
@@ -361,6 +417,8 @@ class Master:
         """One round: ``genome`` out to every robot of the swarm, their answers back."""
         state = self._require_state()
         assert state.roster is not None, "swarm() fixes the swarm first"
+        if self._stop_pause is not None:  # stopped between swarm() and here: nothing goes out
+            return Evaluation(evaluation_id, tuple(state.roster), STOP_PAUSE_TEXT)
         # The loop records only the post-evaluation (a replay's too): its robots flash.
         post = record
         attempt = await self.rounds.run(
@@ -423,11 +481,18 @@ class Master:
 
     def _admit(self, robot_id: str) -> tuple[str, str] | None:
         allowed = self.config.allowed_robots
-        if allowed and robot_id not in allowed:
+        if allowed and robot_id not in allowed and robot_id not in self._spares:
             return REFUSED_UNKNOWN_ROBOT, f"{robot_id} is not among the allowed robots"
         roster = self.state.roster if self.state is not None else None
+        if roster is None and robot_id in self._spares:
+            return (
+                REFUSED_UNKNOWN_ROBOT,
+                f"{robot_id} is a spare: it stands by once the swarm is fixed",
+            )
         if roster is not None:
-            if robot_id not in roster:
+            # Spares (allowed, or one a swap waits for) stand by, to take a gone robot's place.
+            spare = bool(allowed) or robot_id in self.swaps.expecting
+            if robot_id not in roster and not spare:
                 return REFUSED_UNKNOWN_ROBOT, f"{robot_id} is not in this run's swarm"
         elif (
             robot_id not in self.server.sessions
@@ -437,26 +502,13 @@ class Master:
         return None
 
     def _on_join(self, session: Session) -> None:
-        hello = session.hello
-        software = Software(
-            version=hello.software_version,
-            commit=hello.software_commit,
-            firmware=hello.thymio_firmware,
-        )
-        try:
-            before = self.run_dir.record_robot_software(session.robot_id, software, time.time())
-        except OSError as exc:  # a record for people: never a reason to refuse a robot
-            self.log.warning("software.json not written: %s", exc)
-        else:
-            if before is not None:
-                self.log.warning(
-                    "robot %s joined with other software than before: %s", session.robot_id,
-                    f"{before} -> {software}",
-                )  # fmt: skip
+        self.away.back(session.robot_id)
+        self.run_dir.note_software(session.hello, self.log)
         self._swarm_changed.set()
         self.evolution.emit()
 
     def _on_leave(self, session: Session, reason: str) -> None:
+        self.away.left(session.robot_id, self.state.roster if self.state is not None else None)
         self.rounds.on_leave(session, reason)
         self._swarm_changed.set()
         self.evolution.emit()
@@ -468,6 +520,9 @@ class Master:
             return
         if isinstance(msg, EscapeReply):
             self.escapes.on_reply(session, msg)
+            return
+        if isinstance(msg, Stopped):
+            self.stops.on_reply(session, msg)
             return
         self.rounds.on_message(session, msg)
 
@@ -488,6 +543,15 @@ class Master:
             and robot not in attempt.results
         )
 
+    def _fleet_stop(self) -> None:
+        """A fleet stop: the running attempt fails (it does not count) and the run pauses before
+        the next; the desk stops the motors. A run paused already stays in its pause."""
+        if self.evolution.pauses.current is None:
+            self._stop_pause = Pause("fleet-stop", STOP_PAUSE_TEXT)
+        if self.rounds.current is not None:
+            self.rounds.current.fail(STOP_PAUSE_TEXT)
+        self._swarm_changed.set()
+
     def _paused(self) -> str | None:
         pause = self.evolution.pauses.current
         return None if pause is None else pause.text
@@ -505,35 +569,16 @@ class Master:
         return self.evolution.progress
 
     def _robots_text(self) -> str:
-        connected = len(self.server.sessions)
-        text = f"{connected}/{self.config.robot_count} connected"
         missing = self.missing_robots()
-        if missing:
-            text += f", missing {', '.join(missing)}"
-        return text
+        return f"{self.robots_connected}/{self.robots_expected} connected" + (
+            f", missing {', '.join(missing)}" if missing else ""
+        )
 
     def _publish_status(self, progress: Progress, *, online: bool = True) -> None:
         """Progress listener: the retained ``<prefix>/run/status``. Only queues (latest wins)."""
         if self.telemetry is None:
             return
-        status = RunStatus(
-            t=now(),
-            online=online,
-            run_id=progress.run_id,
-            phase=progress.phase,
-            waiting=progress.waiting,
-            evaluations=progress.evaluations,
-            total=progress.total,
-            best_fitness=progress.best_fitness,
-            last_fitness=progress.last_fitness,
-            robots_connected=progress.robots_connected,
-            robots_expected=progress.robots_expected,
-            robots=self.connected_robots,
-            failed_attempts=progress.failed_attempts,
-            elapsed_s=round(progress.elapsed_s, 3),
-            time_left_s=None if progress.time_left_s is None else round(progress.time_left_s, 1),
-            paused=progress.paused,
-        )
+        status = run_status(progress, self.connected_robots, online=online)
         self.telemetry.publish_nowait(run_status_suffix(), status, retain=True)
 
     # -- live.json ---------------------------------------------------------------------------

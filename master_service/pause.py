@@ -19,7 +19,7 @@ import asyncio
 import contextlib
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Final
 
@@ -49,8 +49,8 @@ PAUSE: Final = PauseFile.FILE
 
 @dataclass(frozen=True)
 class Pause:
-    """Why a run waits: ``kind`` (``battery`` or ``before-post-evaluation``), one line for a
-    person (``text``), and the robots concerned (none: the whole swarm)."""
+    """Why a run waits: ``kind`` (``battery``, ``robot-gone`` or ``before-post-evaluation``),
+    one line for a person (``text``), and the robots concerned (none: the whole swarm)."""
 
     kind: str
     text: str
@@ -136,10 +136,14 @@ class PauseGate:
         with contextlib.suppress(FileNotFoundError):
             self.run_dir.file(PAUSE).unlink()
 
-    async def wait(self, pause: Pause, on_change: Any = None) -> float:
+    async def wait(
+        self, pause: Pause, on_change: Any = None, over: Callable[[], bool] | None = None
+    ) -> float:
         """Announce ``pause`` and wait until a person lets the run go on; the seconds waited.
 
-        ``on_change()`` (optional) is called when the pause starts and when it ends.
+        ``on_change()`` (optional) is called when the pause starts and when it ends. ``over()``
+        (optional), asked at every look, ends the pause when what it waits for was settled
+        otherwise (a robot gone for good swapped for a spare, or back).
         """
         since = time.time()
         await asyncio.to_thread(schema.write, self.run_dir.path, pause.to_file(since))
@@ -158,7 +162,11 @@ class PauseGate:
             terminal.arm()
             entered = terminal.enter()
             try:
-                while self.run_dir.file(PAUSE).exists() and not (self.console and entered.is_set()):
+                while (
+                    self.run_dir.file(PAUSE).exists()
+                    and not (self.console and entered.is_set())
+                    and not (over is not None and over())
+                ):
                     with contextlib.suppress(TimeoutError):
                         async with asyncio.timeout(POLL_INTERVAL):
                             await entered.wait()

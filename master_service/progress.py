@@ -15,6 +15,7 @@ from master_service.evaluation import Progress
 from master_service.rundir import for_console
 from minimize_surprise.safety import SAFETY_DOMINATES
 from minimize_surprise.text import format_duration
+from telemetry.payloads import RunStatus, now
 
 __all__ = ["ProgressDisplay", "describe"]
 
@@ -137,3 +138,25 @@ class ProgressDisplay:
         grid.add_row("time left", f"~{left}", f"elapsed {format_duration(progress.elapsed_s)}")
         grid.add_row("phase", progress.phase, f"failed attempts {progress.failed_attempts}")
         return Panel(grid, title=f"surprise-master: run {progress.run_id}", expand=False)
+
+
+def run_status(progress: Progress, robots: list[str], *, online: bool = True) -> RunStatus:
+    """The retained ``<prefix>/run/status`` telemetry of ``progress`` with ``robots`` connected."""
+    return RunStatus(
+        t=now(),
+        online=online,
+        run_id=progress.run_id,
+        phase=progress.phase,
+        waiting=progress.waiting,
+        evaluations=progress.evaluations,
+        total=progress.total,
+        best_fitness=progress.best_fitness,
+        last_fitness=progress.last_fitness,
+        robots_connected=progress.robots_connected,
+        robots_expected=progress.robots_expected,
+        robots=robots,
+        failed_attempts=progress.failed_attempts,
+        elapsed_s=round(progress.elapsed_s, 3),
+        time_left_s=None if progress.time_left_s is None else round(progress.time_left_s, 1),
+        paused=progress.paused,
+    )

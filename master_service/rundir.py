@@ -40,7 +40,7 @@ import os
 import sys
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Final
 
@@ -53,12 +53,14 @@ from minimize_surprise.config import ExperimentConfig, load_yaml
 from minimize_surprise.errors import ConfigError, FileWriteError
 from minimize_surprise.evolution import EvolutionStateError, OnePlusOne
 from minimize_surprise.network import NetworkSpec
-from minimize_surprise.wire import Result
+from minimize_surprise.wire import Hello, Result
 from runfiles import schema
 from runfiles.schema import (
     CONFIG_SNAPSHOT,
     EVALUATIONS,
     LOG,
+    REQUESTS,
+    SWARM_COLUMN,
     TRACES,
     BestGenome,
     Checkpoint,
@@ -67,8 +69,10 @@ from runfiles.schema import (
     PostEvaluation,
     PostRobot,
     RunDirError,
+    RunFile,
     Software,
     SoftwareRecord,
+    SwarmChange,
     evaluation_header,
     format_row,
     write_atomic,
@@ -84,6 +88,8 @@ __all__ = [
     "evaluation_header",
     "for_console",
     "format_row",
+    "pending_requests",
+    "request_path",
     "write_atomic",
     "writing",
 ]
@@ -136,7 +142,8 @@ class RunState:
     attempt in flight may not have reached the disk). ``attempts`` counts the attempts started
     for the current candidate (or post-evaluation), ``failed_attempts`` all attempts of the run
     that did not count. ``csv_rows`` is the number of rows of ``evaluations.csv`` this state
-    accounts for. ``roster`` is the swarm's robot ids once fixed (the CSV's per-robot columns).
+    accounts for. ``roster`` is the swarm's robot ids once fixed (the CSV's per-robot columns);
+    ``swarms`` its changes since (a robot gone for good, a spare swapped in), in order.
     """
 
     run_id: str
@@ -150,6 +157,12 @@ class RunState:
     elapsed_s: float = 0.0
     #: a simulated run's world and robots at this commit, so that it resumes exactly
     simulation: dict[str, Any] | None = None
+    swarms: list[SwarmChange] = field(default_factory=list)
+
+    @property
+    def swarm_number(self) -> int:
+        """Which swarm evaluates now: 0 the first, one more per change (the CSV's ``swarm``)."""
+        return len(self.swarms)
 
     def to_checkpoint(self) -> Checkpoint:
         """The checkpoint of this state, stamped now."""
@@ -165,6 +178,7 @@ class RunState:
             written_at=time.time(),
             optimizer=self.optimizer.state(),
             simulation=self.simulation,
+            swarms=list(self.swarms) or None,
         )
 
     @classmethod
@@ -186,6 +200,7 @@ class RunState:
             roster=checkpoint.roster,
             elapsed_s=checkpoint.elapsed_s,
             simulation=checkpoint.simulation,
+            swarms=list(checkpoint.swarms or ()),
         )
 
 
@@ -298,6 +313,29 @@ class RunDir:
                 self._append_row(row, header)
         schema.write(self.path, checkpoint)
 
+    def rewrite_header(self, header: Sequence[str]) -> None:
+        """Give ``evaluations.csv`` the wider ``header`` (columns only added, at the end; see
+        :func:`runfiles.schema.widen_header`), every row padded with empty cells, and
+        :data:`~runfiles.schema.SWARM_COLUMN` 0 in rows that had none: they were the first
+        swarm's. Atomic: a crash leaves the old file or the new one, with the same rows, and
+        the rows of either are read by their columns' names. Nothing to do without a header.
+        """
+        old = self.csv_header()
+        if old is None or list(old) == list(header):
+            return
+        path = self.file(EVALUATIONS)
+        self.close()  # the append handle would go on writing to the replaced file
+        with writing(path):
+            lines = path.read_text(encoding="utf-8").splitlines(keepends=True)[1:]
+            out = [",".join(header) + "\n"]
+            for line in lines:
+                if not line.endswith("\n"):
+                    break  # torn, past the checkpoint's count: resume cuts it anyway
+                cells = dict(zip(old, line.rstrip("\n").split(","), strict=False))
+                cells.setdefault(SWARM_COLUMN, "0")
+                out.append(",".join(cells.get(column, "") for column in header) + "\n")
+        write_atomic(path, "".join(out).encode("utf-8"))
+
     def _append_row(self, row: str, header: Sequence[str]) -> None:
         if self._csv is None:
             self._csv = open(self.file(EVALUATIONS), "a", encoding="utf-8", newline="")  # noqa: SIM115
@@ -377,6 +415,28 @@ class RunDir:
         schema.write(self.path, self._software, durable=False)
         return before
 
+    def note_software(self, hello: Hello, log: logging.Logger) -> None:
+        """Record the software a robot names in its ``hello`` as it joins
+        (:meth:`record_robot_software`); a change since it last joined is logged, a write that
+        fails too: the record is for people, never a reason to refuse a robot."""
+        software = Software(
+            version=hello.software_version,
+            commit=hello.software_commit,
+            firmware=hello.thymio_firmware,
+        )
+        try:
+            before = self.record_robot_software(hello.robot_id, software, time.time())
+        except OSError as exc:
+            log.warning("software.json not written: %s", exc)
+            return
+        if before is not None:
+            log.warning(
+                "robot %s joined with other software than before: %s -> %s",
+                hello.robot_id,
+                before,
+                software,
+            )
+
     def write_live(self, live: Live) -> None:
         """Write ``live.json`` (not durable: it only describes the running process)."""
         schema.write(self.path, live, durable=False)
@@ -417,6 +477,32 @@ class RunDir:
     def read_rows(self) -> list[dict[str, str]]:
         """The rows of ``evaluations.csv`` as dicts of strings (empty if there is none)."""
         return schema.read_rows(self.path)
+
+
+def request_path(run_dir: Path, kind: type[RunFile], token: str) -> Path:
+    """Where a person's request of ``kind`` with ``token`` lies for the running master:
+    ``requests/<stem>-<token>.json``, the stem ``kind.FILE``'s (``escape-request``)."""
+    stem = kind.FILE.removesuffix(".json")
+    return run_dir / REQUESTS / f"{stem}-{token}.json"
+
+
+def pending_requests(folder: Path, kind: type[RunFile]) -> list[Path]:
+    """The requests of ``kind`` waiting in ``folder``, oldest first (none when it does not
+    exist; a file being written has a ``.tmp`` name until it is whole; each desk takes only its
+    own kind's, named by :func:`request_path`)."""
+    prefix = kind.FILE.removesuffix(".json") + "-"
+    try:
+        paths = [p for p in folder.iterdir() if p.suffix == ".json" and p.name.startswith(prefix)]
+    except FileNotFoundError:
+        return []
+
+    def written(path: Path) -> tuple[float, str]:
+        try:
+            return path.stat().st_mtime, path.name
+        except OSError:  # taken back meanwhile: the desk finds it gone
+            return 0.0, path.name
+
+    return sorted(paths, key=written)
 
 
 def _trace_npz(result: Result) -> bytes:

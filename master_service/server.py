@@ -62,6 +62,7 @@ from minimize_surprise.wire import (
     Pong,
     Refused,
     Result,
+    Stopped,
     Welcome,
     encode_payload,
     printable,
@@ -82,7 +83,7 @@ LISTEN_BACKLOG: Final = 1024
 
 Admit = Callable[[str], tuple[str, str] | None]
 #: What a robot sends the owner of a session: an evaluation's outcome, or an answer it asked for.
-Answer = Result | Failed | CheckReport | EscapeReply
+Answer = Result | Failed | CheckReport | EscapeReply | Stopped
 
 
 class _Refusal(Exception):
@@ -188,8 +189,8 @@ class RobotServer:
     one more arrives). ``admit(robot_id)`` returns None or a ``(code, reason)``
     refusal; it is asked after the secret was verified. ``on_join(session)`` and
     ``on_leave(session, reason)`` are called once per session; ``on_message(session, msg)`` gets
-    every Result, Failed, CheckReport and EscapeReply (:data:`Answer`), ``on_pong(session,
-    pong)`` (optional) every Pong.
+    every Result, Failed, CheckReport, EscapeReply and Stopped (:data:`Answer`),
+    ``on_pong(session, pong)`` (optional) every Pong.
     Callbacks run in the event loop and must not block.
     """
 
@@ -582,7 +583,7 @@ class RobotServer:
             if session.closed:
                 return session.close_reason or "closed"
             session.last_received = loop.time()
-            if isinstance(msg, Result | Failed | CheckReport | EscapeReply):
+            if isinstance(msg, Result | Failed | CheckReport | EscapeReply | Stopped):
                 self._on_message(session, msg)
             elif isinstance(msg, Ping):
                 self._write(session, encode_payload(Pong(seq=msg.seq)))

@@ -146,6 +146,7 @@ class ExperimentConfig(Strict, frozen=True):
     robots); a file decoded with
     :func:`decode_experiment` takes every timing and genome value it leaves out from it.
     ``predefined`` maps sensor names to fixed predictions in [0, 1] (paper Sec. IV-F).
+    ``min_robots`` lets a run go on with fewer robots when some are gone for good.
     ``simulation`` and ``safety`` hold overrides of the simulated world's parameters and of the
     simulated robots' safety layer; ``simulator`` decodes them, real robots ignore them (their
     safety layer is in each robot's own configuration).
@@ -187,6 +188,11 @@ class ExperimentConfig(Strict, frozen=True):
     #: robots in the swarm, all evaluating the same genome at once (a simulated run defaults to
     #: its scenario's number)
     robots: PositiveInt = 10
+    #: the fewest robots the run may go on with when robots are gone for good (the master's
+    #: ``robot_gone_after``): a swarm of fewer than ``robots`` is another experiment, so
+    #: ``null`` (the default) never lets a robot go: the run pauses for a spare instead
+    #: (docs/runs.md)
+    min_robots: PositiveInt | None = None
     #: seed of the evolution's random numbers (and of the simulated world)
     seed: Annotated[int, msgspec.Meta(ge=0)] = 0
     #: overrides of the simulated world's parameters; real robots ignore it
@@ -212,6 +218,10 @@ class ExperimentConfig(Strict, frozen=True):
     def __post_init__(self) -> None:
         if not self.sensors:
             raise ValueError("`sensors`: at least one sensor is needed")
+        if self.min_robots is not None and self.min_robots > self.robots:
+            raise ValueError(
+                f"`min_robots`: {self.min_robots} is more than the swarm's {self.robots} robots"
+            )
         try:
             check_sensor_names(self.sensors)
         except ValueError as exc:

@@ -20,6 +20,7 @@ A session (``docs/protocol.md``)::
     master -> Evaluate(...)  robot -> Result(...) | Failed(...);   master -> Abort(...) at any time
     master -> Check(seq)     robot -> CheckReport(seq, ...)        (between evaluations)
     master -> Escape(seq)    robot -> EscapeReply(seq, ...)        (only if its Hello offers it)
+    master -> StopAll(seq)   robot -> Stopped(seq, ...)            (only if its Hello offers it)
     either -> Ping / Pong / Error / Bye
 
 Everything that can arrive before authentication is bounded in its type, so decoding refuses it
@@ -54,6 +55,7 @@ __all__ = [
     "ESCAPE_REFUSED_PROFILE",
     "FEATURES",
     "FEATURE_ESCAPE",
+    "FEATURE_STOP",
     "HANDSHAKE_MAX_FRAME_SIZE",
     "LOGGED_TEXT_LIMIT",
     "MAX_BATTERY_V",
@@ -66,6 +68,7 @@ __all__ = [
     "MAX_REASONS",
     "MAX_REASON_LENGTH",
     "MAX_SENSORS",
+    "MAX_THROTTLED",
     "MIN_HEARTBEAT_INTERVAL",
     "PROTOCOL_VERSION",
     "REFUSED_BAD_SECRET",
@@ -95,6 +98,8 @@ __all__ = [
     "Pong",
     "Refused",
     "Result",
+    "StopAll",
+    "Stopped",
     "Trace",
     "Welcome",
     "decode_payload",
@@ -143,6 +148,9 @@ MAX_REASON_LENGTH: Final = 512
 #: Highest battery voltage a robot may report: a Thymio's Li-ion cell is 4.2 V full; anything
 #: far above is a broken reading, not a battery.
 MAX_BATTERY_V: Final = 10.0
+#: The highest value of a Raspberry Pi's ``vcgencmd get_throttled`` flags: bits up to 0x80000
+#: are defined (under-voltage, capped, throttled, soft limit: now and since boot).
+MAX_THROTTLED: Final = 0xFFFFF
 #: How many characters of a text a peer sent (a reason, a message) go into a log line.
 LOGGED_TEXT_LIMIT: Final = 200
 
@@ -150,8 +158,10 @@ LOGGED_TEXT_LIMIT: Final = 200
 #: version 2 after robots of that version were deployed, which such a robot would not decode.
 #: ``escape``: it handles :class:`Escape` (``surprise-master escape``).
 FEATURE_ESCAPE: Final = "escape"
+#: ``stop``: it handles :class:`StopAll` (``surprise-master fleet stop``).
+FEATURE_STOP: Final = "stop"
 #: Every feature this code offers, as its agent announces them.
-FEATURES: Final = (FEATURE_ESCAPE,)
+FEATURES: Final = (FEATURE_ESCAPE, FEATURE_STOP)
 #: An :class:`EscapeReply`'s refusal starts with one of these words (then ": " and the details):
 #: the robot's safety profile has no escape behaviour (``stop``) ...
 ESCAPE_REFUSED_PROFILE: Final = "profile"
@@ -529,6 +539,7 @@ class CheckReport(_Message, tag="check-report", frozen=True):
     forward_safety: _Name | None = None
     ground_rule: Annotated[str, msgspec.Meta(max_length=MAX_NAME_LENGTH)] = ""
     busy: bool = False
+    throttled: Annotated[int, msgspec.Meta(ge=0, le=MAX_THROTTLED)] | None = None
 
     def __post_init__(self) -> None:
         # A clock or a reading that is not a number is a broken robot's message: refused where
@@ -560,6 +571,29 @@ class EscapeReply(_Message, tag="escape-reply", frozen=True):
     accepted: bool
     evaluation_id: _NonNegative | None = None
     reason: Annotated[str, msgspec.Meta(max_length=MAX_REASON_LENGTH)] = ""
+
+
+class StopAll(_Message, tag="stop-all", frozen=True):
+    """Master -> robot (``surprise-master fleet stop``): stop the motors now, whatever runs; the
+    running evaluation, if any, is cancelled (no Result follows) and the motors stay stopped
+    until the next :class:`Evaluate`. Sent only to a robot offering :data:`FEATURE_STOP`; it
+    answers a :class:`Stopped` with the same ``seq`` and never refuses. ``reason`` is for the
+    robot's log."""
+
+    seq: _NonNegative
+    reason: Annotated[str, msgspec.Meta(max_length=MAX_REASON_LENGTH)] = ""
+
+
+class Stopped(_Message, tag="stopped", frozen=True):
+    """Robot -> master: the answer to :class:`StopAll` ``seq``. ``confirmed``: the robot itself
+    confirmed the motors' stop (false: the stop's write failed or hung, ``detail`` says how;
+    the agent's watchdog then took over). ``evaluation_id``: the evaluation it cancelled, None
+    when none ran (the motors were stopped already)."""
+
+    seq: _NonNegative
+    confirmed: bool
+    evaluation_id: _NonNegative | None = None
+    detail: Annotated[str, msgspec.Meta(max_length=MAX_REASON_LENGTH)] = ""
 
 
 class Ping(_Message, tag="ping", frozen=True):
@@ -602,6 +636,8 @@ Message = (
     | CheckReport
     | Escape
     | EscapeReply
+    | StopAll
+    | Stopped
     | Ping
     | Pong
     | Error

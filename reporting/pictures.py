@@ -180,7 +180,10 @@ def robot_fitness_picture(
     the swarm's (grey); with more than twenty robots, the swarm's spread as bands instead."""
     x = np.array([r["evaluation"] for r in rows])
     swarm = np.array([r["fitness"] for r in rows])
-    each = np.array([[r["robots"][robot] for robot in robots] for r in rows]).reshape(len(rows), -1)
+    # NaN where a robot was not in the row's swarm (it left, or joined later): a gap in its line.
+    each = np.array(
+        [[r["robots"].get(robot, np.nan) for robot in robots] for r in rows], dtype=float
+    ).reshape(len(rows), -1)
     colours = robot_colours(len(robots))
     if len(robots) <= _MAX_PANELS:
         cols = min(5, len(robots))
@@ -204,7 +207,7 @@ def robot_fitness_picture(
     else:
         fig = figure(9, 4.8)
         ax = fig.subplots()
-        low, q1, median, q3, high = np.percentile(each, [0, 25, 50, 75, 100], axis=1)
+        low, q1, median, q3, high = np.nanpercentile(each, [0, 25, 50, 75, 100], axis=1)
         ax.fill_between(x, low, high, color="C0", alpha=0.2, lw=0, label="all robots (min-max)")
         ax.fill_between(x, q1, q3, color="C0", alpha=0.4, lw=0, label="middle half of robots")
         ax.plot(x, median, color="C0", lw=1, label="median robot")

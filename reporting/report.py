@@ -89,7 +89,13 @@ def _rows(run: Path, limit: int | None) -> tuple[list[dict[str, Any]], list[str]
                     if row.get("safety_share") not in (None, "")
                     else None
                 ),
-                "robots": {robot: float(row[f"fitness_{robot}"]) for robot in robots},
+                # A robot that left the swarm, or joined it later, has empty cells where it was
+                # not in the swarm (docs/runs.md): those rows hold no fitness of it.
+                "robots": {
+                    robot: float(row[f"fitness_{robot}"])
+                    for robot in robots
+                    if row.get(f"fitness_{robot}")
+                },
                 "robot_stats": parse_robot_stats(row, robots),
             }
         )
@@ -301,10 +307,11 @@ def _metrics(data: _Run) -> dict[str, Any]:
             duration_s=float(sum(r["duration_s"] for r in rows)),
             robot_fitness={
                 robot: {
-                    "mean": float(np.mean([r["robots"][robot] for r in rows])),
-                    "max": float(np.max([r["robots"][robot] for r in rows])),
+                    "mean": float(np.mean(values)),
+                    "max": float(np.max(values)),
                 }
                 for robot in robots
+                if (values := [r["robots"][robot] for r in rows if robot in r["robots"]])
             },
         )
     metrics["robot_stats"] = robot_stats(rows, robots)

@@ -15,11 +15,14 @@ def parse_robot_stats(
     row: Mapping[str, str], robots: Sequence[str]
 ) -> dict[str, tuple[float | None, int, int]] | None:
     """One row's ``(battery_v, overruns, read_failures)`` per robot; None for a file without
-    these columns (the compiled engine, runs written before them)."""
+    these columns (the compiled engine, runs written before them). A robot not in the row's
+    swarm (it left, or joined later: empty cells) is not in it."""
     if not robots or f"overruns_{robots[0]}" not in row:
         return None
     parsed = {}
     for robot in robots:
+        if not row.get(f"overruns_{robot}"):
+            continue
         battery = row.get(f"battery_v_{robot}") or ""
         parsed[robot] = (
             float(battery) if battery else None,
@@ -37,12 +40,16 @@ def robot_stats(rows: Sequence[Mapping[str, Any]], robots: Sequence[str]) -> dic
         return None
     summary: dict[str, Any] = {}
     for robot in robots:
-        batteries = [s[robot][0] for s in stats if s[robot][0] is not None]
+        # Only the rows of the swarms the robot was in (it may have left or joined).
+        stats_of = [s for s in stats if robot in s]
+        if not stats_of:
+            continue
+        batteries = [s[robot][0] for s in stats_of if s[robot][0] is not None]
         summary[robot] = {
-            "overruns": sum(s[robot][1] for s in stats),
-            "evaluations_with_overruns": sum(s[robot][1] > 0 for s in stats),
-            "read_failures": sum(s[robot][2] for s in stats),
-            "evaluations_with_read_failures": sum(s[robot][2] > 0 for s in stats),
+            "overruns": sum(s[robot][1] for s in stats_of),
+            "evaluations_with_overruns": sum(s[robot][1] > 0 for s in stats_of),
+            "read_failures": sum(s[robot][2] for s in stats_of),
+            "evaluations_with_read_failures": sum(s[robot][2] > 0 for s in stats_of),
             "battery_first_v": batteries[0] if batteries else None,
             "battery_min_v": min(batteries) if batteries else None,
             "battery_last_v": batteries[-1] if batteries else None,

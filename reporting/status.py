@@ -56,11 +56,19 @@ def status_text(path: str | Path) -> str:
                 f"{float(last['fitness']):.4f}, accepted {last['accepted']}"
             )
         lines.append(f"served for {format_duration(checkpoint.elapsed_s)}")
+        for change in checkpoint.swarms or ():
+            how = f"{change.joined} in its place" if change.joined else "the run went on without it"
+            lines.append(
+                f"swarm changed from evaluation {change.from_evaluation}: {change.left} gone, "
+                f"{how}; now {', '.join(change.robots)}"
+            )
     live = running_master(path)
+    roster = None if checkpoint is None else checkpoint.roster
+    swarm_size = config.robot_count if roster is None else len(roster)
     if live is not None:
         lines.append(
             f"master: running (pid {live.pid}, {live.host}:{live.port}), "
-            f"robots connected {len(live.robots)}/{config.robot_count}: "
+            f"robots connected {len(live.robots)}/{swarm_size}: "
             f"{', '.join(live.robots) or '-'}"
         )
         if live.time_left_s is not None:

@@ -5,12 +5,18 @@ every part of its body on its own (one broken part must not hide the others), it
 asks its own safety layer what it would do to a forward drive on that reading, with its own
 thresholds. That last answer is what tells a floor too bright for the ground rule from a robot
 standing at an edge: only the agent knows the thresholds it runs with. Nothing drives.
+
+On a Raspberry Pi it also reads ``vcgencmd get_throttled`` (under-voltage and throttling flags,
+for ``surprise-master fleet status``); where there is no ``vcgencmd`` the report says unknown.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
+import re
+import shutil
 import time
 from typing import Final
 
@@ -18,9 +24,17 @@ import numpy as np
 
 from drivers.body import Body, PartReading
 from minimize_surprise.safety import SafetyLayer, SafetyState
-from minimize_surprise.wire import MAX_BATTERY_V, CheckReport, PartCheck
+from minimize_surprise.wire import MAX_BATTERY_V, MAX_THROTTLED, CheckReport, PartCheck
 
-__all__ = ["BATTERY_CHECK_TIMEOUT", "FORWARD", "check_body", "ground_rule"]
+__all__ = [
+    "BATTERY_CHECK_TIMEOUT",
+    "FORWARD",
+    "THROTTLED_TIMEOUT",
+    "VCGENCMD",
+    "check_body",
+    "ground_rule",
+    "read_throttled",
+]
 
 log = logging.getLogger(__name__)
 
@@ -30,6 +44,12 @@ BATTERY_CHECK_TIMEOUT: Final = 2.0
 #: The drive the safety layer is asked about: straight ahead at full speed, where the ground rule
 #: and the front IR apply.
 FORWARD: Final = (1.0, 1.0)
+#: Seconds ``vcgencmd get_throttled`` may take: it answers in milliseconds from the firmware's
+#: mailbox; one that hangs (a firmware in trouble) must not hold the check.
+THROTTLED_TIMEOUT: Final = 2.0
+#: The Pi's firmware tool, looked up on ``PATH`` (absent off a Pi: the flags are unknown).
+VCGENCMD: Final = "vcgencmd"
+_THROTTLED = re.compile(rb"throttled=(0x[0-9a-fA-F]+|\d+)")
 #: The longest error text a report carries per part (the wire's bound is larger; a person reads
 #: one line).
 _ERROR_CHARS: Final = 300
@@ -48,6 +68,7 @@ async def check_body(body: Body, layer: SafetyLayer, state: SafetyState, seq: in
     parts = await body.read_parts()
     battery = await _battery(body)
     reason = _forward_safety(body, layer, state, parts)
+    throttled = await read_throttled()
     return CheckReport(
         seq=seq,
         time=time.time(),
@@ -63,7 +84,39 @@ async def check_body(body: Body, layer: SafetyLayer, state: SafetyState, seq: in
         ),
         forward_safety=reason,
         ground_rule=ground_rule(layer),
+        throttled=throttled,
     )
+
+
+async def read_throttled() -> int | None:
+    """The Pi's ``vcgencmd get_throttled`` flags, None where there is no ``vcgencmd`` or it
+    does not answer within :data:`THROTTLED_TIMEOUT` (never raises: a report is still worth
+    sending without them)."""
+    program = shutil.which(VCGENCMD)
+    if program is None:
+        return None
+    process = None
+    try:
+        process = await asyncio.create_subprocess_exec(
+            program,
+            "get_throttled",
+            stdout=asyncio.subprocess.PIPE,
+            stderr=asyncio.subprocess.DEVNULL,
+        )
+        async with asyncio.timeout(THROTTLED_TIMEOUT):
+            out, _ = await process.communicate()
+    except (OSError, TimeoutError) as exc:
+        log.info("check: vcgencmd get_throttled failed: %r", exc)
+        if process is not None and process.returncode is None:
+            with contextlib.suppress(ProcessLookupError):
+                process.kill()
+            await process.wait()
+        return None
+    match = _THROTTLED.search(out)
+    if process.returncode != 0 or match is None:
+        return None
+    value = int(match.group(1), 0)
+    return value if 0 <= value <= MAX_THROTTLED else None
 
 
 async def _battery(body: Body) -> float | None:

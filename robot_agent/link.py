@@ -5,7 +5,7 @@ The conversation is fixed by ``docs/protocol.md``::
     Hello(nonce) -> (Challenge(nonce, proof) | Refused) -> Authenticate(proof)
     -> (Welcome | Refused); then, every frame tagged:
     Evaluate -> Result | Failed;  Abort;  Check -> CheckReport;  Escape -> EscapeReply;
-    Ping -> Pong;  Bye / Error close the session
+    StopAll -> Stopped;  Ping -> Pong;  Bye / Error close the session
 
 The robot trusts nothing from a master that has not proved the shared secret: it checks the
 Challenge's proof before it sends anything else, and from then on accepts only frames tagged with
@@ -15,6 +15,8 @@ heartbeat interval lies within the protocol's bounds (checked as the Welcome is 
 evaluation is at most ``loop.max_steps`` long (the runner refuses longer ones) and a master's text
 is cut and cleaned before it is logged. An Escape only asks the safety layer to start its own
 bounded escape manoeuvre (:meth:`EvaluationRunner.request_escape`); no message drives a motor.
+A StopAll (``surprise-master fleet stop``) is never refused: the watchdog stops the motors at
+once, the running evaluation is cancelled, and the robot's own stop is confirmed in Stopped.
 
 :class:`Link.run` loops forever: one session per connection, and after any end of a session
 (refused, closed, silent for too long, broken input) a delay from :class:`Backoff` before the next
@@ -65,6 +67,7 @@ from minimize_surprise.wire import (
     Pong,
     Refused,
     Result,
+    StopAll,
     Welcome,
     encode_payload,
     printable,
@@ -366,6 +369,8 @@ class Link:
                     else:
                         self.log.info("the experimenter's escape refused: %s", reply.reason)
                     await self._send(stream, reply, dead_after)
+                case StopAll():
+                    await self._stop_all(stream, msg, dead_after)
                 case Ping(seq=seq):
                     await self._send(stream, Pong(seq=seq), dead_after)
                 case Pong():
@@ -381,6 +386,25 @@ class Link:
                     text = f"unexpected {_kind(msg)} in a welcomed session"
                     await self._send_quietly(stream, Error(code=_CODE_PROTOCOL, message=text))
                     raise ProtocolError(text)
+
+    async def _stop_all(self, stream: MessageStream, msg: StopAll, timeout: float) -> None:
+        running = self._evaluation[0] if self._evaluation is not None else None
+        self.log.warning(
+            "fleet stop (%s): the motors stop%s",
+            printable(msg.reason) or "no reason given",
+            "" if running is None else f", evaluation {running} is cancelled",
+        )
+        if running is not None and self.watchdog is not None:
+            # At once, before the evaluation's task unwinds: a tripped watchdog keeps the loop
+            # from driving again.
+            await finish(self.watchdog.trip("fleet stop"), self.runner.config.stop_timeout)
+        await self._cancel_evaluation("fleet stop")
+        reply = await self.runner.stop_all(msg.seq, running)
+        if reply.confirmed:
+            self.log.warning("fleet stop: the motors are stopped until the next evaluation")
+        else:
+            self.log.error("fleet stop: the robot did not confirm the stop: %s", reply.detail)
+        await self._send(stream, reply, timeout)
 
     async def _answer_check(self, stream: MessageStream, msg: Check, timeout: float) -> None:
         try:

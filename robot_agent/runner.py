@@ -31,6 +31,7 @@ from minimize_surprise.wire import (
     EvaluationStats,
     Failed,
     Result,
+    Stopped,
     genome_from_bytes,
 )
 from robot_agent.bounded import finish
@@ -312,6 +313,20 @@ class EvaluationRunner:
             )
         self.loop.escape_requested = True
         return EscapeReply(seq=seq, accepted=True, evaluation_id=running)
+
+    async def stop_all(self, seq: int, cancelled: int | None) -> Stopped:
+        """``surprise-master fleet stop``: the motors stopped now, after the link cancelled
+        evaluation ``cancelled`` (None: none ran). Never refused: the stop is written even when
+        nothing ran, and the answer says whether the robot confirmed it. A stop that fails trips
+        the watchdog, which retries it until the robot takes it. The motors stay stopped: only
+        an evaluation drives them, and the next one is the master's go-on."""
+        error = await stop_motors(self.body, self.config.stop_timeout)
+        if error is None:
+            return Stopped(seq=seq, confirmed=True, evaluation_id=cancelled)
+        if self.watchdog is not None:
+            await finish(self.watchdog.trip("fleet stop failed"), self.config.stop_timeout)
+        detail = f"the motor stop: {error!r}"[:300]
+        return Stopped(seq=seq, confirmed=False, evaluation_id=cancelled, detail=detail)
 
     async def check(self, seq: int) -> CheckReport:
         """A preflight check's report (:mod:`robot_agent.checkup`); ``busy`` while an

@@ -16,8 +16,9 @@ Layout (docs/runs.md shows each file)::
     live.json              Live: while a master serves the run (master_alive says if it still does)
     pause.json             PauseFile: while the run waits for a person
     events.jsonl           Event lines: what happened when (the experimenter's escapes, the
-                           post-evaluation's start), appended by the master
-    requests/              EscapeRequest files a person's command drops for the running master
+                           post-evaluation's start, the swarm's changes), appended by the master
+    requests/              EscapeRequest, SwapRequest and StopRequest files a person's command
+                           drops for the running master
     post_evaluation.json   PostEvaluation: the post-evaluation's per-robot fitness and statistics
     traces/<robot>.npz     the post-evaluation trace of each robot
     metrics.json, plots/   written by ``surprise-master report`` (and at the end of ``sim``)
@@ -53,7 +54,7 @@ import contextlib
 import csv
 import json
 import os
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any, ClassVar, Final, Literal, TypeVar
 
@@ -74,7 +75,9 @@ __all__ = [
     "EVALUATION_COLUMNS",
     "EVENTS",
     "EVENT_ESCAPE",
+    "EVENT_FLEET_STOP",
     "EVENT_POST_EVALUATION",
+    "EVENT_SWARM_CHANGE",
     "LIVE_INTERVAL",
     "LOG",
     "METRICS",
@@ -82,6 +85,7 @@ __all__ = [
     "REQUESTS",
     "ROBOT_STAT_PREFIXES",
     "STALE_AFTER",
+    "SWARM_COLUMN",
     "TRACES",
     "BestGenome",
     "BoxesMoved",
@@ -104,6 +108,9 @@ __all__ = [
     "Simulation",
     "Software",
     "SoftwareRecord",
+    "StopRequest",
+    "SwapRequest",
+    "SwarmChange",
     "TrackedBoxes",
     "append_event",
     "decode",
@@ -117,8 +124,11 @@ __all__ = [
     "read_events",
     "read_if_readable",
     "read_rows",
+    "render_row",
     "robot_stat_columns",
+    "row_cells",
     "tracked_boxes_path",
+    "widen_header",
     "write",
     "write_atomic",
     "writing",
@@ -141,8 +151,12 @@ EVENTS: Final = "events.jsonl"
 REQUESTS: Final = "requests"
 #: Event kinds: the experimenter asked for a robot's escape, and how it went.
 EVENT_ESCAPE: Final = "escape"
+#: Event kinds: ``surprise-master fleet stop`` stopped every robot's motors and paused the run.
+EVENT_FLEET_STOP: Final = "fleet-stop"
 #: Event kinds: an attempt of the post-evaluation went out to the robots (they flash).
 EVENT_POST_EVALUATION: Final = "post-evaluation-start"
+#: Event kinds: the swarm changed (a robot gone, a spare swapped in), or a swap was refused.
+EVENT_SWARM_CHANGE: Final = "swarm-change"
 
 #: How often a master rewrites live.json at the least.
 LIVE_INTERVAL: Final = 2.0
@@ -246,16 +260,32 @@ class Live(RunFile, frozen=True, kw_only=True):
     updated_at: float
 
 
+class SwarmChange(msgspec.Struct, frozen=True, kw_only=True):
+    """One change of a run's swarm (``checkpoint.json``'s ``swarms``): from counted evaluation
+    ``from_evaluation`` on the swarm is ``robots``; robot ``left`` was gone for good, ``joined``
+    the spare that took its place (None: the run went on without it, ``min_robots``); ``time``
+    when (seconds since the epoch)."""
+
+    from_evaluation: int
+    robots: list[str]
+    left: str
+    joined: str | None = None
+    time: float = 0.0
+
+
 class Checkpoint(RunFile, frozen=True, kw_only=True):
     """``checkpoint.json``: the commit point (rundir.py says how a commit is made exactly once).
 
     ``optimizer`` is :meth:`minimize_surprise.evolution.OnePlusOne.state` (versioned on its
     own); ``simulation`` a simulated run's world and robots at this commit, so that it resumes
-    exactly.
+    exactly. ``swarms`` the swarm's changes in order (a robot gone for good, a spare swapped
+    in), ``roster`` being the swarm after the last; left out while the swarm never changed, so
+    a run's checkpoint reads as it did before swaps existed.
     """
 
     FILE: ClassVar[str] = "checkpoint.json"
     FORMAT: ClassVar[int] = 1
+    OMIT_NONE: ClassVar[tuple[str, ...]] = ("swarms",)
 
     run_id: str
     phase: Phase
@@ -270,6 +300,7 @@ class Checkpoint(RunFile, frozen=True, kw_only=True):
     written_at: float = 0.0
     optimizer: dict[str, Any] = msgspec.field(default_factory=dict)
     simulation: dict[str, Any] | None = None
+    swarms: list[SwarmChange] | None = None
 
     @property
     def evaluations(self) -> int:
@@ -480,6 +511,36 @@ class EscapeRequest(RunFile, frozen=True, kw_only=True):
     requested_at: float
 
 
+class SwapRequest(RunFile, frozen=True, kw_only=True):
+    """A request of ``surprise-master swap`` for the running master: spare ``spare`` is to take
+    the place of ``gone`` in the swarm. Written as ``requests/swap-request-<token>.json``; the
+    master takes it away and appends an :class:`Event` of kind ``swarm-change`` naming the same
+    ``token``, the answer the command waits for."""
+
+    FILE: ClassVar[str] = "swap-request.json"
+    FORMAT: ClassVar[int] = 1
+
+    gone: str
+    spare: str
+    token: str
+    #: when the person asked (seconds since the epoch)
+    requested_at: float
+
+
+class StopRequest(RunFile, frozen=True, kw_only=True):
+    """A request of ``surprise-master fleet stop --run`` for the running master: every robot's
+    motors are to stop now and the run to pause. Written as ``requests/stop-request-<token>.json``;
+    the master takes it away and appends an :class:`Event` of kind ``fleet-stop`` naming the same
+    ``token``, the answer the command waits for."""
+
+    FILE: ClassVar[str] = "stop-request.json"
+    FORMAT: ClassVar[int] = 1
+
+    token: str
+    #: when the person asked (seconds since the epoch)
+    requested_at: float
+
+
 class Event(msgspec.Struct, frozen=True, kw_only=True):
     """One line of ``events.jsonl``: something that happened to the run, at ``time`` (seconds
     since the epoch, the master's clock).
@@ -490,6 +551,13 @@ class Event(msgspec.Struct, frozen=True, kw_only=True):
     ``post-evaluation-start``: attempt ``evaluation_id`` of the post-evaluation went out to the
     robots, which flash their top LED at its first step (``post_evaluation.json``'s
     ``started_at`` is the one that counted).
+    ``swarm-change``: ``robot`` left the swarm for good from counted evaluation
+    ``evaluation_id`` on, ``joined`` the spare that took its place (none: the run goes on
+    without it); asked by ``surprise-master swap`` (``request`` its token), ``accepted`` says
+    whether the swarm changed, or why not (``detail``).
+    ``fleet-stop``: ``surprise-master fleet stop`` asked (``request`` its token); the robots
+    that ``confirmed`` their motors stopped and those that did not answer (``unanswered``);
+    ``accepted`` when every robot confirmed.
     """
 
     #: the version of a line's structure; each line carries it as ``format``
@@ -502,6 +570,9 @@ class Event(msgspec.Struct, frozen=True, kw_only=True):
     accepted: bool | None = None
     evaluation_id: int | None = None
     detail: str = ""
+    joined: str | None = None
+    confirmed: list[str] | None = None
+    unanswered: list[str] | None = None
 
 
 def append_event(run_dir: str | Path, event: Event) -> None:
@@ -669,6 +740,10 @@ EVALUATION_COLUMNS: Final = (
 
 #: The per-robot statistics robots report, each a column per robot after the fitness columns.
 ROBOT_STAT_PREFIXES: Final = ("battery_v_", "overruns_", "read_failures_")
+#: The column added when a run's swarm first changes (:func:`widen_header`): which swarm
+#: evaluated the row, 0 the first, then one more per change (``Checkpoint.swarms``). A run
+#: whose swarm never changed has no such column: every row was the first swarm's.
+SWARM_COLUMN: Final = "swarm"
 
 
 def evaluation_header(roster: Sequence[str], *, robot_stats: bool) -> list[str]:
@@ -715,6 +790,61 @@ def format_row(
         fields += [str(s.overruns) for s in robot_stats]
         fields += [str(s.read_failures) for s in robot_stats]
     return ",".join(fields) + "\n"
+
+
+def row_cells(
+    evaluation: int,
+    kind: str,
+    fitness: float,
+    best_fitness: float,
+    accepted: bool,
+    attempts: int,
+    duration_s: float,
+    safety_share: float,
+    robots: Sequence[str],
+    robot_fitness: Sequence[float],
+    robot_stats: Sequence[EvaluationStats] | None = None,
+    swarm: int = 0,
+) -> dict[str, str]:
+    """One row of ``evaluations.csv`` by column, for :func:`render_row`: the cells
+    :func:`format_row` writes, each robot's named by its id in ``robots``, and the swarm's
+    number (:data:`SWARM_COLUMN`)."""
+    names = [*EVALUATION_COLUMNS, *(f"fitness_{robot}" for robot in robots)]
+    values = format_row(
+        evaluation,
+        kind,
+        fitness,
+        best_fitness,
+        accepted,
+        attempts,
+        duration_s,
+        safety_share,
+        robot_fitness,
+        robot_stats,
+    )
+    if robot_stats is not None:
+        names += robot_stat_columns(robots)
+    cells = dict(zip(names, values.rstrip("\n").split(","), strict=True))
+    cells[SWARM_COLUMN] = str(swarm)
+    return cells
+
+
+def render_row(cells: Mapping[str, str], header: Sequence[str]) -> str:
+    """``cells`` as a line of a file with ``header``: a column the row has no cell for (a robot
+    not in its swarm) is left empty, a cell the header has no column for is dropped."""
+    return ",".join(cells.get(column, "") for column in header) + "\n"
+
+
+def widen_header(header: Sequence[str], roster: Sequence[str], *, robot_stats: bool) -> list[str]:
+    """``header`` with the columns a swarm of ``roster`` needs and it lacks, at the end (a spare
+    that joined: its fitness, then its statistics), and :data:`SWARM_COLUMN`; the same header
+    when it has them all. Readers find columns by name, so the order does not matter."""
+    wanted = evaluation_header(roster, robot_stats=robot_stats)
+    wider = list(header)
+    wider += [column for column in wanted if column not in header]
+    if SWARM_COLUMN not in wider:
+        wider.append(SWARM_COLUMN)
+    return wider
 
 
 def read_rows(run_dir: str | Path) -> list[dict[str, str]]:

@@ -17,13 +17,17 @@ and writes into ``DIR/report/``:
   random runs per condition (same scenario, setting and sweep values), Kruskal-Wallis across the
   conditions of one kind, Fisher's exact test on the behaviour counts of evolved against random
   per condition; p-values Bonferroni-corrected within each test's family;
+* ``clusters.csv`` and ``clusters.md``: the behaviours clustered without the hand thresholds
+  (:mod:`studies.clusters`: standardised metrics or pattern scores, PCA, HDBSCAN) and their
+  agreement with the hand-set classes (adjusted Rand index), per family (arena, grid world);
 * ``problems.txt``: one line per run left out (failed; a recorded run missing, unfinished or
   unreadable), naming it and why;
 * ``figures/``: best fitness over evaluations with medians (the paper's Fig. 11; recorded groups
   dashed, "real robots" in the legend), rotation
   against mean cluster size with the class lines (Fig. 13), distance covered against box
   displacement with the pushing threshold (Fig. 14), mean predicted against real value per
-  sensor, and the grid world's figures for grid runs; each as PNG and PDF.
+  sensor, the grid world's figures for grid runs, and ``clusters-<family>``: the runs in the
+  projection coloured by cluster and by hand-set class; each as PNG and PDF.
 
 This module reads and writes; the tables, the tests and what the figures draw are computed from
 the runs' frame by :mod:`studies.tables`.
@@ -41,6 +45,13 @@ from minimize_surprise.errors import ConfigError
 from minimize_surprise.figures import save_figure
 from simulator import metrics as sim_metrics
 from studies import tables
+from studies.clusters import (
+    Clustering,
+    cluster_behaviours,
+    clusters_figure,
+    clusters_markdown,
+    clusters_table,
+)
 from studies.recorded import RECORDED, refreshed
 from studies.runner import STUDY_FILE, TASKS_FILE
 from studies.spec import load_study
@@ -168,6 +179,10 @@ def write_study_report(out: str | Path) -> dict[str, Any]:
     if evaluations is not None:
         evaluations.to_parquet(target / "evaluations.parquet", index=False)
     figures = _figures(out, target / "figures", done, evaluations)
+    found = _clusters(target, done) if len(done) else []
+    figures += [f for c in found if not c.note for f in _save(
+        clusters_figure(c), target / "figures", f"clusters-{c.family}"
+    )]  # fmt: skip
     return {
         "runs": len(frame),
         "done": len(done),
@@ -176,8 +191,18 @@ def write_study_report(out: str | Path) -> dict[str, Any]:
         "tests": len(tests),
         "figures": figures,
         "problems": problems,
+        "clusters": {c.family: {"clusters": c.clusters, "ari": c.ari} for c in found},
         "report": str(target),
     }
+
+
+def _clusters(target: Path, done: Any) -> list[Clustering]:
+    # Classes found by the data beside the hand-set ones (studies.clusters).
+    found = cluster_behaviours(done)
+    if found:
+        clusters_table(found).to_csv(target / "clusters.csv", index=False)
+        (target / "clusters.md").write_text(clusters_markdown(found) + "\n", encoding="utf-8")
+    return found
 
 
 def _problems(frame) -> list[str]:

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from master_service.config import MasterConfig
+from master_service.config import DEFAULT_ROBOT_GONE_AFTER, MasterConfig
 from master_service.evaluation import Progress
 from master_service.experiments.simulation_setup import (
     SimulatedRun,
@@ -74,7 +74,11 @@ class SimulatedSwarm:
     ``await run(run_dir)`` evolves, post-evaluates and writes the report; ``on_progress`` sees the
     master's progress. ``batteries`` (optional, robot by robot) give the robots batteries that
     drain as they drive, to rehearse a battery swap (docs/runs.md); ``pause_before_post`` waits
-    for ``surprise-master continue`` before the post-evaluation.
+    for ``surprise-master continue`` before the post-evaluation. ``spares`` names robots the
+    master admits besides the swarm's, to rehearse losing one for good: :meth:`stop_agent`
+    stops a robot's agent and its body for good, :meth:`start_spare` starts a spare's agent on
+    the body of a robot that stopped (the spare put where the dead robot stood), and
+    ``robot_gone_after`` is the master's (docs/runs.md).
     """
 
     def __init__(
@@ -85,8 +89,13 @@ class SimulatedSwarm:
         on_progress: Callable[[Progress], None] | None = None,
         batteries: Sequence[SimBattery | None] = (),
         pause_before_post: bool = False,
+        spares: Sequence[str] = (),
+        robot_gone_after: float | None = DEFAULT_ROBOT_GONE_AFTER,
     ) -> None:
         self.experiment = experiment
+        #: robots the master admits besides the swarm's (``surprise-master swap``)
+        self.spares = list(spares)
+        self.robot_gone_after = robot_gone_after
         self.realtime = realtime
         self.on_progress = on_progress
         #: the robots' batteries, in robot order (none: the robots report no battery)
@@ -101,6 +110,10 @@ class SimulatedSwarm:
         self._safety_before: list[list[int]] | None = None
         self._replay_safety: list[list[int]] | None = None
         self._agents: list[Agent] = []
+        # Per body: the robot whose agent drives it now, None once its agent stopped for good.
+        self._drivers: list[str | None] = list(self.ids)
+        self._tasks: dict[str, asyncio.Task[None]] = {}
+        self._stack: contextlib.AsyncExitStack | None = None
         #: the run's master and the swarm of simulated bodies while :meth:`run` runs (the
         #: swarm after it too: its robots' top LEDs, for a synthetic camera)
         self.master: Master | None = None
@@ -112,7 +125,11 @@ class SimulatedSwarm:
             experiment=self.experiment,
             host="127.0.0.1",
             port=0,
-            allowed_robots=self.ids,
+            # A resumed run's spares that joined its swarm are its robots now.
+            allowed_robots=list(
+                dict.fromkeys([*self.ids, *self.spares, *filter(None, self._drivers)])
+            ),
+            robot_gone_after=self.robot_gone_after,
         )
 
     def agent_config(self, robot_id: str, port: int) -> AgentConfig:
@@ -143,16 +160,65 @@ class SimulatedSwarm:
 
     def _snapshot(self) -> dict[str, Any]:
         # The master commits between rounds, while every robot is idle: a consistent state.
-        # Same shape as the engine's (simulator.engine.Swarm.snapshot).
-        return {
+        # Same shape as the engine's (simulator.engine.Swarm.snapshot), and which robot drives
+        # which body once that changed (a robot stopped for good, a spare on its body).
+        snapshot: dict[str, Any] = {
             "world": self.world.snapshot(),
             "safety": [agent.runner.safety_state.to_array().tolist() for agent in self._agents],
         }
+        if self._drivers != self.ids:
+            snapshot["drivers"] = list(self._drivers)
+        return snapshot
 
     def _restore(self, snapshot: dict[str, Any]) -> None:
         self.world.restore(snapshot["world"])
         for agent, state in zip(self._agents, snapshot["safety"], strict=True):
             agent.runner.safety_state = SafetyState.from_array(np.array(state, dtype=np.int64))
+
+    async def stop_agent(self, robot_id: str) -> None:
+        """Stop ``robot_id``'s agent for good, as a dead battery or a crashed Pi would: its
+        connection closes, its body leaves the lockstep and stands still; it never comes back
+        (its safety state stays in the snapshot, as the world keeps its body)."""
+        index = self._drivers.index(robot_id)
+        self._drivers[index] = None
+        task = self._tasks.pop(robot_id)
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+        await self._agents[index].__aexit__(None, None, None)
+        if self.swarm is not None:
+            self.swarm.detach(index)
+
+    async def start_spare(self, spare_id: str, replacing: str) -> None:
+        """Start spare ``spare_id``'s agent on the body ``replacing`` drove before its agent
+        stopped (:meth:`stop_agent`); it connects to the master, which admits it as a spare."""
+        assert self._stack is not None and self.swarm is not None and self.master is not None
+        index = self.ids.index(replacing) if replacing in self.ids else None
+        if index is None or self._drivers[index] is not None:
+            index = self._drivers.index(None)  # any body whose agent stopped
+        await self._start_agent(self._stack, spare_id, index, self.master.port)
+
+    async def _start_agent(
+        self, stack: contextlib.AsyncExitStack, robot_id: str, index: int, port: int
+    ) -> None:
+        assert self.swarm is not None
+        body = await stack.enter_async_context(self.swarm.body(index))
+        if index < len(self.batteries):
+            body.battery = self.batteries[index]
+        agent = Agent(
+            self.agent_config(robot_id, port),
+            body,
+            body.clock,
+            self._secret,
+            rng=random.Random(self.experiment.seed * 1000 + index),
+        )
+        entered = await stack.enter_async_context(agent)
+        if index < len(self._agents):
+            entered.runner.safety_state = self._agents[index].runner.safety_state
+            self._agents[index] = entered
+        else:
+            self._agents.append(entered)
+        self._drivers[index] = robot_id
+        self._tasks[robot_id] = asyncio.create_task(entered.run(), name=f"agent-{robot_id}")
 
     async def run(
         self, run_dir: str | Path, *, resume: bool = False, replay: ReplaySource | None = None
@@ -172,6 +238,9 @@ class SimulatedSwarm:
         if resume:
             directory = RunDir(run_dir)
             checkpoint = directory.read_state(directory.load_config())
+        simulation = None if checkpoint is None else checkpoint.simulation
+        # A resumed run's bodies are driven as at its checkpoint (a spare on a gone robot's).
+        self._drivers = list((simulation or {}).get("drivers") or self.ids)
         swarm = self.swarm = SimSwarm(self.world, realtime=self.realtime, attach_all=True)
         master = self.master = Master(
             self.master_config(),
@@ -185,31 +254,25 @@ class SimulatedSwarm:
         )
         master.evolution.pause_before_post = self.pause_before_post
         self._agents = []
+        self._tasks = {}
         self._replay_safety = None if replay is None else replay.safety_for(len(self.ids))
         failure: Exception | None = None
         async with contextlib.AsyncExitStack() as stack:
+            self._stack = stack
             await stack.enter_async_context(master)
             if not resume:
                 self._write_simulation_file(run_dir)
             if self.realtime:
                 await stack.enter_async_context(swarm)
-            for index, robot_id in enumerate(self.ids):
-                body = await stack.enter_async_context(swarm.body(index))
-                if index < len(self.batteries):
-                    body.battery = self.batteries[index]
-                agent = Agent(
-                    self.agent_config(robot_id, master.port),
-                    body,
-                    body.clock,
-                    self._secret,
-                    rng=random.Random(self.experiment.seed * 1000 + index),
-                )
-                self._agents.append(await stack.enter_async_context(agent))
-            if checkpoint is not None and checkpoint.simulation is not None:
-                self._restore(checkpoint.simulation)
-            tasks = [
-                asyncio.create_task(a.run(), name=f"agent-{i}") for i, a in enumerate(self._agents)
-            ]
+            for index, robot_id in enumerate(list(self._drivers)):
+                # A body whose robot is gone for good still takes a robot's place in the
+                # world (and its safety state the snapshot's): an agent that never runs.
+                await self._start_agent(stack, robot_id or self.ids[index], index, master.port)
+                if robot_id is None:
+                    await self.stop_agent(self.ids[index])
+                    self._drivers[index] = None
+            if simulation is not None:
+                self._restore(simulation)
             try:
                 summary = await master.run()
             except Exception as exc:
@@ -217,9 +280,11 @@ class SimulatedSwarm:
                 # groups would come out wrapped in an exception group per agent.
                 failure = exc
             finally:
+                tasks = list(self._tasks.values())
                 for task in tasks:
                     task.cancel()
                 await asyncio.gather(*tasks, return_exceptions=True)
+                self._stack = None
         if failure is not None:
             raise failure
         self._write_simulation_file(run_dir)

@@ -30,6 +30,7 @@ from minimize_surprise.provenance import software_commit
 from minimize_surprise.session import NONCE_SIZE, master_proof, new_nonce
 from minimize_surprise.wire import (
     FEATURE_ESCAPE,
+    FEATURE_STOP,
     LOGGED_TEXT_LIMIT,
     MAX_REASON_LENGTH,
     PROTOCOL_VERSION,
@@ -124,7 +125,7 @@ async def test_handshake_introduces_the_robot_and_answers_the_challenge(master):
             protocol_version=PROTOCOL_VERSION,
             sensors=THYMIO,
             nonce=hello.nonce,
-            features=(FEATURE_ESCAPE,),
+            features=(FEATURE_ESCAPE, FEATURE_STOP),
             software_commit=software_commit(),
             thymio_firmware=None,  # a body without firmware
         )

@@ -39,6 +39,9 @@ from runfiles.schema import (
     Simulation,
     Software,
     SoftwareRecord,
+    StopRequest,
+    SwapRequest,
+    SwarmChange,
     TrackedBoxes,
     master_alive,
 )
@@ -125,6 +128,17 @@ GOLDEN: dict[type[RunFile], tuple[RunFile, str]] = {
         EscapeRequest(robot="thymio-3", token="0f1e2d3c4b5a6978", requested_at=1700000003.25),
         '{"format": 1, "robot": "thymio-3", "token": "0f1e2d3c4b5a6978", '
         '"requested_at": 1700000003.25}',
+    ),
+    SwapRequest: (
+        SwapRequest(
+            gone="thymio-3", spare="thymio-9", token="1a2b3c4d5e6f7081", requested_at=1700000006.5
+        ),
+        '{"format": 1, "gone": "thymio-3", "spare": "thymio-9", "token": "1a2b3c4d5e6f7081", '
+        '"requested_at": 1700000006.5}',
+    ),
+    StopRequest: (
+        StopRequest(token="2b3c4d5e6f708192", requested_at=1700000007.5),
+        '{"format": 1, "token": "2b3c4d5e6f708192", "requested_at": 1700000007.5}',
     ),
     Simulation: (
         Simulation(
@@ -230,6 +244,38 @@ def test_a_post_evaluation_written_before_its_start_time_reads_without_one(tmp_p
     assert schema.encode(msgspec.structs.replace(example, started_at=None)).decode() == older
 
 
+def test_a_checkpoint_keeps_the_swarms_changes_and_reads_one_without_them(tmp_path) -> None:
+    example, golden = GOLDEN[Checkpoint]
+    assert "swarms" not in golden  # a swarm that never changed: written as before swaps existed
+    changed = msgspec.structs.replace(
+        example,
+        roster=["a", "c"],
+        swarms=[SwarmChange(from_evaluation=3, robots=["a", "c"], left="b", joined="c", time=7.5)],
+    )
+    text = schema.encode(changed).decode()
+    assert text == golden.replace('"roster": ["a", "b"]', '"roster": ["a", "c"]').replace(
+        '"simulation": null}',
+        '"simulation": null, "swarms": [{"from_evaluation": 3, "robots": ["a", "c"], '
+        '"left": "b", "joined": "c", "time": 7.5}]}',
+    )
+    (tmp_path / Checkpoint.FILE).write_text(text)
+    assert schema.read(tmp_path, Checkpoint) == changed
+
+
+def test_rows_are_written_by_their_columns_and_a_header_widens_for_a_spare() -> None:
+    cells = schema.row_cells(
+        4, "offspring", 0.5, 0.5, True, 1, 2.0, 0.25, ["a", "c"], [0.25, 0.75], [STATS] * 2,
+        swarm=1,
+    )  # fmt: skip
+    header = schema.evaluation_header(["a", "b"], robot_stats=True)
+    wider = schema.widen_header(header, ["a", "c"], robot_stats=True)
+    assert wider == [*header, "fitness_c", "battery_v_c", "overruns_c", "read_failures_c", "swarm"]
+    assert schema.widen_header(wider, ["a", "c"], robot_stats=True) == wider
+    assert schema.render_row(cells, wider) == (
+        "4,offspring,0.5,0.5,true,1,2.000,0.2500,0.25,,3.900,,1,,0,,0.75,3.900,1,0,1\n"
+    )
+
+
 #: Two events as the master appends them: each a line of its own, unset fields left out.
 EVENTS = [
     Event(time=1700000004.5, kind="post-evaluation-start", evaluation_id=41),
@@ -241,12 +287,36 @@ EVENTS = [
         accepted=False,
         detail="thymio-3 is not connected",
     ),
+    Event(
+        time=1700000006.25,
+        kind="swarm-change",
+        robot="thymio-3",
+        joined="thymio-9",
+        request="1a2b3c4d5e6f7081",
+        accepted=True,
+        evaluation_id=212,
+    ),
+    Event(
+        time=1700000007.75,
+        kind="fleet-stop",
+        request="2b3c4d5e6f708192",
+        accepted=False,
+        confirmed=["thymio-1", "thymio-2"],
+        unanswered=["thymio-3"],
+        detail="thymio-3 is not connected",
+    ),
 ]
 EVENT_LINES = (
     '{"format": 1, "time": 1700000004.5, "kind": "post-evaluation-start", "evaluation_id": 41, '
     '"detail": ""}\n'
     '{"format": 1, "time": 1700000005.75, "kind": "escape", "robot": "thymio-3", '
     '"request": "0f1e2d3c4b5a6978", "accepted": false, "detail": "thymio-3 is not connected"}\n'
+    '{"format": 1, "time": 1700000006.25, "kind": "swarm-change", "robot": "thymio-3", '
+    '"request": "1a2b3c4d5e6f7081", "accepted": true, "evaluation_id": 212, "detail": "", '
+    '"joined": "thymio-9"}\n'
+    '{"format": 1, "time": 1700000007.75, "kind": "fleet-stop", "request": "2b3c4d5e6f708192", '
+    '"accepted": false, "detail": "thymio-3 is not connected", "confirmed": ["thymio-1", '
+    '"thymio-2"], "unanswered": ["thymio-3"]}\n'
 )
 
 

@@ -105,6 +105,9 @@ def test_a_tiny_grid_study_from_runs_to_figures(tmp_path):
 
     result = write_study_report(out)
     report = out / "report"
+    # The grid runs clustered by their pattern scores beside the hand-set patterns.
+    assert "grid" in result["clusters"] and (report / "clusters.md").is_file()
+    assert set(pd.read_csv(report / "clusters.csv")["family"]) == {"grid"}
     runs = pd.read_csv(report / "runs.csv")
     assert len(runs) == 26 and set(runs["status"]) == {"done"}
     assert {"pattern", "quality", "size"} <= set(runs.columns)
