@@ -21,15 +21,14 @@ answer within :data:`REPLY_TIMEOUT`.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
-import secrets
 import time
 from collections.abc import Callable, Sequence
-from pathlib import Path
 from typing import Final
 
-from master_service.rundir import RunDir, RunDirError, pending_requests, request_path
+from master_service import desk
+from master_service.desk import new_token
+from master_service.rundir import RunDir, RunDirError
 from master_service.server import RobotServer, Session
 from minimize_surprise.wire import (
     ESCAPE_REFUSED_IDLE,
@@ -40,16 +39,10 @@ from minimize_surprise.wire import (
     is_valid_robot_id,
     printable,
 )
-from runfiles import schema
 from runfiles.schema import (
     EVENT_ESCAPE,
-    REQUESTS,
     EscapeRequest,
     Event,
-    Live,
-    append_event,
-    master_alive,
-    read_events,
 )
 
 __all__ = [
@@ -74,26 +67,16 @@ REPLY_TIMEOUT: Final = 2.0
 #: Seconds the command waits for the master's answer: its poll, the wait for an evaluation and
 #: the robot's answer, with room for a busy laptop.
 ANSWER_TIMEOUT: Final = POLL_INTERVAL + EVALUATION_WAIT + REPLY_TIMEOUT + 5.0
-#: Seconds between two looks of the command into ``events.jsonl``.
-_ANSWER_POLL: Final = 0.1
 
 
-def _request_path(run_dir: Path, token: str) -> Path:
-    return request_path(run_dir, EscapeRequest, token)
-
-
-def drop_request(run_dir: RunDir, robot: str) -> tuple[str, Path]:
+def drop_request(run_dir: RunDir, robot: str) -> EscapeRequest:
     """Drop a request for ``robot``'s escape into ``run_dir``'s ``requests/`` for the master's
-    desk; its token and file. Raises :class:`RunDirError` for a robot id no robot can have."""
+    desk; the request. Raises :class:`RunDirError` for a robot id no robot can have."""
     if not is_valid_robot_id(robot):
         raise RunDirError(f"{robot!r} is not a robot id (letters, digits, '.', '_', '-')")
-    token = secrets.token_hex(8)
-    request = EscapeRequest(robot=robot, token=token, requested_at=time.time())
-    target = _request_path(run_dir.path, token)
-    with schema.writing(target):
-        target.parent.mkdir(exist_ok=True)
-    schema.write_atomic(target, schema.encode(request), durable=False)
-    return token, target
+    request = EscapeRequest(robot=robot, token=new_token(), requested_at=time.time())
+    desk.drop_request(run_dir.path, request)
+    return request
 
 
 def escape_from_console(run_dir: RunDir, log: logging.Logger) -> Callable[[str], None]:
@@ -120,23 +103,16 @@ def request_escape(run_dir: RunDir, robot: str, *, timeout: float = ANSWER_TIMEO
     no robot can have, or when the master does not answer within ``timeout`` (the request is
     then taken back, so that it never fires late).
     """
-    path = run_dir.path
-    live = schema.read_if_readable(path, Live)
-    if not master_alive(live, time.time()):
-        raise RunDirError(
-            f"no master is running {path}: the experimenter's escape reaches robots only "
-            "during a run"
-        )
-    token, target = drop_request(run_dir, robot)
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        for event in read_events(path):
-            if event.kind == EVENT_ESCAPE and event.request == token:
-                return event
-        time.sleep(_ANSWER_POLL)
-    with contextlib.suppress(FileNotFoundError):
-        target.unlink()  # not taken: it must not fire later; taken: its event comes anyway
-    raise RunDirError(f"the master running {path} did not answer within {timeout:.0f} s")
+    if not is_valid_robot_id(robot):
+        raise RunDirError(f"{robot!r} is not a robot id (letters, digits, '.', '_', '-')")
+    request = EscapeRequest(robot=robot, token=new_token(), requested_at=time.time())
+    not_running = (
+        f"no master is running {run_dir.path}: the experimenter's escape reaches robots only "
+        "during a run"
+    )
+    return desk.ask_master(
+        run_dir.path, request, EVENT_ESCAPE, timeout=timeout, not_running=not_running
+    )
 
 
 class EscapeDesk:
@@ -170,14 +146,11 @@ class EscapeDesk:
 
     async def run(self) -> None:
         """Answer requests until cancelled, one after the other in the order they came."""
-        folder = self.run_dir.path / REQUESTS
-        while True:
-            try:
-                for path in await asyncio.to_thread(pending_requests, folder, EscapeRequest):
-                    await self._take(path)
-            except Exception:  # a bug must cost one request, never the desk or the run
-                self.log.exception("the experimenter's escape: a request failed")
-            await asyncio.sleep(POLL_INTERVAL)
+        # The interval read at each look: tests shorten it.
+        await desk.serve_requests(
+            self.run_dir.path, EscapeRequest, self.handle, self.log,
+            "the experimenter's escape", lambda: POLL_INTERVAL,
+        )  # fmt: skip
 
     def on_reply(self, session: Session, msg: EscapeReply) -> None:
         """A robot's answer to an Escape; one nobody waits for (late, unasked) is ignored."""
@@ -186,26 +159,6 @@ class EscapeDesk:
             future.set_result(msg)
         else:
             self.log.debug("robot %s: an unasked escape reply ignored", session.robot_id)
-
-    async def _take(self, path: Path) -> None:
-        try:
-            raw = await asyncio.to_thread(path.read_bytes)
-            path.unlink()
-        except FileNotFoundError:
-            return  # taken back by its command, which gave up waiting
-        except OSError as exc:
-            self.log.warning("cannot take the request %s: %s", path, exc)
-            return
-        try:
-            request = schema.decode(EscapeRequest, raw, name=str(path))
-        except RunDirError as exc:
-            self.log.warning("ignored a request this master cannot read: %s", exc)
-            return
-        event = await self.handle(request)
-        try:
-            await asyncio.to_thread(append_event, self.run_dir.path, event)
-        except OSError as exc:
-            self.log.error("the experimenter's escape could not be logged: %s", exc)
 
     async def handle(self, request: EscapeRequest) -> Event:
         """Pass ``request`` on to its robot; the event that says how it went."""

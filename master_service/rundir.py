@@ -59,7 +59,6 @@ from runfiles.schema import (
     CONFIG_SNAPSHOT,
     EVALUATIONS,
     LOG,
-    REQUESTS,
     SWARM_COLUMN,
     TRACES,
     BestGenome,
@@ -69,7 +68,6 @@ from runfiles.schema import (
     PostEvaluation,
     PostRobot,
     RunDirError,
-    RunFile,
     Software,
     SoftwareRecord,
     SwarmChange,
@@ -88,8 +86,6 @@ __all__ = [
     "evaluation_header",
     "for_console",
     "format_row",
-    "pending_requests",
-    "request_path",
     "write_atomic",
     "writing",
 ]
@@ -477,32 +473,6 @@ class RunDir:
     def read_rows(self) -> list[dict[str, str]]:
         """The rows of ``evaluations.csv`` as dicts of strings (empty if there is none)."""
         return schema.read_rows(self.path)
-
-
-def request_path(run_dir: Path, kind: type[RunFile], token: str) -> Path:
-    """Where a person's request of ``kind`` with ``token`` lies for the running master:
-    ``requests/<stem>-<token>.json``, the stem ``kind.FILE``'s (``escape-request``)."""
-    stem = kind.FILE.removesuffix(".json")
-    return run_dir / REQUESTS / f"{stem}-{token}.json"
-
-
-def pending_requests(folder: Path, kind: type[RunFile]) -> list[Path]:
-    """The requests of ``kind`` waiting in ``folder``, oldest first (none when it does not
-    exist; a file being written has a ``.tmp`` name until it is whole; each desk takes only its
-    own kind's, named by :func:`request_path`)."""
-    prefix = kind.FILE.removesuffix(".json") + "-"
-    try:
-        paths = [p for p in folder.iterdir() if p.suffix == ".json" and p.name.startswith(prefix)]
-    except FileNotFoundError:
-        return []
-
-    def written(path: Path) -> tuple[float, str]:
-        try:
-            return path.stat().st_mtime, path.name
-        except OSError:  # taken back meanwhile: the desk finds it gone
-            return 0.0, path.name
-
-    return sorted(paths, key=written)
 
 
 def _trace_npz(result: Result) -> bytes:

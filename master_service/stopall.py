@@ -20,28 +20,21 @@ on; its next Evaluate is the robots' go-on.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
-import secrets
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Final
 
-from master_service.rundir import RunDir, RunDirError, pending_requests, request_path
+from master_service import desk
+from master_service.desk import new_token
+from master_service.rundir import RunDir
 from master_service.server import RobotServer, Session
 from minimize_surprise.wire import FEATURE_STOP, StopAll, Stopped, encode_payload, printable
-from runfiles import schema
 from runfiles.schema import (
     EVENT_FLEET_STOP,
-    REQUESTS,
     Event,
-    Live,
     StopRequest,
-    append_event,
-    master_alive,
-    read_events,
 )
 
 __all__ = [
@@ -66,8 +59,6 @@ POLL_INTERVAL: Final = 0.25
 #: Seconds ``fleet stop --run`` waits for the master's event: its poll and every robot's answer,
 #: with room for a busy laptop.
 STOP_ANSWER_TIMEOUT: Final = POLL_INTERVAL + STOP_REPLY_TIMEOUT + 5.0
-#: Seconds between two looks of the command into ``events.jsonl``.
-_ANSWER_POLL: Final = 0.1
 #: What the run's pause says (``pause.json``, the master's log).
 STOP_PAUSE_TEXT: Final = "stopped by `surprise-master fleet stop`: every robot's motors are stopped"
 
@@ -139,27 +130,14 @@ def request_stop(run_dir: RunDir, *, timeout: float = STOP_ANSWER_TIMEOUT) -> Ev
     """Ask the master running ``run_dir`` to stop every robot and pause; its ``fleet-stop``
     event. Raises :class:`RunDirError` when no master runs the run or none answers in time (the
     request is then taken back: a stop that fires late would pause a run nobody watches)."""
-    path = run_dir.path
-    if not master_alive(schema.read_if_readable(path, Live), time.time()):
-        raise RunDirError(
-            f"no master is running {path}: stop the fleet without --run (the command then "
-            "serves the agents itself)"
-        )
-    token = secrets.token_hex(8)
-    target = request_path(path, StopRequest, token)
-    with schema.writing(target):
-        target.parent.mkdir(exist_ok=True)
-    request = StopRequest(token=token, requested_at=time.time())
-    schema.write_atomic(target, schema.encode(request), durable=False)
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        for event in read_events(path):
-            if event.kind == EVENT_FLEET_STOP and event.request == token:
-                return event
-        time.sleep(_ANSWER_POLL)
-    with contextlib.suppress(FileNotFoundError):
-        target.unlink()
-    raise RunDirError(f"the master running {path} did not answer within {timeout:.0f} s")
+    not_running = (
+        f"no master is running {run_dir.path}: stop the fleet without --run (the command then "
+        "serves the agents itself)"
+    )
+    request = StopRequest(token=new_token(), requested_at=time.time())
+    return desk.ask_master(
+        run_dir.path, request, EVENT_FLEET_STOP, timeout=timeout, not_running=not_running
+    )
 
 
 class StopDesk:
@@ -194,34 +172,11 @@ class StopDesk:
 
     async def run(self) -> None:
         """Answer requests until cancelled, in the order they came."""
-        folder = self.run_dir.path / REQUESTS
-        while True:
-            try:
-                for path in await asyncio.to_thread(pending_requests, folder, StopRequest):
-                    await self._take(path)
-            except Exception:  # a bug must cost one request, never the desk or the run
-                self.log.exception("fleet stop: a request failed")
-            await asyncio.sleep(POLL_INTERVAL)
-
-    async def _take(self, path: Path) -> None:
-        try:
-            raw = await asyncio.to_thread(path.read_bytes)
-            path.unlink()
-        except FileNotFoundError:
-            return  # taken back by its command, which gave up waiting
-        except OSError as exc:
-            self.log.warning("cannot take the request %s: %s", path, exc)
-            return
-        try:
-            request = schema.decode(StopRequest, raw, name=str(path))
-        except RunDirError as exc:
-            self.log.warning("ignored a request this master cannot read: %s", exc)
-            return
-        event = await self.handle(request)
-        try:
-            await asyncio.to_thread(append_event, self.run_dir.path, event)
-        except OSError as exc:
-            self.log.error("the fleet stop could not be logged: %s", exc)
+        # The interval read at each look: tests shorten it.
+        await desk.serve_requests(
+            self.run_dir.path, StopRequest, self.handle, self.log, "the fleet stop",
+            lambda: POLL_INTERVAL,
+        )  # fmt: skip
 
     async def handle(self, request: StopRequest) -> Event:
         """Stop every robot connected now, pause the run; the event that says how it went."""

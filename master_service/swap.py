@@ -20,27 +20,20 @@ logged and dropped; it never reaches the run's state.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
-import secrets
 import time
 from collections.abc import Callable, Sequence
-from pathlib import Path
 from typing import Final
 
-from master_service.rundir import RunDir, RunDirError, RunState, pending_requests, request_path
+from master_service import desk
+from master_service.desk import new_token
+from master_service.rundir import RunDir, RunDirError, RunState
 from master_service.server import RobotServer
 from minimize_surprise.wire import is_valid_robot_id
-from runfiles import schema
 from runfiles.schema import (
     EVENT_SWARM_CHANGE,
-    REQUESTS,
     Event,
-    Live,
     SwapRequest,
-    append_event,
-    master_alive,
-    read_events,
 )
 
 __all__ = [
@@ -48,8 +41,8 @@ __all__ = [
     "POLL_INTERVAL",
     "SPARE_WAIT",
     "SwapDesk",
-    "drop_swap",
     "request_swap",
+    "swap_request",
 ]
 
 #: Seconds between two looks into ``requests/``: far below a person's reaction, one ``scandir``.
@@ -61,27 +54,19 @@ SPARE_WAIT: Final = 45.0
 #: Seconds the command waits for the master's answer: its poll and the wait for the spare, with
 #: room for a busy laptop and the commit that makes the new swarm durable.
 ANSWER_TIMEOUT: Final = POLL_INTERVAL + SPARE_WAIT + 10.0
-#: Seconds between two looks of the command into ``events.jsonl``.
-_ANSWER_POLL: Final = 0.1
 #: Seconds between two looks of the desk for the spare's connection.
 _SPARE_POLL: Final = 0.05
 
 
-def drop_swap(run_dir: RunDir, gone: str, spare: str) -> tuple[str, Path]:
-    """Drop a request that ``spare`` take ``gone``'s place into ``run_dir``'s ``requests/``;
-    its token and file. Raises :class:`RunDirError` for an id no robot can have."""
+def swap_request(gone: str, spare: str) -> SwapRequest:
+    """A request that ``spare`` take ``gone``'s place. Raises :class:`RunDirError` for an id no
+    robot can have, or a robot named for its own place."""
     for robot in (gone, spare):
         if not is_valid_robot_id(robot):
             raise RunDirError(f"{robot!r} is not a robot id (letters, digits, '.', '_', '-')")
     if gone == spare:
         raise RunDirError(f"{gone} cannot take its own place: name a spare")
-    token = secrets.token_hex(8)
-    request = SwapRequest(gone=gone, spare=spare, token=token, requested_at=time.time())
-    target = request_path(run_dir.path, SwapRequest, token)
-    with schema.writing(target):
-        target.parent.mkdir(exist_ok=True)
-    schema.write_atomic(target, schema.encode(request), durable=False)
-    return token, target
+    return SwapRequest(gone=gone, spare=spare, token=new_token(), requested_at=time.time())
 
 
 def request_swap(
@@ -95,23 +80,15 @@ def request_swap(
     robot can have, or when the master does not answer within ``timeout`` (the request is then
     taken back when it was not taken yet, so that it never acts late).
     """
+    request = swap_request(gone, spare)
     path = run_dir.path
-    live = schema.read_if_readable(path, Live)
-    if not master_alive(live, time.time()):
-        raise RunDirError(
-            f"no master is running {path}: a swap changes a running run's swarm; resume it "
-            f"with `surprise-master resume {path}` first"
-        )
-    token, target = drop_swap(run_dir, gone, spare)
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        for event in read_events(path):
-            if event.kind == EVENT_SWARM_CHANGE and event.request == token:
-                return event
-        time.sleep(_ANSWER_POLL)
-    with contextlib.suppress(FileNotFoundError):
-        target.unlink()
-    raise RunDirError(f"the master running {path} did not answer within {timeout:.0f} s")
+    not_running = (
+        f"no master is running {path}: a swap changes a running run's swarm; resume it "
+        f"with `surprise-master resume {path}` first"
+    )
+    return desk.ask_master(
+        path, request, EVENT_SWARM_CHANGE, timeout=timeout, not_running=not_running
+    )
 
 
 class SwapDesk:
@@ -145,34 +122,10 @@ class SwapDesk:
 
     async def run(self) -> None:
         """Answer requests until cancelled, one after the other in the order they came."""
-        folder = self.run_dir.path / REQUESTS
-        while True:
-            try:
-                for path in await asyncio.to_thread(pending_requests, folder, SwapRequest):
-                    await self._take(path)
-            except Exception:  # a bug must cost one request, never the desk or the run
-                self.log.exception("a swap request failed")
-            await asyncio.sleep(POLL_INTERVAL)
-
-    async def _take(self, path: Path) -> None:
-        try:
-            raw = await asyncio.to_thread(path.read_bytes)
-            path.unlink()
-        except FileNotFoundError:
-            return  # taken back by its command, which gave up waiting
-        except OSError as exc:
-            self.log.warning("cannot take the request %s: %s", path, exc)
-            return
-        try:
-            request = schema.decode(SwapRequest, raw, name=str(path))
-        except RunDirError as exc:
-            self.log.warning("ignored a request this master cannot read: %s", exc)
-            return
-        event = await self.handle(request)
-        try:
-            await asyncio.to_thread(append_event, self.run_dir.path, event)
-        except OSError as exc:
-            self.log.error("the swap's answer could not be logged: %s", exc)
+        await desk.serve_requests(
+            self.run_dir.path, SwapRequest, self.handle, self.log, "the swap",
+            lambda: POLL_INTERVAL,
+        )  # fmt: skip
 
     async def handle(self, request: SwapRequest) -> Event:
         """Check ``request``, wait for its spare, change the swarm; the event that says how."""
