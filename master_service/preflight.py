@@ -56,6 +56,7 @@ __all__ = [
     "SPARE_GRACE",
     "RobotCheck",
     "format_table",
+    "provision_command",
     "run_check",
     "update_command",
 ]
@@ -308,7 +309,7 @@ async def _check_one(checker: _Checker, config: MasterConfig, session: Session) 
     )
     await _measure(checker, config, session, row)
     # Last: the body's findings come first in the row, as before robots reported their commit.
-    _compare_software(row, checker.fleet)
+    _compare_software(row, checker.fleet, config.inventory)
     return row
 
 
@@ -338,9 +339,12 @@ async def _measure(
     _judge(row, report, midpoint, config)
 
 
-def _compare_software(row: RobotCheck, fleet: Inventory | None) -> None:
-    """UNFIT when the robot runs other software than the master, with the command that fixes it;
-    a note when the master cannot tell (its own commit unknown)."""
+def _compare_software(
+    row: RobotCheck, fleet: Inventory | None, inventory_file: str | None = None
+) -> None:
+    """UNFIT when the robot runs other software than the master, with the command that fixes it
+    (``inventory_file``: the fleet's file, for the playbook's command); a note when the master
+    cannot tell (its own commit unknown)."""
     version, commit = minimize_surprise.__version__, software_commit()
     differs: list[str] = []
     if row.software != version:
@@ -363,12 +367,23 @@ def _compare_software(row: RobotCheck, fleet: Inventory | None) -> None:
         return
     row.problems.append("other software than the master's: " + "; ".join(differs))
     entry = None if fleet is None else fleet.robot(row.robot)
+    if entry is not None and inventory_file is not None:
+        row.fix = provision_command(row.robot, inventory_file)
+        return
     row.fix = update_command(row.robot, None if entry is None else entry.address, commit)
 
 
+def provision_command(robot: str, inventory_file: str) -> str:
+    """The command that brings ``robot`` of a fleet in step from the laptop (docs/fleet.md): the
+    playbook, in the master's own checkout, which builds the wheels of exactly the software the
+    master runs and installs them on that robot alone."""
+    return f"in the master's checkout: deploy/ansible/provision {inventory_file} --limit {robot}"
+
+
 def update_command(robot: str, address: str | None, commit: str | None) -> str:
-    """The command that installs the master's software on ``robot`` (docs/fleet.md): its
-    checkout on the Pi at the master's commit, then ``deploy/install-pi.sh``."""
+    """The command that installs the master's software on ``robot`` without a fleet file
+    (docs/fleet.md): its checkout on the Pi at the master's commit, then
+    ``deploy/install-pi.sh``."""
     where = f"ssh {address}" if address else f"on {robot}'s Pi"
     checkout = "git pull"
     if commit is not None:
