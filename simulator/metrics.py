@@ -16,6 +16,14 @@
 * backward share: of the robots' steps that moved them (more than :data:`MOVING_ABOVE`), the share
   that moved them backwards (against their heading), over the whole recording.
 
+Three more features of the trace, which no class of the paper uses: they are for the study's
+clustering without thresholds (docs/studies.md), over the same window as c_o:
+
+* turn rate: mean absolute heading change per robot per second (robots turning opposite ways,
+  or to and fro, do not cancel, as they do in c_o);
+* still share: the share of robot-steps slower than :data:`STILL_BELOW`;
+* neighbour distance: mean over instants and robots of the distance to the nearest other robot.
+
 Classification (paper Sec. V-B, V-C): stopped if c_o < 5, circling if c_o > 55, else diverse;
 grouped if the mean cluster size exceeds 1.43, else dispersed; pushing if d_B > 0.1 m. With boxes
 (object manipulation, Sec. V-C) each run also gets one of the paper's three classes
@@ -52,6 +60,9 @@ DEFAULT_WINDOW = 500
 #: A step that moved a robot less than this (metres) did not move it: turning on the spot, or held
 #: by the safety layer. A robot at 1 cm/s moves 0.1 mm in a 10 ms step, ten times this.
 MOVING_ABOVE = 1e-5
+#: A robot slower than this (m/s) stands still for the still share: a tenth of the real robots'
+#: top speed (10.6 cm/s), above the drift of a robot that the safety layer holds.
+STILL_BELOW = 0.01
 #: Reverse driving when more than this share of the moving steps went backwards.
 REVERSE_ABOVE = 0.5
 #: The object-manipulation classes of the paper (Sec. V-C), one per run.
@@ -73,6 +84,12 @@ class BehaviourMetrics(msgspec.Struct, frozen=True, kw_only=True):
     backward_share: float | None = None
     #: with boxes, the paper's object-manipulation class of the run; None without boxes
     manipulation: Manipulation | None = None
+    #: mean absolute heading change per robot, rad/s, over the window (None: written before)
+    turn_rate: float | None = None
+    #: share of the window's robot-steps slower than :data:`STILL_BELOW`
+    still_share: float | None = None
+    #: mean distance to the nearest other robot over the window, metres (None: one robot)
+    neighbour_distance: float | None = None
 
 
 def _check(poses: np.ndarray) -> np.ndarray:
@@ -222,6 +239,7 @@ def behaviour_metrics(
     d_b = None if box_start is None or box_end is None else box_displacement(box_start, box_end)
     backward = backward_share(poses)
     motion = classify_motion(c_o)
+    recent = _window(poses, window)
     return BehaviourMetrics(
         distance_covered=distance_covered(poses),
         rotation=c_o,
@@ -233,7 +251,39 @@ def behaviour_metrics(
         window=window,
         backward_share=backward,
         manipulation=None if d_b is None else classify_manipulation(d_b, backward, motion),
+        turn_rate=turn_rate(recent, dt),
+        still_share=still_share(recent, dt),
+        neighbour_distance=neighbour_distance(recent),
     )
+
+
+def turn_rate(poses: np.ndarray, dt: float = 0.1) -> float:
+    """Mean absolute heading change per robot per second over ``poses``' steps of ``dt`` s."""
+    poses = _check(poses)
+    steps = len(poses) - 1
+    return rotation(poses, each_step=True) / (steps * dt) if steps else 0.0
+
+
+def still_share(poses: np.ndarray, dt: float = 0.1) -> float:
+    """The share of ``poses``' robot-steps (of ``dt`` s) slower than :data:`STILL_BELOW`."""
+    poses = _check(poses)
+    if len(poses) < 2:
+        return 1.0
+    speed = np.hypot(*np.diff(poses[:, :, :2], axis=0).transpose(2, 0, 1)) / dt
+    return float((speed < STILL_BELOW).mean())
+
+
+def neighbour_distance(poses: np.ndarray) -> float | None:
+    """Mean over ``poses``' instants and robots of the distance to the nearest other robot,
+    metres; None for one robot."""
+    poses = _check(poses)
+    if poses.shape[1] < 2:
+        return None
+    xy = poses[:, :, :2]
+    gaps = np.linalg.norm(xy[:, :, None, :] - xy[:, None, :, :], axis=-1)
+    robots = poses.shape[1]
+    gaps[:, np.arange(robots), np.arange(robots)] = np.inf
+    return float(gaps.min(axis=2).mean())
 
 
 def backward_share(poses: np.ndarray) -> float:

@@ -21,6 +21,7 @@ import numpy as np
 __all__ = [
     "ARENA_FEATURES",
     "MIN_RUNS",
+    "SENSOR_FEATURES",
     "Clustering",
     "cluster_behaviours",
     "clusters_figure",
@@ -29,8 +30,11 @@ __all__ = [
     "features",
 ]
 
-#: The Thymio runs' features: the metrics the paper's classes are thresholds on, and what the
-#: safety layer did (a behaviour that leans on the layer looks different from one that does not).
+#: The Thymio runs' features: the metrics the paper's classes are thresholds on, what the
+#: safety layer did (a behaviour that leans on the layer looks different from one that does not),
+#: and features of the post-evaluation's trace that no threshold uses: how fast the robots turn
+#: and how often they stand still, how close their nearest neighbour is
+#: (:mod:`simulator.metrics`), and what their sensors read on average (:data:`SENSOR_FEATURES`).
 ARENA_FEATURES: Final = (
     "rotation",
     "mean_cluster_size",
@@ -38,7 +42,14 @@ ARENA_FEATURES: Final = (
     "box_displacement",
     "backward_share",
     "safety_share",
+    "turn_rate",
+    "still_share",
+    "neighbour_distance",
 )
+#: Sensor families whose mean reading over the post-evaluation (every robot, every sensor of the
+#: family) is a feature, named ``<family>_mean``: near walls and robots the IR reads high, on the
+#: rim the ground low, among boxes the force high, near the lamp the light high.
+SENSOR_FEATURES: Final = ("ir", "ground", "force", "light")
 #: HDBSCAN's smallest cluster, in runs: with three, a class of ten runs whose metrics vary only
 #: by noise was split in two for 3 of 3 seeds (tests/studies/test_study_clusters.py's runs), with
 #: five for none. Fewer runs than :data:`MIN_RUNS` in a family are not clustered: two clusters
@@ -84,18 +95,20 @@ def features(done: Any) -> dict[str, tuple[Any, list[str]]]:
     and its columns.
 
     Arena runs, one family per scenario (the paper classes basic and object-manipulation
-    behaviours apart): :data:`ARENA_FEATURES` (a feature no run has, such as d_B without boxes,
-    is left out; a missing value counts as the feature's median). Grid runs: their nine pattern
-    scores.
+    behaviours apart): :data:`ARENA_FEATURES` and the :data:`SENSOR_FEATURES` means (a feature
+    no run has, such as d_B without boxes, is left out; a missing value counts as the feature's
+    median). Grid runs: their nine pattern scores.
     """
     import pandas as pd
 
     out: dict[str, tuple[Any, list[str]]] = {}
     if "rotation" in done:
+        done = done.assign(**_sensor_means(done))
         measured = done[done["rotation"].notna()]
         scenarios = measured["scenario"] if "scenario" in measured else ["arena"] * len(measured)
         for scenario, arena in measured.groupby(list(scenarios), sort=True):
-            columns = [c for c in ARENA_FEATURES if c in arena and arena[c].notna().any()]
+            names = [*ARENA_FEATURES, *(f"{family}_mean" for family in SENSOR_FEATURES)]
+            columns = [c for c in names if c in arena and arena[c].notna().any()]
             if columns:
                 table = arena[columns].astype(float)
                 out[str(scenario)] = (table.fillna(table.median()), columns)
@@ -108,6 +121,21 @@ def features(done: Any) -> dict[str, tuple[Any, list[str]]]:
         table = pd.DataFrame([s for _, s in grid], index=[i for i, _ in grid]).astype(float)
         out["grid"] = (table.fillna(0.0), list(table.columns))
     return out
+
+
+def _sensor_means(done: Any) -> dict[str, list[float]]:
+    # Each run's mean reading per sensor family, from its summary's post-evaluation means (NaN
+    # where the run's robots have none of the family).
+    columns: dict[str, list[float]] = {f"{family}_mean": [] for family in SENSOR_FEATURES}
+    for summary in done.get("_summary", [None] * len(done)):
+        summary = summary if isinstance(summary, dict) else {}
+        names, means = summary.get("sensors") or [], summary.get("mean_sensors") or []
+        # A summary whose lists disagree is not trusted for any family.
+        pairs = list(zip(names, means, strict=True)) if len(names) == len(means) else []
+        for family in SENSOR_FEATURES:
+            values = [v for name, v in pairs if str(name).split(".")[0] == family]
+            columns[f"{family}_mean"].append(float(np.mean(values)) if values else np.nan)
+    return columns
 
 
 def cluster_behaviours(done: Any, *, seed: int = 0) -> list[Clustering]:

@@ -108,7 +108,8 @@ def load_runs(out: str | Path):
         if behaviour:
             for key in (
                 "rotation", "mean_cluster_size", "distance_covered", "box_displacement",
-                "motion", "grouping", "pushing", "backward_share", "manipulation",
+                "motion", "grouping", "pushing", "backward_share", "manipulation", "turn_rate",
+                "still_share", "neighbour_distance",
             ):  # fmt: skip
                 row[key] = behaviour.get(key)
             row["behaviour"] = tables.behaviour_class(behaviour)

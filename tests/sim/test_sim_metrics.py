@@ -175,3 +175,22 @@ def test_clusters_of_a_large_swarm_are_those_of_its_whole_linkage_graph(robots):
         expected.append(connected_components(linked, directed=False)[0])
     assert cluster_counts(positions).tolist() == expected
     assert min(expected) < robots  # some robots were linked
+
+
+def test_the_trace_features_turn_rate_still_share_and_neighbour_distance():
+    # Two robots 0.5 m apart turning on the spot opposite ways at 1 rad/s for 10 steps of 0.1 s:
+    # c_o cancels, the turn rate does not; nobody moves, and the nearest neighbour is 0.5 m away.
+    poses = still([[0.0, 0.0], [0.5, 0.0]], steps=10)
+    poses[:, 0, 2] = np.arange(11) * 0.1
+    poses[:, 1, 2] = -np.arange(11) * 0.1
+    assert rotation(poses) == pytest.approx(0.0, abs=1e-12)
+    assert metrics.turn_rate(poses, dt=0.1) == pytest.approx(1.0)
+    assert metrics.still_share(poses, dt=0.1) == 1.0
+    assert metrics.neighbour_distance(poses) == pytest.approx(0.5)
+    # One robot drives at 5 cm/s (moving), the other stays: half the robot-steps are still.
+    poses[:, 0, 0] = np.arange(11) * 0.005
+    assert metrics.still_share(poses, dt=0.1) == pytest.approx(0.5)
+    assert metrics.neighbour_distance(still([[0.0, 0.0]])) is None
+    m = behaviour_metrics(poses, window=10, dt=0.1)
+    assert m.turn_rate == pytest.approx(1.0) and m.still_share == pytest.approx(0.5)
+    assert m.neighbour_distance == pytest.approx(np.mean(0.5 - np.arange(11) * 0.005))

@@ -92,3 +92,34 @@ def test_each_arena_scenario_is_its_own_family() -> None:
     assert set(found) == {"basic", "boxes"}
     assert "box_displacement" in found["boxes"].features
     assert "box_displacement" not in found["basic"].features
+
+
+def test_the_post_evaluation_s_sensor_readings_part_what_the_metrics_do_not() -> None:
+    # Two behaviours alike in every metric: one keeps to the walls (its IR reads high), one to
+    # the open floor. Only the trace's mean IR reading tells them apart.
+    rng = np.random.default_rng(5)
+    rows = []
+    for name, ir in (("wall-following", 0.6), ("open-floor", 0.05)):
+        for i in range(20):
+            rows.append(
+                {
+                    "run": f"{name}/seed-{i}",
+                    "scenario": "basic",
+                    "behaviour": name,
+                    "rotation": rng.normal(30.0, 1.0),
+                    "mean_cluster_size": rng.normal(1.2, 0.02),
+                    "distance_covered": rng.normal(8.0, 0.2),
+                    "_summary": {
+                        "sensors": ["ir.f0", "ir.f1", "ground.0"],
+                        "mean_sensors": [rng.normal(ir, 0.01), rng.normal(ir, 0.01), 0.4],
+                    },
+                }
+            )
+    (found,) = cluster_behaviours(pd.DataFrame(rows))
+    assert "ir_mean" in found.features and "ground_mean" not in found.features  # constant
+    # Two clusters, each of one behaviour (HDBSCAN leaves the runs at their edges as noise).
+    assert found.clusters == 2 and found.ari is not None and found.ari > 0.5
+    assert all(len(held) == 1 for label, held in found.composition.items() if label != NOISE)
+    without = pd.DataFrame(rows).assign(_summary=[{}] * len(rows))
+    (blind,) = cluster_behaviours(without)
+    assert "ir_mean" not in blind.features and (blind.ari or 0.0) < 0.1
