@@ -377,6 +377,7 @@ def evolved_summary(
     metrics = result.metrics
     post = metrics.get("post_evaluation") or {}
     sensors = post.get("sensors") or {}
+    safety = metrics.get("safety") or {}
     return {
         "scenario": experiment.scenario,
         "setting": experiment.setting,
@@ -386,6 +387,10 @@ def evolved_summary(
         "fitness": result.summary.best_fitness,
         "post_fitness": result.summary.post_evaluation_fitness,
         "behaviour": post.get("behaviour"),
+        # How much the safety layer drove, as a recorded run's summary says it (a feature of the
+        # study's clustering).
+        "safety_share": safety.get("post_evaluation_share"),
+        "evolution_safety_share": safety.get("evolution_mean_share"),
         "sensors": list(sensors),
         "mean_sensors": [v["mean_real"] for v in sensors.values()],
         "mean_predictions": [v["mean_predicted"] for v in sensors.values()],

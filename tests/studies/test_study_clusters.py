@@ -49,6 +49,7 @@ def test_separate_behaviours_are_found_and_agree_with_the_hand_set_classes() -> 
     assert found.points.shape == (30, 2) and sum(found.explained) <= 1.0
     text = clusters_markdown([found])
     assert "HDBSCAN found 3 clusters" in text and "adjusted Rand index: 1.00" in text
+    assert found.purity == 1.0 and "100% share their cluster's most common class" in text
 
 
 def test_the_same_runs_give_the_same_clusters() -> None:
@@ -62,6 +63,8 @@ def test_runs_mislabelled_by_a_threshold_lower_the_agreement() -> None:
     runs.loc[runs.index[:5], "behaviour"] = "dispersion"  # a threshold that cut circling in two
     (found,) = cluster_behaviours(runs)
     assert found.clusters == 3 and found.ari is not None and found.ari < 0.9
+    # The cut class's five runs sit in the circling cluster: it is no longer pure.
+    assert found.purity == pytest.approx(25 / 30)
 
 
 def test_too_few_runs_are_not_clustered() -> None:
@@ -94,12 +97,12 @@ def test_each_arena_scenario_is_its_own_family() -> None:
     assert "box_displacement" not in found["basic"].features
 
 
-def test_the_post_evaluation_s_sensor_readings_part_what_the_metrics_do_not() -> None:
-    # Two behaviours alike in every metric: one keeps to the walls (its IR reads high), one to
-    # the open floor. Only the trace's mean IR reading tells them apart.
+def test_the_post_evaluation_s_trace_parts_what_the_thresholds_metrics_do_not() -> None:
+    # Two behaviours alike in every metric a threshold uses: one keeps to the walls (its IR reads
+    # high, it turns more), one to the open floor. Only the trace's features tell them apart.
     rng = np.random.default_rng(5)
     rows = []
-    for name, ir in (("wall-following", 0.6), ("open-floor", 0.05)):
+    for name, ir, turn in (("wall-following", 0.6, 0.8), ("open-floor", 0.05, 0.3)):
         for i in range(20):
             rows.append(
                 {
@@ -109,6 +112,7 @@ def test_the_post_evaluation_s_sensor_readings_part_what_the_metrics_do_not() ->
                     "rotation": rng.normal(30.0, 1.0),
                     "mean_cluster_size": rng.normal(1.2, 0.02),
                     "distance_covered": rng.normal(8.0, 0.2),
+                    "turn_rate": rng.normal(turn, 0.02),
                     "_summary": {
                         "sensors": ["ir.f0", "ir.f1", "ground.0"],
                         "mean_sensors": [rng.normal(ir, 0.01), rng.normal(ir, 0.01), 0.4],
@@ -116,10 +120,12 @@ def test_the_post_evaluation_s_sensor_readings_part_what_the_metrics_do_not() ->
                 }
             )
     (found,) = cluster_behaviours(pd.DataFrame(rows))
-    assert "ir_mean" in found.features and "ground_mean" not in found.features  # constant
+    assert {"ir_mean", "turn_rate"} <= set(found.features)
+    assert "ground_mean" not in found.features  # the same for all: carries nothing
     # Two clusters, each of one behaviour (HDBSCAN leaves the runs at their edges as noise).
-    assert found.clusters == 2 and found.ari is not None and found.ari > 0.5
-    assert all(len(held) == 1 for label, held in found.composition.items() if label != NOISE)
-    without = pd.DataFrame(rows).assign(_summary=[{}] * len(rows))
-    (blind,) = cluster_behaviours(without)
-    assert "ir_mean" not in blind.features and (blind.ari or 0.0) < 0.1
+    pure = [held for label, held in found.composition.items() if label != NOISE]
+    assert found.clusters == 2 and all(len(held) == 1 for held in pure)
+    assert found.ari is not None and found.ari > 0.8
+    blind = pd.DataFrame(rows).drop(columns="turn_rate").assign(_summary=[{}] * len(rows))
+    (metrics_only,) = cluster_behaviours(blind)
+    assert (metrics_only.ari or 0.0) < 0.1
