@@ -72,6 +72,12 @@ class ThymioConfig(Strict, frozen=True):
     #: motor units for a normalised speed of 1.0 (265: 10.6 cm/s, the paper's real robots);
     #: calibrate per robot
     speed_scale: Annotated[float, msgspec.Meta(gt=0.0, le=MAX_MOTOR_TARGET)] = SPEED_SCALE
+    #: the left wheel's real speed per commanded speed, as ``surprise-master calibrate``
+    #: measured it (docs/fleet.md): its targets are divided by it, so both wheels drive at
+    #: the speed the network asked for
+    wheel_left: Annotated[float, msgspec.Meta(gt=0.5, le=2.0)] = 1.0
+    #: the right wheel's, likewise
+    wheel_right: Annotated[float, msgspec.Meta(gt=0.5, le=2.0)] = 1.0
     #: motor targets are clamped to plus or minus this many units
     max_target: Annotated[int, msgspec.Meta(ge=1, le=MAX_MOTOR_TARGET)] = MAX_MOTOR_TARGET
     #: load the Aseba failsafe program, which stops the motors when the host stops commanding

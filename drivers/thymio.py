@@ -158,14 +158,15 @@ class ThymioBase:
         return self._failsafe_active
 
     def targets(self, left: float, right: float) -> tuple[int, int]:
-        """Motor targets for normalised speeds: clamp to [-1, 1] (NaN is 0), scale, round, clamp."""
+        """Motor targets for normalised speeds: clamp to [-1, 1] (NaN is 0), scale (by
+        ``speed_scale`` over the wheel's calibrated scale), round, clamp."""
         limit = self.config.max_target
 
-        def one(value: float) -> int:
-            target = round(clamp_unit(value) * self.config.speed_scale)
+        def one(value: float, wheel: float) -> int:
+            target = round(clamp_unit(value) * self.config.speed_scale / wheel)
             return max(-limit, min(limit, target))
 
-        return one(left), one(right)
+        return one(left, self.config.wheel_left), one(right, self.config.wheel_right)
 
     # -- lifecycle ---------------------------------------------------------------------------------
 

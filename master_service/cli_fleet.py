@@ -1,5 +1,6 @@
-"""``surprise-master fleet status | stop | logs | inventory`` (docs/fleet.md): the parser and the
-handlers (``inventory``'s in :mod:`master_service.fleet_hosts`).
+"""``surprise-master fleet status | stop | logs | inventory`` and ``surprise-master calibrate``
+(docs/fleet.md): the parsers and the handlers (``inventory``'s in
+:mod:`master_service.fleet_hosts`, calibrate's measuring in :mod:`master_service.calibrate`).
 
 ``status`` and ``stop`` reach the agents over their own protocol (:mod:`master_service.fleet`),
 listening where the master file says; ``stop --run DIR`` goes through the master running that
@@ -18,7 +19,7 @@ import subprocess
 import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Final
+from typing import Any, Final
 
 from master_service.config import MasterConfig, load_master_config, required_secret
 from master_service.fleet import CONNECT_TIMEOUT, fleet_status, fleet_stop, format_status
@@ -32,6 +33,7 @@ __all__ = [
     "JOURNAL_UNITS",
     "SSH_TIMEOUT",
     "add_fleet_parser",
+    "calibrate_command",
     "fleet_logs",
     "journal_command",
 ]
@@ -114,6 +116,41 @@ def add_fleet_parser(sub: argparse._SubParsersAction) -> None:
     )
     inventory.add_argument("file", type=Path, metavar="FLEET", help="the fleet file")
     inventory.set_defaults(handler=fleet_inventory_command)
+
+    calibrate = sub.add_parser(
+        "calibrate",
+        help="measure one robot's floor, rim and wheels into the inventory",
+        description="Measure ROBOT's ground readings on the arena's floor and rim (the safety "
+        "layer's threshold between them) and, with --video, its wheels' real speeds from an "
+        "overhead camera's film of a straight drive; write them into its inventory entry. "
+        "The command says each step and waits for Enter (docs/fleet.md).",
+    )
+    calibrate.add_argument("robot", metavar="ROBOT", help="the robot's name in the inventory")
+    where(calibrate)
+    calibrate.add_argument(
+        "--skip-ground", action="store_true", help="do not measure the floor and the rim"
+    )
+    calibrate.add_argument(
+        "--video",
+        type=Path,
+        metavar="FILE",
+        help="measure the wheels: the video the camera saves of the drive (the command asks "
+        "you to start and stop filming)",
+    )
+    calibrate.add_argument(
+        "--tracking",
+        type=Path,
+        metavar="FILE",
+        help="the tracker's configuration (floor, corner markers, camera; docs/tracking.md)",
+    )
+    calibrate.add_argument(
+        "--timeout",
+        type=float,
+        default=CONNECT_TIMEOUT,
+        metavar="S",
+        help=f"seconds to wait for the robot's agent (default: {CONNECT_TIMEOUT:g})",
+    )
+    calibrate.set_defaults(handler=calibrate_command)
 
 
 def _config(args: argparse.Namespace) -> MasterConfig:
@@ -233,3 +270,63 @@ def logs_command(args: argparse.Namespace) -> int:
         else:
             print(f"{robot}: not gathered: {why}", file=sys.stderr)
     return 0 if all(why is None for why in outcome.values()) else 1
+
+
+def calibrate_command(args: argparse.Namespace, ask: Any = None) -> int:
+    """``surprise-master calibrate``: 0 when the calibration was measured and written. ``ask``:
+    how each step waits for the person (default: Enter on the terminal)."""
+    from master_service.calibrate import calibrate_robot, format_measured
+    from master_service.calibration import write_calibration
+
+    config = _config(args)
+    secret = required_secret(config, args.config)
+    path = args.inventory if args.inventory is not None else config.inventory
+    if path is None:
+        raise RunDirError("--inventory FILE (or a master file naming one) lists the robots")
+    fleet = load_inventory(path)
+    if args.skip_ground and args.video is None:
+        raise RunDirError("nothing to measure: --skip-ground and no --video")
+    wheels = None if args.video is None else _tracked_drive(args, fleet)
+
+    async def enter(text: str) -> None:
+        await asyncio.to_thread(input, f"{text}; then press Enter ")
+
+    print(f"waiting up to {args.timeout:.0f} s for {args.robot}'s agent", flush=True)
+    measured = asyncio.run(
+        calibrate_robot(
+            config,
+            secret,
+            fleet,
+            args.robot,
+            ask=enter if ask is None else ask,
+            ground=not args.skip_ground,
+            wheels=wheels,
+            timeout=args.timeout,
+        )
+    )
+    write_calibration(
+        path,
+        args.robot,
+        ground_floor=measured.ground_floor,
+        ground_rim=measured.ground_rim,
+        wheels=measured.wheels,
+    )
+    print(format_measured(measured, Path(path)))
+    return 0
+
+
+def _tracked_drive(args: argparse.Namespace, fleet: Inventory) -> Any:
+    # What follows the robot's marker in the saved video, from the drive's start flash on.
+    import msgspec
+
+    from master_service.calibrate import DRIVE_SECONDS
+    from tracking.config import load_tracking_config
+    from tracking.video import track_video
+
+    entry = fleet.robot(args.robot)
+    if entry is None or entry.marker is None:
+        raise RunDirError(f"{args.robot} has no `marker` in the inventory: the camera needs it")
+    config = load_tracking_config(args.tracking)
+    robots = msgspec.structs.replace(config.robots, ids={args.robot: entry.marker})
+    config = msgspec.structs.replace(config, robots=robots)
+    return lambda: track_video(str(args.video), config, duration=DRIVE_SECONDS)

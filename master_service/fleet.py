@@ -40,6 +40,9 @@ from minimize_surprise.wire import (
     REFUSED_UNKNOWN_ROBOT,
     Check,
     CheckReport,
+    Evaluate,
+    Failed,
+    Result,
     Stopped,
     encode_payload,
 )
@@ -47,6 +50,7 @@ from minimize_surprise.wire import (
 __all__ = [
     "CHECK_TIMEOUT",
     "CONNECT_TIMEOUT",
+    "FleetServer",
     "StatusRow",
     "fleet_status",
     "fleet_stop",
@@ -133,8 +137,10 @@ class StatusRow:
 # The fleet command's own server (no run going)
 
 
-class _FleetServer:
-    """Listens where the master would and asks each agent that connects (``on_session``)."""
+class FleetServer:
+    """Listens where the master would and asks each agent that connects (``on_session``): the
+    server of every command that talks to the fleet's agents without a run (``fleet status``,
+    ``fleet stop``, ``calibrate``)."""
 
     def __init__(
         self,
@@ -153,6 +159,7 @@ class _FleetServer:
         self.stopper: Stopper | None = None
         self.joined = asyncio.Event()
         self._reports: dict[tuple[str, int], asyncio.Future[CheckReport]] = {}
+        self._results: dict[tuple[str, int], asyncio.Future[Result | Failed]] = {}
         self._seq = 0
         self.server = RobotServer(
             host=config.host,
@@ -190,6 +197,26 @@ class _FleetServer:
             future = self._reports.get((session.robot_id, msg.seq))
             if future is not None and not future.done():
                 future.set_result(msg)
+        elif isinstance(msg, Result | Failed):
+            waiting = self._results.get((session.robot_id, msg.evaluation_id))
+            if waiting is not None and not waiting.done():
+                waiting.set_result(msg)
+
+    async def evaluate(self, session: Session, msg: Evaluate, timeout: float) -> Result | Failed:
+        """Send ``msg`` to the session's agent and wait ``timeout`` seconds for its answer (the
+        calibration's drive); a lost connection or no answer is a ``Failed`` saying so."""
+        key = (session.robot_id, msg.evaluation_id)
+        future: asyncio.Future[Result | Failed] = asyncio.get_running_loop().create_future()
+        self._results[key] = future
+        try:
+            if self.server.send([session.robot_id], encode_payload(msg)):
+                return Failed(evaluation_id=msg.evaluation_id, reason="the connection was lost")
+            async with asyncio.timeout(timeout):
+                return await future
+        except TimeoutError:
+            return Failed(evaluation_id=msg.evaluation_id, reason=f"no answer within {timeout:g} s")
+        finally:
+            del self._results[key]
 
     async def check(self, session: Session) -> tuple[CheckReport, float] | None:
         """The agent's check report and the laptop's wall-clock midpoint of the exchange."""
@@ -292,7 +319,7 @@ async def fleet_status(
         finally:
             answered.add(session.robot_id)
 
-    fleet_server = _FleetServer(config, secret, robots, log, on_session=ask, purpose="status")
+    fleet_server = FleetServer(config, secret, robots, log, on_session=ask, purpose="status")
     for robot in fleet.robots if fleet is not None else ():
         rows[robot.name] = StatusRow(
             robot.name, robot.address, enabled=robot.enabled, spare=robot.spare
@@ -333,7 +360,7 @@ async def fleet_stop(
         elif session.robot_id not in outcome.confirmed:
             outcome.unanswered[session.robot_id] = why
 
-    fleet_server = _FleetServer(config, secret, robots, log, on_session=stop, purpose="stop")
+    fleet_server = FleetServer(config, secret, robots, log, on_session=stop, purpose="stop")
     fleet_server.stopper = Stopper(fleet_server.server, log, "surprise-master fleet stop")
 
     def done() -> bool:

@@ -331,6 +331,9 @@ class SimBody(Body):
         self._clock: Clock = swarm.clock if swarm.realtime else LockstepClock(swarm, index)
         #: the robot's battery; None: it reports none, as Aseba Playground's Thymio
         self.battery: SimBattery | None = None
+        #: each wheel's real speed per commanded speed (left, right): a real robot's motors differ
+        #: by a few per cent (``surprise-master calibrate`` measures it; docs/fleet.md)
+        self.wheel_scale: tuple[float, float] = (1.0, 1.0)
 
     @property
     def sensors(self) -> tuple[str, ...]:
@@ -375,7 +378,10 @@ class SimBody(Body):
         """Set the wheel speeds for this step, normalised to [-1, 1] (clamped; NaN is 0)."""
         if self.battery is not None:
             self.battery.step()
-        self._swarm.submit(self._index, clamp_unit(left), clamp_unit(right))
+        scale_left, scale_right = self.wheel_scale
+        self._swarm.submit(
+            self._index, clamp_unit(left) * scale_left, clamp_unit(right) * scale_right
+        )
 
     async def stop(self) -> None:
         """Set both wheel speeds to zero; counts as this step's command."""

@@ -76,6 +76,15 @@ def test_targets_default_calibration(left: float, right: float, expected: tuple[
     assert ThymioBase(ThymioConfig()).targets(left, right) == expected
 
 
+def test_a_calibrated_slow_wheel_gets_the_larger_target():
+    # The right wheel drives at 95 % of its command (surprise-master calibrate): its target is
+    # raised so that both wheels drive at the speed asked for; the clamp still holds.
+    thymio = ThymioBase(ThymioConfig(wheel_right=0.95))
+    assert thymio.targets(0.5, 0.5) == (132, round(0.5 * 265 / 0.95))
+    assert thymio.targets(1.0, 1.0) == (265, round(265 / 0.95))
+    assert ThymioBase(ThymioConfig(wheel_right=0.5 + 1e-9, max_target=400)).targets(1, 1)[1] == 400
+
+
 def test_targets_clamp_to_max_target():
     thymio = ThymioBase(ThymioConfig(speed_scale=500, max_target=400))
     assert thymio.targets(1.0, -0.5) == (400, -250)
