@@ -1,7 +1,8 @@
 """``surprise-master calibrate ROBOT`` (docs/fleet.md, "Calibration"): one robot's floor, rim and
 wheels measured through its agent, and written into its entry of the inventory.
 
-The command listens where the master would (:class:`~master_service.fleet.FleetServer`) and
+The command listens where the master would (:class:`~master_service.agent_server.AgentServer`)
+and
 waits for the robot's agent. Then, each step started by the person (``ask`` returns when they
 are ready; the terminal's Enter):
 
@@ -29,6 +30,7 @@ from typing import Any, Final, Literal
 
 import numpy as np
 
+from master_service.agent_server import AgentServer
 from master_service.calibration import (
     CalibrationError,
     drive_speeds,
@@ -36,7 +38,6 @@ from master_service.calibration import (
     wheel_scales,
 )
 from master_service.config import MasterConfig
-from master_service.fleet import CONNECT_TIMEOUT, FleetServer
 from master_service.inventory import Inventory
 from master_service.server import Session
 from minimize_surprise.errors import ConfigError
@@ -44,6 +45,7 @@ from minimize_surprise.network import GenomeLayout, NetworkSpec
 from minimize_surprise.wire import Evaluate, Failed, genome_to_bytes
 
 __all__ = [
+    "CONNECT_TIMEOUT",
     "DRIVE_COMMAND",
     "DRIVE_SECONDS",
     "GROUND_READS",
@@ -63,6 +65,9 @@ DRIVE_COMMAND: Final = 0.5
 DRIVE_SECONDS: Final = 5.0
 #: The drive's control period, the real robots' 10 Hz.
 DRIVE_PERIOD: Final = 0.1
+#: Seconds to wait for the robot's agent: one that found no master backs off up to 30 s between
+#: tries (``reconnect.max``), so it comes within this.
+CONNECT_TIMEOUT: Final = 40.0
 #: Seconds the agent gets beyond the drive to answer (a slow Wi-Fi, the trace's bytes).
 ANSWER_MARGIN: Final = 15.0
 
@@ -143,7 +148,10 @@ async def calibrate_robot(
         finally:
             finished.append(True)
 
-    server = FleetServer(config, secret, [robot], log, on_session=work, purpose="calibrate")
+    def admit(robot_id: str) -> str | None:
+        return None if robot_id == robot else f"only {robot} is being calibrated"
+
+    server = AgentServer(config, secret, log, admit=admit, purpose="calibrate", on_session=work)
     await server.serve(lambda: bool(finished), timeout, on_listening)
     if failure:
         raise failure[0]
@@ -155,7 +163,7 @@ async def calibrate_robot(
     return measured
 
 
-async def _ground(server: FleetServer, session: Session) -> tuple[tuple[float, float], str]:
+async def _ground(server: AgentServer, session: Session) -> tuple[tuple[float, float], str]:
     # The median of GROUND_READS reports' ground readings, and the agent's ground rule.
     readings: list[list[float]] = []
     rule = ""
@@ -180,7 +188,7 @@ async def _ground(server: FleetServer, session: Session) -> tuple[tuple[float, f
 
 
 async def _drive(
-    server: FleetServer,
+    server: AgentServer,
     session: Session,
     measured: Measured,
     ask: Ask,
@@ -203,6 +211,10 @@ async def _drive(
         post_evaluation=True,  # the start flash, for the tracker
     )
     answer = await server.evaluate(session, message, DRIVE_SECONDS + ANSWER_MARGIN)
+    if answer is None:
+        raise CalibrationError(
+            f"{robot}'s drive got no answer within {DRIVE_SECONDS + ANSWER_MARGIN:g} s"
+        )
     if isinstance(answer, Failed):
         raise CalibrationError(f"{robot}'s drive failed: {answer.reason}")
     held = [] if answer.trace is None else [i for i, r in enumerate(answer.trace.safety) if r]

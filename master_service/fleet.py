@@ -22,35 +22,20 @@ nothing, and its Stopped is the confirmation. With a run going, the stop goes th
 
 from __future__ import annotations
 
-import asyncio
-import contextlib
-import errno
 import logging
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Final
 
+from master_service.agent_server import CHECK_TIMEOUT, AgentServer
 from master_service.config import MasterConfig
 from master_service.inventory import Inventory
-from master_service.rundir import RunDirError
-from master_service.server import Answer, RobotServer, Session
-from master_service.stopall import POLL_INTERVAL, StopOutcome, Stopper
-from minimize_surprise.wire import (
-    REFUSED_UNKNOWN_ROBOT,
-    Check,
-    CheckReport,
-    Evaluate,
-    Failed,
-    Result,
-    Stopped,
-    encode_payload,
-)
+from master_service.server import Session
+from master_service.stopall import StopOutcome, Stopper
 
 __all__ = [
     "CHECK_TIMEOUT",
     "CONNECT_TIMEOUT",
-    "FleetServer",
     "StatusRow",
     "fleet_status",
     "fleet_stop",
@@ -61,9 +46,6 @@ __all__ = [
 #: Seconds to wait for the agents to connect: an agent that found no master backs off up to 30 s
 #: between tries (``reconnect.max``), so one that has waited long still comes within this.
 CONNECT_TIMEOUT: Final = 40.0
-#: Seconds an agent has to answer a status check: its parts answer within 2 s each (read at once),
-#: the battery and ``vcgencmd`` within 2 s more each.
-CHECK_TIMEOUT: Final = 10.0
 #: Characters of a commit shown in the status table.
 _SHORT_COMMIT: Final = 10
 #: The Pi's ``get_throttled`` bits and what they say (the firmware's documentation).
@@ -133,142 +115,15 @@ class StatusRow:
         }
 
 
-@dataclass
-# The fleet command's own server (no run going)
+def _admit(robots: Sequence[str]) -> Callable[[str], str | None]:
+    """Admit ``robots`` (none: any robot)."""
 
-
-class FleetServer:
-    """Listens where the master would and asks each agent that connects (``on_session``): the
-    server of every command that talks to the fleet's agents without a run (``fleet status``,
-    ``fleet stop``, ``calibrate``)."""
-
-    def __init__(
-        self,
-        config: MasterConfig,
-        secret: bytes,
-        robots: Sequence[str],
-        log: logging.Logger,
-        *,
-        on_session: Callable[[Session], Any],
-        purpose: str,
-    ) -> None:
-        self.robots = list(robots)
-        self.log = log
-        self._on_session = on_session
-        self._tasks: set[asyncio.Task[None]] = set()
-        self.stopper: Stopper | None = None
-        self.joined = asyncio.Event()
-        self._reports: dict[tuple[str, int], asyncio.Future[CheckReport]] = {}
-        self._results: dict[tuple[str, int], asyncio.Future[Result | Failed]] = {}
-        self._seq = 0
-        self.server = RobotServer(
-            host=config.host,
-            port=config.port,
-            secret=secret,
-            sensors=(),  # a robot lacking a sensor is still a robot of the fleet
-            run_id=f"fleet-{purpose}-{time.strftime('%Y%m%d-%H%M%S')}",
-            heartbeat_interval=config.heartbeat_interval,
-            handshake_timeout=config.handshake_timeout,
-            max_pending_connections=config.max_pending_connections,
-            max_frame_size=config.max_frame_size,
-            ssl_context=None if config.tls is None else _ssl(config),
-            admit=self._admit,
-            on_join=self._join,
-            on_leave=lambda session, reason: None,
-            on_message=self._on_message,
-            logger=log,
-        )
-
-    def _admit(self, robot_id: str) -> tuple[str, str] | None:
-        if self.robots and robot_id not in self.robots:
-            return REFUSED_UNKNOWN_ROBOT, f"{robot_id} is not an enabled robot of the fleet"
+    def admit(robot_id: str) -> str | None:
+        if robots and robot_id not in robots:
+            return f"{robot_id} is not an enabled robot of the fleet"
         return None
 
-    def _join(self, session: Session) -> None:
-        task = asyncio.create_task(self._on_session(session), name=f"fleet-{session.robot_id}")
-        self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
-        self.joined.set()
-
-    def _on_message(self, session: Session, msg: Answer) -> None:
-        if isinstance(msg, Stopped) and self.stopper is not None:
-            self.stopper.on_reply(session, msg)
-        elif isinstance(msg, CheckReport):
-            future = self._reports.get((session.robot_id, msg.seq))
-            if future is not None and not future.done():
-                future.set_result(msg)
-        elif isinstance(msg, Result | Failed):
-            waiting = self._results.get((session.robot_id, msg.evaluation_id))
-            if waiting is not None and not waiting.done():
-                waiting.set_result(msg)
-
-    async def evaluate(self, session: Session, msg: Evaluate, timeout: float) -> Result | Failed:
-        """Send ``msg`` to the session's agent and wait ``timeout`` seconds for its answer (the
-        calibration's drive); a lost connection or no answer is a ``Failed`` saying so."""
-        key = (session.robot_id, msg.evaluation_id)
-        future: asyncio.Future[Result | Failed] = asyncio.get_running_loop().create_future()
-        self._results[key] = future
-        try:
-            if self.server.send([session.robot_id], encode_payload(msg)):
-                return Failed(evaluation_id=msg.evaluation_id, reason="the connection was lost")
-            async with asyncio.timeout(timeout):
-                return await future
-        except TimeoutError:
-            return Failed(evaluation_id=msg.evaluation_id, reason=f"no answer within {timeout:g} s")
-        finally:
-            del self._results[key]
-
-    async def check(self, session: Session) -> tuple[CheckReport, float] | None:
-        """The agent's check report and the laptop's wall-clock midpoint of the exchange."""
-        self._seq += 1
-        key = (session.robot_id, self._seq)
-        future: asyncio.Future[CheckReport] = asyncio.get_running_loop().create_future()
-        self._reports[key] = future
-        sent = time.time()
-        try:
-            if self.server.send([session.robot_id], encode_payload(Check(seq=self._seq))):
-                return None
-            async with asyncio.timeout(CHECK_TIMEOUT):
-                report = await future
-        except TimeoutError:
-            return None
-        finally:
-            del self._reports[key]
-        return report, (sent + time.time()) / 2
-
-    async def serve(
-        self, done: Callable[[], bool], timeout: float, on_listening: Any = None
-    ) -> None:
-        """Listen until ``done()`` or ``timeout`` seconds, then let the asked finish and close."""
-        try:
-            await self.server.bind()
-        except OSError as exc:
-            if exc.errno == errno.EADDRINUSE:
-                raise RunDirError(
-                    f"{self.server.host}:{self.server.requested_port} is taken: is a run "
-                    "going? Its master holds the robots: `surprise-master fleet stop --run "
-                    "RUN_DIR` stops them through it, `surprise-master status RUN_DIR` shows them"
-                ) from exc
-            raise
-        await self.server.start_serving()
-        try:
-            if on_listening is not None:
-                on_listening(self.server.port)
-            deadline = time.monotonic() + timeout
-            while not done():
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    break
-                self.joined.clear()
-                with contextlib.suppress(TimeoutError):
-                    async with asyncio.timeout(min(left, POLL_INTERVAL)):
-                        await self.joined.wait()
-            if self._tasks:
-                await asyncio.wait(set(self._tasks))
-        finally:
-            for task in self._tasks:
-                task.cancel()
-            await self.server.close("fleet command done")
+    return admit
 
 
 def _fleet_robots(config: MasterConfig, fleet: Inventory | None) -> list[str]:
@@ -319,7 +174,9 @@ async def fleet_status(
         finally:
             answered.add(session.robot_id)
 
-    fleet_server = FleetServer(config, secret, robots, log, on_session=ask, purpose="status")
+    fleet_server = AgentServer(
+        config, secret, log, admit=_admit(robots), purpose="fleet-status", on_session=ask
+    )
     for robot in fleet.robots if fleet is not None else ():
         rows[robot.name] = StatusRow(
             robot.name, robot.address, enabled=robot.enabled, spare=robot.spare
@@ -360,7 +217,9 @@ async def fleet_stop(
         elif session.robot_id not in outcome.confirmed:
             outcome.unanswered[session.robot_id] = why
 
-    fleet_server = FleetServer(config, secret, robots, log, on_session=stop, purpose="stop")
+    fleet_server = AgentServer(
+        config, secret, log, admit=_admit(robots), purpose="fleet-stop", on_session=stop
+    )
     fleet_server.stopper = Stopper(fleet_server.server, log, "surprise-master fleet stop")
 
     def done() -> bool:
@@ -422,10 +281,3 @@ def _software(row: StatusRow) -> str:
         return "-"
     commit = "commit ?" if row.commit is None else row.commit[:_SHORT_COMMIT]
     return f"{row.software} {commit}" + ("-dirty" if (row.commit or "").endswith("-dirty") else "")
-
-
-def _ssl(config: MasterConfig) -> Any:
-    from master_service.config import build_ssl_context
-
-    assert config.tls is not None
-    return build_ssl_context(config.tls)

@@ -24,28 +24,20 @@ a spare that has not come with the swarm :data:`SPARE_GRACE` seconds more.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import math
 import statistics
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Final
 
 import minimize_surprise
+from master_service.agent_server import CHECK_TIMEOUT, AgentServer
 from master_service.config import MasterConfig, inventory_of
 from master_service.inventory import Inventory
-from master_service.server import Answer, RobotServer, Session
+from master_service.server import Session
 from minimize_surprise.provenance import DIRTY, software_commit
-from minimize_surprise.wire import (
-    REFUSED_UNKNOWN_ROBOT,
-    Check,
-    CheckReport,
-    Ping,
-    Pong,
-    encode_payload,
-)
+from minimize_surprise.wire import CheckReport
 
 __all__ = [
     "CHECK_TIMEOUT",
@@ -64,13 +56,8 @@ __all__ = [
 #: Seconds to wait for the robots to connect: an agent that found no master backs off up to 30 s
 #: between tries (``reconnect.max``), so one that has waited long still comes within this.
 CONNECT_TIMEOUT: Final = 40.0
-#: Seconds a robot gets to answer its check: its parts answer within 2 s each (read at once), the
-#: battery within 2 s more.
-CHECK_TIMEOUT: Final = 10.0
 #: Pings per robot for the round trip; the median is reported.
 PINGS: Final = 3
-#: Seconds a ping may take before it counts as lost.
-PING_TIMEOUT: Final = 2.0
 #: A round trip above this is noted: the control loop runs on the robot, but a run's rounds wait
 #: for the slowest link, and Wi-Fi that slow tends to drop.
 RTT_NOTE: Final = 0.1
@@ -134,110 +121,6 @@ class RobotCheck:
         }
 
 
-class _Checker:
-    """The server side of one check: sessions, pings and reports by robot."""
-
-    def __init__(
-        self,
-        config: MasterConfig,
-        secret: bytes,
-        log: logging.Logger,
-        fleet: Inventory | None = None,
-    ) -> None:
-        self.config = config
-        self.log = log
-        self.fleet = fleet
-        #: robots admitted besides ``allowed_robots``: the inventory's spares
-        self.spares = [] if fleet is None else fleet.spares
-        self.joined = asyncio.Event()
-        self._pongs: dict[tuple[str, int], asyncio.Future[float]] = {}
-        self._reports: dict[tuple[str, int], asyncio.Future[CheckReport]] = {}
-        self.server = RobotServer(
-            host=config.host,
-            port=config.port,
-            secret=secret,
-            sensors=(),  # a robot lacking a sensor is reported, not refused unseen
-            run_id=f"check-{time.strftime('%Y%m%d-%H%M%S')}",
-            heartbeat_interval=config.heartbeat_interval,
-            handshake_timeout=config.handshake_timeout,
-            max_pending_connections=config.max_pending_connections,
-            max_frame_size=config.max_frame_size,
-            ssl_context=None if config.tls is None else _ssl(config),
-            admit=self._admit,
-            on_join=lambda session: self.joined.set(),
-            on_leave=lambda session, reason: None,
-            on_message=self._on_message,
-            on_pong=self._on_pong,
-            logger=log,
-        )
-
-    def _admit(self, robot_id: str) -> tuple[str, str] | None:
-        allowed = self.config.allowed_robots
-        if allowed and robot_id not in allowed and robot_id not in self.spares:
-            return REFUSED_UNKNOWN_ROBOT, f"{robot_id} is not among the allowed robots"
-        return None
-
-    def _on_message(self, session: Session, msg: Answer) -> None:
-        if isinstance(msg, CheckReport):
-            future = self._reports.get((session.robot_id, msg.seq))
-            if future is not None and not future.done():
-                future.set_result(msg)
-
-    def _on_pong(self, session: Session, pong: Pong) -> None:
-        future = self._pongs.get((session.robot_id, pong.seq))
-        if future is not None and not future.done():
-            future.set_result(time.monotonic())
-
-    async def wait_for_robots(self, expected: Sequence[str] | int, timeout: float) -> None:
-        """Until every expected robot (ids, or a count of any) is connected, or ``timeout``."""
-        deadline = time.monotonic() + timeout
-        while not self._complete(expected):
-            left = deadline - time.monotonic()
-            if left <= 0:
-                return
-            self.joined.clear()
-            with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(left):
-                    await self.joined.wait()
-
-    def _complete(self, expected: Sequence[str] | int) -> bool:
-        sessions = self.server.sessions
-        if isinstance(expected, int):
-            return len(sessions) >= expected
-        return all(robot in sessions for robot in expected)
-
-    async def round_trip(self, session: Session, seq: int) -> float | None:
-        """One ping's round trip in seconds, None when it got lost."""
-        loop = asyncio.get_running_loop()
-        future: asyncio.Future[float] = loop.create_future()
-        self._pongs[(session.robot_id, seq)] = future
-        sent = time.monotonic()
-        self.server.send([session.robot_id], encode_payload(Ping(seq=seq)))
-        try:
-            async with asyncio.timeout(PING_TIMEOUT):
-                return await future - sent
-        except TimeoutError:
-            return None
-        finally:
-            del self._pongs[(session.robot_id, seq)]
-
-    async def report(self, session: Session, seq: int) -> tuple[CheckReport, float] | None:
-        """The robot's report and the master's wall-clock midpoint of the exchange."""
-        loop = asyncio.get_running_loop()
-        future: asyncio.Future[CheckReport] = loop.create_future()
-        self._reports[(session.robot_id, seq)] = future
-        sent = time.time()
-        self.server.send([session.robot_id], encode_payload(Check(seq=seq)))
-        try:
-            async with asyncio.timeout(CHECK_TIMEOUT):
-                report = await future
-        except TimeoutError:
-            return None
-        finally:
-            del self._reports[(session.robot_id, seq)]
-        return report, (sent + time.time()) / 2
-
-
 async def run_check(
     config: MasterConfig,
     secret: bytes,
@@ -253,24 +136,33 @@ async def run_check(
     """
     assert config.experiment is not None, "the experiment must be loaded"
     log = log if log is not None else logging.getLogger("master_service.preflight")
-    checker = _Checker(config, secret, log, inventory_of(config))
+    fleet = inventory_of(config)
+    # Robots admitted besides ``allowed_robots``: the inventory's spares.
+    spares = [] if fleet is None else fleet.spares
+
+    def admit(robot_id: str) -> str | None:
+        allowed = config.allowed_robots
+        if allowed and robot_id not in allowed and robot_id not in spares:
+            return f"{robot_id} is not among the allowed robots"
+        return None
+
+    checker = AgentServer(config, secret, log, admit=admit, purpose="check")
     expected: Sequence[str] | int = list(config.allowed_robots) or config.robot_count
-    await checker.server.bind()
-    await checker.server.start_serving()
+    await checker.start()
     try:
         if on_listening is not None:
             on_listening(checker.server.port)
         await checker.wait_for_robots(expected, timeout)
-        if checker.spares:
-            await checker.wait_for_robots(checker.spares, SPARE_GRACE)
+        if spares:
+            await checker.wait_for_robots(spares, SPARE_GRACE)
         sessions = dict(checker.server.sessions)
         rows = await asyncio.gather(
-            *(_check_one(checker, config, session) for session in sessions.values())
+            *(_check_one(checker, config, fleet, session) for session in sessions.values())
         )
     finally:
-        await checker.server.close("check done")
+        await checker.close("check done")
     by_robot = {row.robot: row for row in rows}
-    for spare in checker.spares:
+    for spare in spares:
         row = by_robot.setdefault(spare, RobotCheck(spare))
         row.spare = True
         if not row.connected:
@@ -296,7 +188,9 @@ def _missing(robot: str, timeout: float) -> RobotCheck:
     return row
 
 
-async def _check_one(checker: _Checker, config: MasterConfig, session: Session) -> RobotCheck:
+async def _check_one(
+    checker: AgentServer, config: MasterConfig, fleet: Inventory | None, session: Session
+) -> RobotCheck:
     assert config.experiment is not None
     hello = session.hello
     row = RobotCheck(
@@ -309,12 +203,12 @@ async def _check_one(checker: _Checker, config: MasterConfig, session: Session) 
     )
     await _measure(checker, config, session, row)
     # Last: the body's findings come first in the row, as before robots reported their commit.
-    _compare_software(row, checker.fleet, config.inventory)
+    _compare_software(row, fleet, config.inventory)
     return row
 
 
 async def _measure(
-    checker: _Checker, config: MasterConfig, session: Session, row: RobotCheck
+    checker: AgentServer, config: MasterConfig, session: Session, row: RobotCheck
 ) -> None:
     assert config.experiment is not None
     lacking = [s for s in config.experiment.sensors if s not in session.hello.sensors]
@@ -328,7 +222,7 @@ async def _measure(
             row.notes.append(f"slow link: round trip {1000 * row.rtt_s:.0f} ms")
     if len(answered) < len(trips):
         row.notes.append(f"{len(trips) - len(answered)} of {len(trips)} pings lost")
-    exchange = await checker.report(session, PINGS + 1)
+    exchange = await checker.check(session, PINGS + 1)
     if exchange is None:
         row.problems.append(
             f"no answer to the check within {CHECK_TIMEOUT:.0f} s (an agent older than the "
@@ -497,10 +391,3 @@ def _software(row: RobotCheck) -> str:
 def _values(readings: dict[str, float], names: tuple[str, ...]) -> str:
     present = [f"{readings[n]:.2f}" for n in names if n in readings]
     return "/".join(present) if present else "-"
-
-
-def _ssl(config: MasterConfig) -> Any:
-    from master_service.config import build_ssl_context
-
-    assert config.tls is not None
-    return build_ssl_context(config.tls)
