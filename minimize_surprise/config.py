@@ -15,6 +15,7 @@ import msgspec
 import yaml
 
 from minimize_surprise.errors import ConfigError
+from minimize_surprise.optimizer import OptimizerConfig
 from minimize_surprise.sensors import check_sensor_names
 from minimize_surprise.settings import SETTINGS, Setting, experiment_defaults
 
@@ -200,6 +201,9 @@ class ExperimentConfig(Strict, frozen=True):
     #: overrides of the simulated robots' safety layer; real robots ignore it (theirs is in each
     #: robot's agent file)
     safety: dict[str, Any] = msgspec.field(default_factory=dict)
+    #: the optimizer: left out, the (1+1) of ``evolution``; ``{name: map-elites, measures:
+    #: [...], ...}`` quality diversity (docs/quality-diversity.md)
+    optimizer: OptimizerConfig | None = None
 
     @property
     def arena_name(self) -> str:

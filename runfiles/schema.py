@@ -33,6 +33,10 @@ Layout (docs/runs.md shows each file)::
     camera.json            CameraView: while ``surprise-master track --live`` watches the run,
                            where the camera sees the robots now (the dashboard shows it)
     replay.json            Replay: in a replay's directory, where its genome came from
+    qd.json                QDSummary: a MAP-Elites run (``sim --optimizer map-elites``): its
+                           experiment, progress and each class's best elite; beside it
+                           archive.csv, qd_progress.csv, qd_checkpoint.pkl and elites/<class>/
+                           (docs/quality-diversity.md)
     software.json          SoftwareRecord: the master's software, and each robot's software and
                            Thymio firmware as it last joined (docs/fleet.md)
 
@@ -67,6 +71,7 @@ from minimize_surprise.network import NetworkSpec
 from minimize_surprise.wire import EvaluationStats
 
 __all__ = [
+    "ARCHIVE",
     "BASELINE_FILE",
     "BOX_TRACK",
     "CAMERA_INTERVAL",
@@ -82,6 +87,10 @@ __all__ = [
     "LOG",
     "METRICS",
     "PLOTS",
+    "QD_CHECKPOINT",
+    "QD_ELITES",
+    "QD_PROGRESS",
+    "QD_PROGRESS_COLUMNS",
     "REQUESTS",
     "ROBOT_STAT_PREFIXES",
     "STALE_AFTER",
@@ -100,6 +109,8 @@ __all__ = [
     "Phase",
     "PostEvaluation",
     "PostRobot",
+    "QDElite",
+    "QDSummary",
     "Replay",
     "RunConfig",
     "RunDirError",
@@ -166,6 +177,18 @@ STALE_AFTER: Final = 5 * LIVE_INTERVAL
 #: How often a live tracker rewrites camera.json at the most: the dashboard polls about once a
 #: second, and a robot moves 2 cm in this time; more writes would only cost the disk.
 CAMERA_INTERVAL: Final = 0.2
+
+#: A MAP-Elites run's archive: one row per elite (cell, fitness, measures, class, genome as a
+#: JSON list), written when the run ends.
+ARCHIVE: Final = "archive.csv"
+#: A MAP-Elites run's progress, one row per batch (:data:`QD_PROGRESS_COLUMNS`).
+QD_PROGRESS: Final = "qd_progress.csv"
+QD_PROGRESS_COLUMNS: Final = ("evaluations", "coverage", "qd_score", "best_fitness", "classes")
+#: A MAP-Elites run's checkpoint: the pickled scheduler (archive, emitters, their random
+#: numbers) and the progress so far; only ever read by the same software's resume.
+QD_CHECKPOINT: Final = "qd_checkpoint.pkl"
+#: A MAP-Elites run's post-evaluated elites: one replay run directory per behaviour class.
+QD_ELITES: Final = "elites"
 
 #: Where a run stands: evolving, post-evaluating the best genome, or finished.
 Phase = Literal["evolution", "post-evaluation", "done"]
@@ -470,6 +493,38 @@ class Replay(RunFile, frozen=True, kw_only=True):
     source: str
     source_run: str | None
     genome_fitness: float | None
+
+
+class QDElite(msgspec.Struct, frozen=True, kw_only=True):
+    """A behaviour class's best elite in a MAP-Elites archive and its post-evaluation."""
+
+    #: the elite's fitness (its one evaluation) and its measures there
+    fitness: float
+    measures: dict[str, float]
+    #: its replay's directory below the run's (None until post-evaluated)
+    directory: str | None = None
+    #: the post-evaluation's swarm fitness and the behaviour class it showed there
+    post_fitness: float | None = None
+    post_class: str | None = None
+
+
+class QDSummary(RunFile, frozen=True, kw_only=True):
+    """``qd.json``: a MAP-Elites run's experiment (what resume reads), where it stands, and at
+    its end the archive's figures and each behaviour class's best elite."""
+
+    FILE: ClassVar[str] = "qd.json"
+    FORMAT: ClassVar[int] = 1
+    INDENT: ClassVar[int | None] = 2
+
+    experiment: ExperimentConfig
+    done: bool = False
+    evaluations: int = 0
+    cells: int = 0
+    coverage: float = 0.0
+    qd_score: float = 0.0
+    seconds: float = 0.0
+    #: behaviour class -> its best elite (the classes of docs/quality-diversity.md)
+    classes: dict[str, QDElite] = msgspec.field(default_factory=dict)
 
 
 class Software(msgspec.Struct, frozen=True, kw_only=True):
