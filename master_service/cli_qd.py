@@ -84,7 +84,7 @@ def summary_lines(summary: QDSummary, out: Path, seconds: float) -> list[str]:
     lines = [
         f"run {out} done in {seconds:.1f} s: {plural(summary.evaluations, 'evaluation')}, "
         f"{summary.cells} elites (coverage {summary.coverage:.3f}), QD score "
-        f"{summary.qd_score:.2f}, {plural(len(summary.classes), 'behaviour class', 'behaviour classes')}:"
+        f"{summary.qd_score:.2f}, {plural(len(summary.classes), 'class', 'classes')}:"
     ]
     for name, elite in summary.classes.items():
         post = ""

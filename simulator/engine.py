@@ -23,7 +23,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 
@@ -216,8 +216,8 @@ def evaluate(
     for t in range(steps):
         for b in range(b_count):
             if record and t % recs[b].box_every == 0 and box_start[b + 1] > box_start[b]:
-                frame = t // recs[b].box_every
-                _record_boxes(recs[b], frame, boxes, box_start[b], box_start[b + 1])
+                rec = borrow(recs[b])  # its list, an argument, holds it
+                _record_boxes(rec, t // rec.box_every, boxes, box_start[b], box_start[b + 1])
             sensing = borrow(sensings[b])  # its list, an argument, holds it
             arrays = SenseWork(full[b], bodies[b], cos_sin[b], candidates[b], near[b])
             physics.sense(sensing, poses[b], forces[b], clock[b], values[b], arrays, grid)
@@ -233,6 +233,10 @@ def evaluate(
         )  # fmt: skip
         for b in range(b_count):
             cmd, state, counts = cmds[b], states[b], interventions[b]
+            reasons = False
+            if record:
+                rec = borrow(recs[b])  # its list, an argument, holds it
+                reasons = rec.reasons.shape[0] > 0
             for i in range(n):
                 lane = b * n + i
                 inputs = SafetyInput(
@@ -247,10 +251,10 @@ def evaluate(
                 counts[i, code] += 1
                 cmd[i, 0] = left
                 cmd[i, 1] = right
-                if record:
-                    recs[b].reasons[t, i] = code
+                if reasons:
+                    rec.reasons[t, i] = code
             if record:
-                _record(recs[b], t, b * n, poses[b], work, predictions, action, cmd)
+                _record(rec, t, b * n, poses[b], work, predictions, action, cmd)
             physics.step_world(
                 geometries[b], poses[b], cmd, forces[b], boxes, pending, box_start[b],
                 box_start[b + 1], need_force[b], grid,
@@ -291,6 +295,12 @@ def _record(
     # Step t of one arena's trace (all but the safety reasons): its robots are the lanes from
     # ``first`` on, its commands those of the step, its poses those before it.
     r = predictions.shape[0]
+    if rec.sensors.shape[0] == 0:  # poses only (record="poses")
+        for i in range(pose.shape[0]):
+            rec.poses[t, i, 0] = pose[i, 0]
+            rec.poses[t, i, 1] = pose[i, 1]
+            rec.poses[t, i, 2] = pose[i, 2]
+        return
     for i in range(pose.shape[0]):
         lane = first + i
         for k in range(r):  # element by element: see _record_boxes
@@ -384,32 +394,37 @@ class Swarm:
                 f"rules: {mine} against {theirs}"
             )
 
-    def _recording(self, steps: int, record: bool) -> Recording:
+    def _recording(self, steps: int, record: bool | str) -> Recording:
         world = self.world
         n, r = world.n_robots, len(self.spec.sensors)
-        shape = (steps, n) if record else (0, n)
+        shape = (steps, n) if record is True else (0, n)
         every = box_frame_steps(world.config.dt)
         frames = box_frames(steps, every) if record else 0
         return Recording(
-            on=record,
+            on=bool(record),
             sensors=np.empty((*shape, r)),
             predictions=np.empty((*shape, r)),
             actions=np.empty((*shape, 2)),
             commands=np.empty((*shape, 2)),
             reasons=np.empty(shape, dtype=np.int64),
-            poses=np.empty((*shape, 3)),
+            poses=np.empty((steps, n, 3) if record else (0, n, 3)),
             box_every=every,
             boxes=np.empty((frames, len(world.box_positions), 2)),
         )
 
 
 def evaluate_swarms(
-    swarms: Sequence[Swarm], genomes: Sequence[np.ndarray], steps: int, *, record: bool = False
+    swarms: Sequence[Swarm],
+    genomes: Sequence[np.ndarray],
+    steps: int,
+    *,
+    record: bool | Literal["poses"] = False,
 ) -> list[EvaluationRecord]:
     """Run ``genomes[b]`` on every robot of ``swarms[b]`` for ``steps`` steps, every swarm in one
     compiled call (their robots' networks side by side as lanes); each swarm's result is the one
     it has when evaluated alone, to the last bit. The swarms must be compatible
-    (:meth:`Swarm.check_batch`)."""
+    (:meth:`Swarm.check_batch`). ``record="poses"`` records only the poses and boxes (a
+    behaviour's measures need no more; writing the whole trace doubles a step's cost)."""
     if not swarms or len(swarms) != len(genomes):
         raise ValueError(f"{len(swarms)} swarms and {len(genomes)} genomes: need one each")
     first = swarms[0]
@@ -456,7 +471,7 @@ def evaluate_swarms(
     limits = [limit for world in worlds for limit in _grid_limits(world)]
     grid = physics.grid_choice(n, min(limits))
     evaluate(
-        arenas, safety, net, arrays, first._columns, steps, fitness, interventions, record,
+        arenas, safety, net, arrays, first._columns, steps, fitness, interventions, bool(record),
         recs if not record else typed_list(recs), grid,
     )  # fmt: skip
     results = []
@@ -477,6 +492,11 @@ def evaluate_swarms(
             results.append(EvaluationRecord(fitness[b].copy(), counts))
             continue
         rec = recs[b]
+        if record == "poses":
+            results.append(
+                EvaluationRecord(fitness[b].copy(), counts, poses=rec.poses, boxes=rec.boxes)
+            )
+            continue
         trace = (rec.sensors, rec.predictions, rec.actions, rec.commands, rec.reasons, rec.poses)
         results.append(EvaluationRecord(fitness[b].copy(), counts, *trace, boxes=rec.boxes))
     return results

@@ -20,6 +20,9 @@ and writes into ``DIR/report/``:
 * ``clusters.csv`` and ``clusters.md``: the behaviours clustered without the hand thresholds
   (:mod:`studies.clusters`: standardised metrics or pattern scores, PCA, HDBSCAN) and their
   agreement with the hand-set classes (adjusted Rand index), per family (arena, grid world);
+* ``qd.csv`` and ``qd.md``: with ``qd`` (MAP-Elites) runs, the classes each MAP-Elites run and
+  its peer evolved runs found and, per class, the best elite's fitness against the runs' median
+  best fitness (:mod:`studies.qd_tables`);
 * ``problems.txt``: one line per run left out (failed; a recorded run missing, unfinished or
   unreadable), naming it and why;
 * ``figures/``: best fitness over evaluations with medians (the paper's Fig. 11; recorded groups
@@ -52,6 +55,7 @@ from studies.clusters import (
     clusters_markdown,
     clusters_table,
 )
+from studies.qd_tables import qd_comparison, qd_markdown
 from studies.recorded import RECORDED, refreshed
 from studies.runner import STUDY_FILE, TASKS_FILE
 from studies.spec import load_study
@@ -176,6 +180,10 @@ def write_study_report(out: str | Path) -> dict[str, Any]:
         (target / "paper.md").write_text(_markdown(beside), encoding="utf-8")
     tests = pd.DataFrame(tables.statistics(done)) if len(done) else pd.DataFrame()
     tests.to_csv(target / "statistics.csv", index=False)
+    qd_rows = qd_comparison(done) if len(done) else []
+    if qd_rows:
+        pd.DataFrame(qd_rows).to_csv(target / "qd.csv", index=False)
+        (target / "qd.md").write_text(qd_markdown(qd_rows), encoding="utf-8")
     evaluations = _evaluations_table(out, done) if len(done) else None
     if evaluations is not None:
         evaluations.to_parquet(target / "evaluations.parquet", index=False)
@@ -194,6 +202,7 @@ def write_study_report(out: str | Path) -> dict[str, Any]:
         "problems": problems,
         "clusters": {c.family: {"clusters": c.clusters, "ari": c.ari} for c in found},
         "report": str(target),
+        "qd": len(qd_rows),
     }
 
 

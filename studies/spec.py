@@ -8,7 +8,7 @@
       setting: paper
     groups:
       - name: basic
-        kind: evolved             # evolved | random | grid-evolved | grid-random | ...
+        kind: evolved             # evolved | random | qd | grid-evolved | grid-random | ...
         params: {scenario: basic}
         seeds: {from: 1, to: 20}  # or a list [1, 2, 3], or a count: 20 (seeds 1..20)
         sweep:                    # every combination of the values (dotted keys go deep)
@@ -67,7 +67,7 @@ __all__ = [
 ]
 
 #: Run kinds of the Thymio simulation (the grid world adds its own, see studies.tasks).
-THYMIO_KINDS = ("evolved", "random")
+THYMIO_KINDS = ("evolved", "random", "qd")
 
 _NAME = Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")]
 Seed = Annotated[int, msgspec.Meta(ge=0)]
@@ -106,10 +106,10 @@ class Group(Strict, frozen=True):
     #: the group's name (1 to 64 letters, digits, ``.``, ``_``, ``-``): its runs' directory
     name: _NAME
     #: the run kind: ``evolved`` (an evolved run on the engine), ``random`` (one random network
-    #: pair), ``recorded`` (finished run directories read, not run: the lab's real-robot runs),
-    #: or a kind another installed package adds
+    #: pair), ``qd`` (a MAP-Elites run on the engine), ``recorded`` (finished run directories
+    #: read, not run: the lab's real-robot runs), or a kind another installed package adds
     kind: str
-    #: the run kind's configuration (for ``evolved`` and ``random``: an experiment file's
+    #: the run kind's configuration (for ``evolved``, ``random`` and ``qd``: an experiment file's
     #: content), merged over the study's ``defaults``; for ``recorded``: ``runs``, the run
     #: directories (paths or globs relative to the study file), without the defaults
     params: dict[str, Any] = msgspec.field(default_factory=dict)

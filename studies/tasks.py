@@ -22,6 +22,10 @@ Kinds:
   ``params`` an experiment file's content; the summary holds the best and the post-evaluation
   fitness, the behaviour metrics of the post-evaluation and the mean predicted and real value of
   each sensor.
+* ``qd``: a MAP-Elites run on the engine (``surprise-master sim --optimizer map-elites``), its
+  ``params`` an experiment file's content (its ``optimizer`` section the grid; left out, the
+  default grid); the summary holds the archive's figures, the classes it holds and each class's
+  best elite with its post-evaluation (docs/quality-diversity.md).
 * ``random``: one random network pair in a freshly reset arena (``surprise-master baseline``).
 * ``recorded``: a finished run directory read, not run (the lab's real-robot runs;
   :mod:`studies.recorded`): its summary is the run's, with ``source`` saying where it is.
@@ -147,7 +151,7 @@ def _grid_kinds() -> tuple[str, ...]:
 
 
 #: Every run kind this installation can run.
-KINDS: tuple[str, ...] = ("evolved", "random", RECORDED, *_grid_kinds())
+KINDS: tuple[str, ...] = ("evolved", "random", "qd", RECORDED, *_grid_kinds())
 
 
 def run_dir(root: str | Path, task: dict[str, Any]) -> Path:
@@ -263,7 +267,11 @@ def check_task(task: dict[str, Any]) -> None:
     _runner(kind)
     if kind == RECORDED:
         return  # its params are checked with the study file (studies.spec), its run when read
-    if kind in _KIND_RUNNERS:
+    if kind == "qd":
+        from master_service.experiments.qd_run import qd_experiment
+
+        qd_experiment(task_experiment(task))
+    elif kind in _KIND_RUNNERS:
         task_experiment(task)
     else:
         from gridworld.tasks import check_params
@@ -418,6 +426,31 @@ def _run_random(task: dict[str, Any], directory: Path) -> dict[str, Any]:
     }
 
 
+def _run_qd(task: dict[str, Any], directory: Path) -> dict[str, Any]:
+    from master_service.experiments.qd_run import QDRun
+
+    experiment = task_experiment(task)
+    result = QDRun(experiment).run(directory, plots=run_plots(task))
+    assert result is not None, "nothing tells a study's run to stop"
+    s = result.summary
+    elites = s.classes
+    return {
+        "scenario": experiment.scenario,
+        "setting": experiment.setting,
+        "robots": experiment.robots,
+        "evaluations": s.evaluations,
+        "best_fitness": max((e.fitness for e in elites.values()), default=None),
+        "fitness": max((e.fitness for e in elites.values()), default=None),
+        "cells": s.cells,
+        "coverage": s.coverage,
+        "qd_score": s.qd_score,
+        "classes": {
+            name: {"fitness": e.fitness, "post_fitness": e.post_fitness, "post_class": e.post_class}
+            for name, e in elites.items()
+        },
+    }
+
+
 def _run_grid(task: dict[str, Any], directory: Path) -> dict[str, Any]:
     from gridworld.tasks import run_task as run_grid_task
 
@@ -449,7 +482,12 @@ def _run_recorded(task: dict[str, Any], directory: Path) -> dict[str, Any]:
     return read_recorded(task["params"]["source"])
 
 
-_KIND_RUNNERS = {"evolved": _run_evolved, "random": _run_random, RECORDED: _run_recorded}
+_KIND_RUNNERS = {
+    "evolved": _run_evolved,
+    "random": _run_random,
+    "qd": _run_qd,
+    RECORDED: _run_recorded,
+}
 
 
 def _runner(kind: str) -> Callable[[dict[str, Any], Path], dict[str, Any]]:

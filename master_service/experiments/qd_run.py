@@ -73,39 +73,49 @@ _KEPT: Final = ("rotation", "mean_cluster_size", "distance_covered", "backward_s
 
 def behaviour_class(behaviour: dict[str, Any]) -> str:
     """The paper's class of a behaviour (a run's ``behaviour`` metrics, or
-    :func:`trace_behaviour`'s): the object-manipulation class with boxes, else ``motion,
-    grouping`` (``stopped, grouped``, ...)."""
+    :func:`trace_behaviour`'s): the object-manipulation class with boxes, else
+    ``motion/grouping`` (``stopped/grouped``, ...), as a study's tables name it."""
     if behaviour.get("manipulation") is not None:
         return str(behaviour["manipulation"])
-    return f"{behaviour['motion']}, {behaviour['grouping']}"
+    return f"{behaviour['motion']}/{behaviour['grouping']}"
 
 
 def class_slug(name: str) -> str:
-    """A class's name as a directory name: ``stopped, grouped`` is ``stopped-grouped``."""
-    return "-".join(name.replace(",", " ").split())
+    """A class's name as a directory name: ``stopped/grouped`` is ``stopped-grouped``,
+    ``reverse driving`` is ``reverse-driving``."""
+    return "-".join(name.replace("/", " ").split())
 
 
 def trace_behaviour(
-    poses: np.ndarray, box_start: np.ndarray | None, box_end: np.ndarray | None, dt: float
+    poses: np.ndarray,
+    box_start: np.ndarray | None,
+    box_end: np.ndarray | None,
+    dt: float,
+    *,
+    wanted: tuple[str, ...] = ("distance_covered", "backward_share"),
 ) -> dict[str, Any]:
     """An evaluation's measures and class from its poses (steps, robots, 3) and boxes.
 
     c_o is summed over the paper's window (:func:`~simulator.metrics.default_window`: for an
     evaluation shorter than 100 s, its second half) and scaled to the paper's 50 s, so that
     its thresholds (5 and 55 rad) classify an evaluation of any length; the rest as the
-    paper's classification computes them.
+    paper's classification computes them. d_R and the backward share are computed when
+    ``wanted`` names them or with boxes (the manipulation classes need the backward share),
+    else NaN: an arena without boxes classifies on c_o and the cluster size alone.
     """
     window = sm.default_window(poses, dt)
     seconds = max(window, 1) * dt
     c_o = sm.rotation(poses, window) * sm.WINDOW_SECONDS / seconds
     size = sm.mean_cluster_size(poses, window)
-    backward = sm.backward_share(poses)
+    boxes = box_start is not None and box_end is not None
+    backward = sm.backward_share(poses) if boxes or "backward_share" in wanted else math.nan
+    covered = sm.distance_covered(poses) if boxes or "distance_covered" in wanted else math.nan
     motion = sm.classify_motion(c_o)
-    d_b = None if box_start is None or box_end is None else sm.box_displacement(box_start, box_end)
+    d_b = sm.box_displacement(box_start, box_end) if boxes else None  # type: ignore[arg-type]
     return {
         "rotation": c_o,
         "mean_cluster_size": size,
-        "distance_covered": sm.distance_covered(poses),
+        "distance_covered": covered,
         "backward_share": backward,
         "box_displacement": d_b,
         "motion": motion,
@@ -160,6 +170,7 @@ class QDRun:
         self.swarms = [Swarm(world, safety, self.spec, experiment.seed) for _ in range(self.batch)]
         self._safety = self.swarms[0].safety.copy()
         self.has_boxes = bool(world.boxes)
+        self._wanted = tuple(m.name for m in self.optimizer.measures)
         #: seconds of the compiled calls alone, and the robot-steps they ran (the benchmark's)
         self.engine_seconds = 0.0
         self.robot_steps = 0
@@ -218,7 +229,9 @@ class QDRun:
             starts.append(swarm.world.box_positions.copy())
         steps = self.experiment.evaluation_steps
         began = time.perf_counter()
-        records: list[EvaluationRecord] = evaluate_swarms(swarms, list(genomes), steps, record=True)
+        records: list[EvaluationRecord] = evaluate_swarms(
+            swarms, list(genomes), steps, record="poses"
+        )
         self.engine_seconds += time.perf_counter() - began
         self.robot_steps += steps * len(swarms) * len(swarms[0].ids)
         fitness = np.array([float(np.mean(r.fitness)) for r in records])
@@ -227,7 +240,11 @@ class QDRun:
             assert record.poses is not None
             end = swarm.world.box_positions.copy() if self.has_boxes else None
             b = trace_behaviour(
-                record.poses, start if self.has_boxes else None, end, self.experiment.step_period
+                record.poses,
+                start if self.has_boxes else None,
+                end,
+                self.experiment.step_period,
+                wanted=self._wanted,
             )
             b["arena_seed"] = seed
             behaviours.append(b)
