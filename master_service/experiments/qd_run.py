@@ -360,7 +360,8 @@ class QDRun:
             shutil.rmtree(path / QD_ELITES, ignore_errors=True)  # a killed run's half-done
         for name in sorted(best):
             row = best[name]
-            measures = {m: float(row[m]) for m in (*_KEPT, "box_displacement") if m in row}
+            # Those computed (trace_behaviour leaves what the arena's classes need not NaN).
+            measures = {m: row[m] for m in (*_KEPT, "box_displacement") if not math.isnan(row[m])}
             elite = QDElite(fitness=float(row["fitness"]), measures=measures)
             if post_evaluate:
                 elite = self._post_evaluate(path, name, row, elite)

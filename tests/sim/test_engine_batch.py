@@ -60,3 +60,20 @@ def test_swarms_of_different_shapes_are_not_batched():
         evaluate_swarms([basic, boxes], [g, h], 5)
     with pytest.raises(ValueError, match="one each"):
         evaluate_swarms([basic], [g, g], 5)
+
+
+@pytest.mark.parametrize("scenario", ["basic", "boxes"])
+def test_recording_only_poses_changes_nothing_but_what_is_kept(scenario):
+    # A behaviour's measures need the poses and boxes alone (MAP-Elites): recording only them
+    # gives the fitness, safety counts, poses, boxes and world the whole recording gives.
+    seeds = [4, 5]
+    whole, genomes = _swarms(scenario, seeds)
+    poses, _ = _swarms(scenario, seeds)
+    full = evaluate_swarms(whole, genomes, 40, record=True)
+    only = evaluate_swarms(poses, genomes, 40, record="poses")
+    for a, b in zip(full, only, strict=True):
+        assert np.array_equal(a.fitness, b.fitness) and a.interventions == b.interventions
+        assert np.array_equal(a.poses, b.poses) and np.array_equal(a.boxes, b.boxes)
+        assert b.sensors is None and b.predictions is None and b.reasons is None
+    for a, b in zip(whole, poses, strict=True):
+        assert a.snapshot() == b.snapshot()
