@@ -203,7 +203,9 @@ def type_text(tp: Any, hex_: bool = False) -> str:
 
 def _yaml(value: Any) -> str:
     """``value`` as a short YAML flow scalar or collection (floats to 6 significant digits)."""
-    if isinstance(value, msgspec.Struct):
+    if isinstance(value, msgspec.Struct) or (
+        isinstance(value, list | tuple) and any(isinstance(v, msgspec.Struct) for v in value)
+    ):
         value = msgspec.to_builtins(value)
     value = _plain(value)
     if value == "":

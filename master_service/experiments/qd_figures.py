@@ -18,11 +18,6 @@ def draw_heatmap(path: Path, archive: Any, optimizer: OptimizerConfig) -> list[P
     """The best fitness of every cell over the grid's first two measures (one measure: a row of
     cells; more than two: the best over the others), the paper's thresholds drawn where they
     cut an axis; the files written."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     measures = optimizer.measures
     grid = np.full([m.bins for m in measures], np.nan)
     if archive.stats.num_elites:
@@ -38,8 +33,10 @@ def draw_heatmap(path: Path, archive: Any, optimizer: OptimizerConfig) -> list[P
         grid = grid[:, None]
     x = measures[0]
     y = measures[1] if len(measures) > 1 else None
-    fig, ax = plt.subplots(figsize=(6.4, 4.8))
-    extent = [*x.range, *(y.range if y is not None else (0.0, 1.0))]
+    fig = _figure(6.4, 4.8)
+    ax = fig.subplots()
+    low, high = y.range if y is not None else (0.0, 1.0)
+    extent = (x.range[0], x.range[1], low, high)
     image = ax.imshow(
         grid.T, origin="lower", aspect="auto", extent=extent, vmin=0.0, vmax=1.0, cmap="viridis"
     )
@@ -53,28 +50,28 @@ def draw_heatmap(path: Path, archive: Any, optimizer: OptimizerConfig) -> list[P
     ax.set_xlabel(x.name)
     ax.set_ylabel(y.name if y is not None else "")
     ax.set_title(f"MAP-Elites archive: {archive.stats.num_elites} of {grid.size} cells")
-    try:
-        return save_figure(fig, path, formats=("png",))
-    finally:
-        plt.close(fig)
+    return save_figure(fig, path, formats=("png",))
 
 
 def draw_progress(path: Path, progress: list[list[Any]]) -> list[Path]:
     """Coverage and QD score against the evaluations; the files written."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     rows = np.array([row[:3] for row in progress], dtype=float).reshape(-1, 3)
-    fig, left = plt.subplots(figsize=(6.4, 3.6))
+    fig = _figure(6.4, 3.6)
+    left = fig.subplots()
     left.plot(rows[:, 0], rows[:, 1], color="tab:blue")
     left.set_xlabel("evaluations")
     left.set_ylabel("coverage", color="tab:blue")
     right = left.twinx()
     right.plot(rows[:, 0], rows[:, 2], color="tab:orange")
     right.set_ylabel("QD score", color="tab:orange")
-    try:
-        return save_figure(fig, path, formats=("png",))
-    finally:
-        plt.close(fig)
+    return save_figure(fig, path, formats=("png",))
+
+
+def _figure(width: float, height: float) -> Any:
+    # On the Agg canvas, no display, laid out to keep labels inside (as the run's pictures).
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(width, height), layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig

@@ -183,7 +183,7 @@ class QDRun:
         from ribs.schedulers import Scheduler
 
         o, seed = self.optimizer, self.experiment.seed
-        fields = {name: ((), np.float64) for name in _KEPT} | {
+        fields: dict[str, Any] = {name: ((), np.float64) for name in _KEPT} | {
             "box_displacement": ((), np.float64),
             "arena_seed": ((), np.int64),
             "klass": ((), np.int64),
@@ -199,16 +199,20 @@ class QDRun:
         if initial is None:
             initial = self.experiment.evolution.initial_range
         rng = np.random.default_rng(seed)
-        emitters = []
+        emitters: list[Any] = []
         for k in range(o.emitters):
             first = rng.uniform(-initial, initial, (o.batch, self.size))
-            common = {"initial_solutions": first, "batch_size": o.batch, "seed": seed * 1009 + k}
             if o.emitter == "iso-line":
-                emitters.append(
-                    IsoLineEmitter(archive, iso_sigma=o.sigma, line_sigma=o.line_sigma, **common)
-                )
+                emitter: Any = IsoLineEmitter(
+                    archive, iso_sigma=o.sigma, line_sigma=o.line_sigma,
+                    initial_solutions=first, batch_size=o.batch, seed=seed * 1009 + k,
+                )  # fmt: skip
             else:
-                emitters.append(GaussianEmitter(archive, sigma=o.sigma, **common))
+                emitter = GaussianEmitter(
+                    archive, sigma=o.sigma, initial_solutions=first, batch_size=o.batch,
+                    seed=seed * 1009 + k,
+                )  # fmt: skip
+            emitters.append(emitter)
         return Scheduler(archive, emitters)
 
     # ------------------------------------------------------------------ evaluation
