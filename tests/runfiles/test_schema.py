@@ -32,6 +32,8 @@ from runfiles.schema import (
     PauseNote,
     PostEvaluation,
     PostRobot,
+    QDElite,
+    QDSummary,
     Replay,
     RunDirError,
     RunFile,
@@ -204,6 +206,42 @@ GOLDEN: dict[type[RunFile], tuple[RunFile, str]] = {
         '        0.1\n      ]\n    ],\n    "end": [\n      [\n        0.2,\n        0.1\n'
         '      ]\n    ]\n  },\n  "unpaired_start": [],\n  "unpaired_end": [\n    [\n'
         "      0.3,\n      0.3\n    ]\n  ]\n}",
+    ),
+    QDSummary: (
+        QDSummary(
+            experiment=ExperimentConfig(),
+            done=True,
+            evaluations=40,
+            cells=3,
+            coverage=0.5,
+            qd_score=2.5,
+            seconds=1.5,
+            classes={
+                "stopped/grouped": QDElite(
+                    fitness=0.9,
+                    measures={"rotation": 1.0},
+                    directory="elites/stopped-grouped",
+                    post_fitness=0.8,
+                    post_class="stopped/dispersed",
+                )
+            },
+        ),
+        '{\n  "format": 1,\n  "experiment": {\n    "setting": "lab",\n    "sensors": [\n   '
+        '   "ir.f0",\n      "ir.f1",\n      "ir.f2",\n      "ir.f3",\n      "ir.f4",\n     '
+        ' "ir.b0",\n      "ir.b1",\n      "ground.0",\n      "ground.1"\n    ],\n    "netwo'
+        'rk": {\n      "actor_hidden": 8,\n      "predictor_hidden": null,\n      "initial_'
+        'action": 0.0\n    },\n    "evolution": {\n      "evaluations": 350,\n      "reeval'
+        'uation_probability": 0.2,\n      "reevaluation_weight": 0.2,\n      "mutation_prob'
+        'ability": 0.1,\n      "mutation_range": 0.4,\n      "initial_range": 0.5,\n      "'
+        'first_genome": "random"\n    },\n    "predefined": {},\n    "evaluation_steps": 10'
+        '0,\n    "post_evaluation_steps": 1000,\n    "step_period": 0.1,\n    "scenario": "'
+        'basic",\n    "arena": null,\n    "robots": 10,\n    "min_robots": null,\n    "seed'
+        '": 0,\n    "simulation": {},\n    "safety": {},\n    "optimizer": null\n  },\n  "d'
+        'one": true,\n  "evaluations": 40,\n  "cells": 3,\n  "coverage": 0.5,\n  "qd_score"'
+        ': 2.5,\n  "seconds": 1.5,\n  "classes": {\n    "stopped/grouped": {\n      "fitnes'
+        's": 0.9,\n      "measures": {\n        "rotation": 1.0\n      },\n      "directory'
+        '": "elites/stopped-grouped",\n      "post_fitness": 0.8,\n      "post_class": "sto'
+        'pped/dispersed"\n    }\n  }\n}',
     ),
 }
 
