@@ -122,7 +122,7 @@ def _parser() -> argparse.ArgumentParser:
 
     report = sub.add_parser("report", help="write metrics.json and plots of a run")
     report.add_argument("dir", type=Path, metavar="DIR", help="the run directory")
-    report.set_defaults(handler=cli_lab.report_command)
+    report.set_defaults(handler=_report)
 
     report.add_argument(
         "--baseline",
@@ -296,6 +296,12 @@ def _run(args: argparse.Namespace) -> int:
         out = Path("runs") / f"{time.strftime('%Y%m%d-%H%M%S')}-{config.experiment.scenario}"
     RunDir(out).check_new()
     return _serve(Master(config, out, secret=secret), args)
+
+
+def _report(args: argparse.Namespace) -> int:
+    if cli_qd.is_qd_run(args.dir):
+        return cli_qd.report_qd(args.dir)
+    return cli_lab.report_command(args)
 
 
 def _resume(args: argparse.Namespace) -> int:

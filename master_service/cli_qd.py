@@ -16,7 +16,7 @@ from minimize_surprise.text import plural
 from runfiles import schema
 from runfiles.schema import ARCHIVE, PLOTS, QD_ELITES, QD_PROGRESS, QDSummary
 
-__all__ = ["is_qd_run", "simulate_qd", "summary_lines", "wants_map_elites"]
+__all__ = ["is_qd_run", "report_qd", "simulate_qd", "summary_lines", "wants_map_elites"]
 
 #: Seconds between two progress lines at the least.
 _EVERY = 5.0
@@ -75,6 +75,22 @@ def simulate_qd(experiment: ExperimentConfig | None, out: Path, *, resume: bool)
         return 128 + received[0]
     for line in summary_lines(result.summary, out, time.perf_counter() - began):
         print(line)
+    return 0
+
+
+def report_qd(run_dir: Path) -> int:
+    """``surprise-master report`` of a MAP-Elites run: its figures drawn again from its
+    checkpoint and its summary printed (a run not finished says how to go on)."""
+    from master_service.experiments.qd_run import QDRun
+
+    summary = schema.read(run_dir, QDSummary)
+    if summary is None or not summary.done:
+        print(f"run {run_dir} has not finished; continue with `surprise-master resume {run_dir}`")
+        return 0
+    drawn = QDRun(summary.experiment).redraw(run_dir)
+    for line in summary_lines(summary, run_dir, summary.seconds):
+        print(line)
+    print(f"drew {', '.join(str(path) for path in drawn)}")
     return 0
 
 

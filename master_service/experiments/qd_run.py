@@ -382,13 +382,21 @@ class QDRun:
             classes=elites,
         )
         if plots:
-            from master_service.experiments.qd_figures import draw_heatmap, draw_progress
-
-            (path / PLOTS).mkdir(exist_ok=True)
-            draw_heatmap(path / PLOTS / "qd_heatmap", archive, self.optimizer)
-            draw_progress(path / PLOTS / "qd_progress", progress)
+            self._draw(path, archive, progress)
         schema.write(path, summary)
         return QDResult(summary, path)
+
+    def redraw(self, run_dir: str | Path) -> list[Path]:
+        """Draw a finished run's figures again from its checkpoint; the files written."""
+        scheduler, _, progress, _ = self._load(Path(run_dir))
+        return self._draw(Path(run_dir), scheduler.archive, progress)
+
+    def _draw(self, path: Path, archive: Any, progress: list[Any]) -> list[Path]:
+        from master_service.experiments.qd_figures import draw_heatmap, draw_progress
+
+        (path / PLOTS).mkdir(exist_ok=True)
+        drawn = draw_heatmap(path / PLOTS / "qd_heatmap", archive, self.optimizer)
+        return drawn + draw_progress(path / PLOTS / "qd_progress", progress)
 
     def _post_evaluate(self, path: Path, name: str, row: dict[str, Any], elite: QDElite) -> QDElite:
         # As a run's best genome: a replay of the same experiment, from the arena the (1+1)'s

@@ -138,6 +138,12 @@ def test_sim_map_elites_writes_the_archive_figures_and_post_evaluated_elites(tmp
     # Done: resume has nothing left to do.
     assert main(["resume", str(out)]) == 0
     assert "is complete" in capsys.readouterr().out
+    # The report draws the figures again and says what the run found.
+    (out / "plots" / "qd_heatmap.png").unlink()
+    assert main(["report", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert (out / "plots" / "qd_heatmap.png").stat().st_size > 0
+    assert all(f"{name}: best elite" in printed for name in summary.classes)
 
 
 def test_a_stopped_run_resumes_to_the_result_it_would_have_had(tmp_path):
@@ -164,6 +170,22 @@ def test_a_stopped_run_resumes_to_the_result_it_would_have_had(tmp_path):
         assert (tmp_path / "whole" / name).read_text() == (tmp_path / "split" / name).read_text()
     # The same elites, post-evaluated alike.
     assert whole.summary.classes == resumed.summary.classes
+
+
+def test_object_manipulation_files_elites_by_d_r_and_d_b_in_the_paper_classes(tmp_path):
+    measures = [_axis("distance_covered", 0.0, 1.0, 5), _axis("box_displacement", 0.0, 0.5, 5)]
+    experiment = _experiment(
+        scenario="boxes", evolution={"evaluations": 8},
+        optimizer={"name": "map-elites", "batch": 4, "measures": measures},
+    )  # fmt: skip
+    result = QDRun(experiment).run(tmp_path / "run", plots=False, post_evaluate=False)
+    assert result is not None
+    rows = _rows(tmp_path / "run" / ARCHIVE)
+    assert rows and {r["class"] for r in rows} <= {"pushing", "reverse driving", "circling"}
+    for row in rows:
+        d_b = float(row["box_displacement"])
+        assert float(row["grid.box_displacement"]) == d_b
+        assert (row["class"] == "pushing") == (d_b > sm.PUSHING_ABOVE)
 
 
 def test_a_qd_study_task_runs_and_summarises_its_classes(tmp_path):
