@@ -24,11 +24,13 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import sys  # noqa: E402
+import tempfile  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from master_service.experiments.engine_run import FastRun, run_batch  # noqa: E402
 from master_service.experiments.qd_run import QDRun  # noqa: E402
 from master_service.experiments.simulation_setup import simulation_experiment  # noqa: E402
 from studies.batches import BATCH_RUNS  # noqa: E402
@@ -59,6 +61,33 @@ def time_qd(batch: int, batches: int) -> float:
     return time.process_time() - cpu
 
 
+def time_whole_runs(evaluations: int) -> tuple[float, float]:
+    """CPU seconds per robot-step of a whole MAP-Elites run of ``4 * evaluations`` and of a
+    batch of 4 whole (1+1) runs of ``evaluations`` each (see the module docstring)."""
+    data = {"setting": "paper", "post_evaluation_steps": 1000, "optimizer": {"batch": 20}}
+    with tempfile.TemporaryDirectory() as tmp:
+        qd = simulation_experiment(
+            "basic", setting="paper", seed=1, evaluations=4 * evaluations, data=data
+        )
+        run = QDRun(qd)
+        cpu = time.process_time()
+        result = run.run(f"{tmp}/qd", plots=False)
+        qd_cpu = time.process_time() - cpu
+        assert result is not None
+        qd_steps = run.robot_steps + 10 * 1001 * len(result.summary.classes)
+        runs = []
+        for seed in range(1, 5):
+            one = simulation_experiment(
+                "basic", setting="paper", seed=seed, evaluations=evaluations, data=data
+            )
+            runs.append((FastRun(one), Path(tmp, f"{seed}")))
+        cpu = time.process_time()
+        run_batch(runs, plots=False)
+        one_cpu = time.process_time() - cpu
+    one_steps = 4 * (evaluations * PER_EVALUATION + 10 * 1001)
+    return qd_cpu / qd_steps, one_cpu / one_steps
+
+
 def _fields(behaviours: list[dict]) -> dict:
     # The archive's extra fields, as QDRun.run tells them.
     keep = ("rotation", "mean_cluster_size", "distance_covered", "backward_share")
@@ -75,6 +104,7 @@ def main() -> None:
     parser.add_argument("--batch", type=int, default=20)
     parser.add_argument("--batches", type=int, default=5)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--run-evaluations", type=int, default=200)
     args = parser.parse_args()
     pin_to_one_core()
     steps = PER_EVALUATION * args.batch * args.batches
@@ -89,6 +119,11 @@ def main() -> None:
     print(f"one_plus_one_batch_of_{BATCH_RUNS}_s_per_robot_step: {study:.3e} s")
     print(f"qd_over_batched_one_plus_one: {qd / same:.3f} ratio")
     print(f"qd_over_study_batch_one_plus_one: {qd / study:.3f} ratio")
+    whole = [time_whole_runs(args.run_evaluations) for _ in range(args.repeats)]
+    qd_run, one_runs = min(w[0] for w in whole), min(w[1] for w in whole)
+    print(f"qd_whole_run_s_per_robot_step: {qd_run:.3e} s")
+    print(f"one_plus_one_batch_of_{BATCH_RUNS}_whole_runs_s_per_robot_step: {one_runs:.3e} s")
+    print(f"qd_whole_run_over_batched_one_plus_one_runs: {qd_run / one_runs:.3f} ratio")
 
 
 if __name__ == "__main__":
