@@ -332,7 +332,10 @@ class QDRun:
         try:
             data = pickle.loads((path / QD_CHECKPOINT).read_bytes())
         except FileNotFoundError:
-            raise ConfigError(f"{path} holds no {QD_CHECKPOINT}: nothing to resume") from None
+            if not (path / QDSummary.FILE).exists():
+                raise ConfigError(f"{path} is not a MAP-Elites run: nothing to resume") from None
+            # Stopped before its first checkpoint: nothing was done, so it starts afresh.
+            return self._scheduler(), 0, [], []
         if data.get("format") != _CHECKPOINT_FORMAT:
             raise ConfigError(f"{path / QD_CHECKPOINT}: a checkpoint of another format")
         return data["scheduler"], data["batches"], data["progress"], data["classes"]

@@ -170,6 +170,14 @@ def test_a_stopped_run_resumes_to_the_result_it_would_have_had(tmp_path):
         assert (tmp_path / "whole" / name).read_text() == (tmp_path / "split" / name).read_text()
     # The same elites, post-evaluated alike.
     assert whole.summary.classes == resumed.summary.classes
+    # Killed before its first checkpoint (only qd.json there): resumed, it starts afresh.
+    (tmp_path / "early").mkdir()
+    (tmp_path / "early" / QDSummary.FILE).write_bytes(
+        (tmp_path / "whole" / QDSummary.FILE).read_bytes()
+    )
+    early = QDRun(_experiment(seed=9)).run(tmp_path / "early", plots=False, resume=True)
+    assert early is not None
+    assert (tmp_path / "early" / ARCHIVE).read_text() == (tmp_path / "whole" / ARCHIVE).read_text()
 
 
 def test_object_manipulation_files_elites_by_d_r_and_d_b_in_the_paper_classes(tmp_path):

@@ -4,6 +4,7 @@ fitness comparison of its report (studies.qd_tables)."""
 from __future__ import annotations
 
 import pandas as pd
+import pytest
 
 from studies.qd_tables import qd_comparison, qd_markdown
 
@@ -50,3 +51,54 @@ def test_each_class_puts_the_best_elite_beside_the_runs_median_of_its_condition(
 def test_a_study_without_qd_runs_has_no_comparison():
     frame = _frame()
     assert qd_comparison(frame[frame["kind"] != "qd"]) == []
+
+
+QD_STUDY = """
+name: tiny-qd
+description: a MAP-Elites run beside three evolved runs of its condition
+defaults:
+  setting: paper
+  scenario: basic
+  robots: 4
+  evaluation_steps: 60
+  post_evaluation_steps: 60
+groups:
+  - name: evolved
+    kind: evolved
+    params: {evolution: {evaluations: 4}}
+    seeds: 3
+    sweep:
+      simulation.arena_side: [1.0]
+  - name: qd
+    kind: qd
+    params:
+      evolution: {evaluations: 12}
+      optimizer: {name: map-elites, batch: 4}
+    seeds: 1
+    sweep:
+      simulation.arena_side: [1.0]
+"""
+
+
+@pytest.mark.slow
+def test_a_study_with_a_qd_group_reports_the_comparison(tmp_path):
+    from study_helpers import write_study
+
+    from studies.executors import LocalPool
+    from studies.report import write_study_report
+    from studies.runner import run_study
+
+    pool = LocalPool(1)
+    try:
+        run_study(write_study(tmp_path, QD_STUDY), tmp_path / "study", pool)
+    finally:
+        pool.close()
+    found = write_study_report(tmp_path / "study")
+    table = pd.read_csv(tmp_path / "study" / "report" / "qd.csv")
+    assert found["qd"] == len(table) and len(table)
+    runs = pd.read_csv(tmp_path / "study" / "report" / "runs.csv")
+    evolved = runs[runs["kind"] == "evolved"]
+    # Every class of the evolved runs' best genomes has its row, with their count.
+    for name, count in evolved["behaviour"].value_counts().items():
+        assert int(table.loc[table["class"] == name, "runs"].iloc[0]) == count
+    assert (tmp_path / "study" / "report" / "qd.md").read_text().startswith("## qd, seed 1")
