@@ -101,8 +101,10 @@ class FrameDecoder:
     def feed_payloads(self, data: bytes | bytearray | memoryview) -> list[bytes | bytearray]:
         """Add received bytes; return the payloads of every frame they complete, in order.
 
-        Raises :class:`FrameTooLargeError` as soon as a header announces an oversized frame,
-        :class:`ProtocolError` for an empty frame, and on every call after an error.
+        Raises :class:`FrameTooLargeError` as soon as a header announces an oversized frame
+        (one behind frames completed in the same call waits, unparsed, for the next call, so
+        that a limit raised between two messages applies to it; feeding ``b""`` judges it
+        again), :class:`ProtocolError` for an empty frame, and on every call after an error.
         """
         if self._poisoned is not None:
             raise ProtocolError(f"decoder unusable after an earlier error: {self._poisoned}")
@@ -128,6 +130,11 @@ class FrameDecoder:
                     break
                 (length,) = _HEADER.unpack_from(buffer, self._start)
                 if length > self.max_frame_size:
+                    if payloads:
+                        # Frames completed before it go out first: one of them may be what
+                        # raises the limit (the handshake's last message, with the first large
+                        # one right behind it in the same read). The next feed judges it again.
+                        break
                     raise FrameTooLargeError(length, self.max_frame_size)
                 if length == 0:
                     raise ProtocolError("empty frame")

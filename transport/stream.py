@@ -75,6 +75,12 @@ class MessageStream:
             if self._decoder.poisoned:
                 # Fail now rather than wait for bytes from a peer that may never send any.
                 self._decoder.feed_payloads(b"")
+            if self._decoder.pending:
+                # A frame read with an earlier one may be complete already, judged by the limit
+                # of now (the handshake's limit is raised between its last message and the next).
+                self._queue.extend(self._decoder.feed_payloads(b""))
+                if self._queue:
+                    break
             try:
                 # Never more than a frame's worth at a time: before the handshake is done, a peer
                 # gets no more than its small frames buffered, whatever it sends.

@@ -271,3 +271,29 @@ async def test_before_the_handshake_a_stream_reads_no_more_than_a_small_frame() 
         with pytest.raises(ProtocolError):
             await client.receive()
         assert client.bytes_received <= 4096 + 4
+
+
+async def test_a_large_message_right_behind_the_handshake_s_last_is_received_after_it() -> None:
+    # The master welcomes a robot and sends its first (large) evaluation at once: both may come
+    # in one read, while the robot's limit is still the handshake's. The first is received, the
+    # limit raised, then the second, with no more bytes from the peer; not raised, it is refused.
+    large = Hello(
+        robot_id="r1", software_version="x" * 60, protocol_version=1, sensors=("ir.f0",) * 16
+    )
+    assert len(encode(large)) > 200
+
+    async def both(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        writer.write(encode(Ping(seq=1)) + encode(large) + encode(Ping(seq=2)))
+        await writer.drain()
+        await reader.read()  # keep the connection open: no bytes follow
+        writer.close()
+
+    async with asyncio.timeout(5), Loopback(both, max_frame_size=100) as client:
+        assert await client.receive() == Ping(seq=1)
+        client.set_max_frame_size(MAX_FRAME_SIZE)
+        assert await client.receive() == large
+        assert await client.receive() == Ping(seq=2)
+    async with asyncio.timeout(5), Loopback(both, max_frame_size=100) as client:
+        assert await client.receive() == Ping(seq=1)
+        with pytest.raises(FrameTooLargeError):
+            await client.receive()
