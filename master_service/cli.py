@@ -55,7 +55,7 @@ import msgspec
 from master_service import cli_fleet, cli_lab
 from master_service.config import load_master_config, required_secret
 from master_service.console import Console
-from master_service.escape import escape_from_console
+from master_service.mark import hand_console
 from master_service.master import Master
 from master_service.progress import ProgressDisplay
 from master_service.rundir import RunDir, RunDirError
@@ -335,7 +335,7 @@ def _replay_of(run: RunDir) -> ReplaySource | None:
 def _serve(master: Master, args: argparse.Namespace) -> int:
     level = logging.DEBUG if args.verbose else logging.INFO
     master.evolution.pause_before_post = args.pause_before_post
-    console = Console(master.log, escape=escape_from_console(master.run_dir, master.log))
+    console = hand_console(master.run_dir, master.log)
     master.evolution.pauses.console = True
     master.evolution.pauses.terminal = console
     try:
@@ -504,8 +504,8 @@ def _run_simulation(
         print(
             f"{'resuming' if resume else what} {experiment.place} "
             f"({experiment.setting} setting, {engine} engine): {experiment.robots} robots, "
-            f"{plural(experiment.evolution.evaluations, 'evaluation')} of "
-            f"{experiment.evaluation_steps} steps of {experiment.step_period:g} s, seed "
+            f"{plural(n, 'evaluation') if (n := experiment.evolution.evaluations) else 'endless'}"
+            f" of {experiment.evaluation_steps} steps of {experiment.step_period:g} s, seed "
             f"{experiment.seed}" + (f", {mode}" if engine == "agents" else "")
         )
         print_if_compiling(engine)

@@ -36,7 +36,8 @@ def describe(progress: Progress) -> str:
     left = "-" if progress.time_left_s is None else format_duration(progress.time_left_s)
     safety = "-" if progress.safety_share is None else f"{100 * progress.safety_share:.0f} %"
     return (
-        f"{state} | evaluations {progress.evaluations}/{progress.total} | best {best} | "
+        f"{state} | evaluations {progress.evaluations}/{progress.total or 'endless'} | "
+        f"best {best} | "
         f"robots {progress.robots_connected}/{progress.robots_expected} | "
         f"safety drove {safety} | failed attempts {progress.failed_attempts} | elapsed "
         f"{format_duration(progress.elapsed_s)} | left ~{left}"
@@ -117,7 +118,8 @@ class ProgressDisplay:
         grid.add_column()
         grid.add_column()
         bar = ProgressBar(total=progress.total, completed=progress.evaluations, width=30)
-        grid.add_row("evaluations", f"{progress.evaluations}/{progress.total}", bar)
+        done = f"{progress.evaluations}/{progress.total or 'endless'}"
+        grid.add_row("evaluations", done, bar)
         best = "-" if progress.best_fitness is None else f"{progress.best_fitness:.4f}"
         last = "-" if progress.last_fitness is None else f"{progress.last_fitness:.4f}"
         grid.add_row("best fitness", best, f"last {last}")
@@ -149,7 +151,7 @@ def run_status(progress: Progress, robots: list[str], *, online: bool = True) ->
         phase=progress.phase,
         waiting=progress.waiting,
         evaluations=progress.evaluations,
-        total=progress.total,
+        total=progress.total or 0,  # 0: an endless run
         best_fitness=progress.best_fitness,
         last_fitness=progress.last_fitness,
         robots_connected=progress.robots_connected,
