@@ -530,7 +530,7 @@ def _stopped_text(out: Path, experiment: ExperimentConfig, signum: int) -> str:
     done = 0 if state is None else state.optimizer.evaluations
     total = experiment.evolution.evaluations
     where = (
-        f"stopped by {signal.Signals(signum).name} at evaluation {done}/{total}"
+        f"stopped by {signal.Signals(signum).name} at evaluation {done}/{total or 'endless'}"
         if state is None or state.phase == "evolution"
         else f"stopped by {signal.Signals(signum).name} in the post-evaluation"
     )

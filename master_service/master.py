@@ -268,7 +268,7 @@ class Master:
         self.away.start(self._require_state().roster or [])  # a resumed swarm's: not back yet
         optimizer = self._require_state().optimizer
         self.log.info(
-            "%s run %s: listening on %s:%d%s; %d/%d evaluations done, swarm of %d robots%s",
+            "%s run %s: listening on %s:%d%s; %d/%s evaluations done, swarm of %d robots%s",
             "resumed" if self.resume else "started",
             self.run_id,
             self.host,
