@@ -20,6 +20,8 @@ and writes into ``DIR/report/``:
 * ``clusters.csv`` and ``clusters.md``: the behaviours clustered without the hand thresholds
   (:mod:`studies.clusters`: standardised metrics or pattern scores, PCA, HDBSCAN) and their
   agreement with the hand-set classes (adjusted Rand index), per family (arena, grid world);
+* ``recovery.csv`` and ``recovery.md``: for runs whose arena changes, per group and change the
+  median drop of fitness and evaluations to recover across seeds (:mod:`studies.recovery`);
 * ``problems.txt``: one line per run left out (failed; a recorded run missing, unfinished or
   unreadable), naming it and why;
 * ``figures/``: best fitness over evaluations with medians (the paper's Fig. 11; recorded groups
@@ -53,6 +55,7 @@ from studies.clusters import (
     clusters_table,
 )
 from studies.recorded import RECORDED, refreshed
+from studies.recovery import recovery_markdown, recovery_rows
 from studies.runner import STUDY_FILE, TASKS_FILE
 from studies.spec import load_study
 from studies.tasks import FAILED, SUMMARY, run_dir
@@ -180,6 +183,10 @@ def write_study_report(out: str | Path) -> dict[str, Any]:
     if evaluations is not None:
         evaluations.to_parquet(target / "evaluations.parquet", index=False)
     figures = _figures(out, target / "figures", done, evaluations)
+    changes = recovery_rows(done) if len(done) else []
+    if changes:  # the runs' arena changed (docs/changing-arenas.md)
+        pd.DataFrame(changes).to_csv(target / "recovery.csv", index=False)
+        (target / "recovery.md").write_text(recovery_markdown(changes), encoding="utf-8")
     found = _clusters(target, done) if len(done) else []
     figures += [f for c in found if not c.note for f in _save(
         clusters_figure(c), target / "figures", f"clusters-{c.family}"
@@ -193,6 +200,7 @@ def write_study_report(out: str | Path) -> dict[str, Any]:
         "figures": figures,
         "problems": problems,
         "clusters": {c.family: {"clusters": c.clusters, "ari": c.ari} for c in found},
+        "recovery": changes,
         "report": str(target),
     }
 
