@@ -13,10 +13,10 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from minimize_surprise.events import ArenaEvent, describe
+from minimize_surprise.events import ArenaEvent, RobotsLeave, describe
 from runfiles.schema import EVENT_ARENA, Event
 
-__all__ = ["arena_event", "due_events", "person_text"]
+__all__ = ["arena_event", "due_events", "leaving", "person_text"]
 
 
 def due_events(
@@ -51,9 +51,20 @@ def arena_event(index: int, detail: str, evaluations: int, elapsed_s: float) -> 
     )
 
 
+def leaving(event: ArenaEvent, roster: Sequence[str]) -> tuple[str, ...]:
+    """The robots a ``robots-leave`` event takes out of ``roster`` (the last ones; at least one
+    stays); none for any other event."""
+    if not isinstance(event, RobotsLeave):
+        return ()
+    return tuple(roster[len(roster) - min(event.count, len(roster) - 1) :])
+
+
 def person_text(event: ArenaEvent, index: int, run_dir: Path) -> str:
     """The pause's line on real robots: what to change, and how to go on."""
+    what = describe(event)
+    if isinstance(event, RobotsLeave):
+        what += " (the last of the swarm: take them off the arena)"
     return (
-        f"event {index} of the experiment: {describe(event)}; make the change in the arena, "
+        f"event {index} of the experiment: {what}; make the change in the arena, "
         f"then `surprise-master continue {run_dir}`"
     )

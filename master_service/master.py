@@ -63,7 +63,7 @@ from master_service.swap import SwapDesk
 from master_service.swarm import AwayClock, changes_text
 from minimize_surprise import __version__
 from minimize_surprise.errors import ConfigError
-from minimize_surprise.events import ArenaEvent
+from minimize_surprise.events import ArenaEvent, RobotsJoin
 from minimize_surprise.network import GenomeLayout, spec_from_config
 from minimize_surprise.provenance import software_commit
 from minimize_surprise.session import TAG_SIZE
@@ -157,6 +157,13 @@ class Master:
         self._before_post_evaluation = before_post_evaluation
         self._snapshot = snapshot
         self._change_arena = change_arena
+        for index, event in enumerate(self.experiment.events):
+            if change_arena is None and isinstance(event, RobotsJoin):
+                raise ConfigError(
+                    "robots join only in simulation; on real robots a spare joins through "
+                    "`surprise-master swap`",
+                    key=f"events[{index}].kind",
+                )
         self._ssl = build_ssl_context(config.tls) if config.tls is not None else None
         # One logger per run; the run's log file hangs on it, so two masters in one process
         # (tests, the sim command) keep separate logs and there is no global state.

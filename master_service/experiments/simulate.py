@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from master_service.arena_events import leaving
 from master_service.config import DEFAULT_ROBOT_GONE_AFTER, MasterConfig
 from master_service.evaluation import ArenaChange, Progress
 from master_service.experiments.simulation_setup import (
@@ -175,8 +176,7 @@ class SimulatedSwarm:
         # gone for good does: its body stays in the world, standing still.
         if isinstance(event, RobotsLeave):
             assert self.master is not None and self.master.state is not None
-            roster = self.master.state.roster or []
-            left = tuple(roster[len(roster) - min(event.count, len(roster) - 1) :])
+            left = leaving(event, self.master.state.roster or [])
             for robot in left:
                 await self.stop_agent(robot)
             return ArenaChange(describe(event), left=left)
