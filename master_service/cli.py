@@ -57,7 +57,7 @@ from master_service.config import load_master_config, required_secret
 from master_service.console import Console
 from master_service.mark import hand_console
 from master_service.master import Master
-from master_service.progress import ProgressDisplay
+from master_service.progress import ProgressDisplay, planned_text
 from master_service.rundir import RunDir, RunDirError
 from master_service.stopping import cancelled_by_signal, stop_flag, until_signal
 from minimize_surprise.config import ExperimentConfig, load_experiment
@@ -504,7 +504,7 @@ def _run_simulation(
         print(
             f"{'resuming' if resume else what} {experiment.place} "
             f"({experiment.setting} setting, {engine} engine): {experiment.robots} robots, "
-            f"{plural(n, 'evaluation') if (n := experiment.evolution.evaluations) else 'endless'}"
+            f"{planned_text(experiment.evolution.evaluations)}"
             f" of {experiment.evaluation_steps} steps of {experiment.step_period:g} s, seed "
             f"{experiment.seed}" + (f", {mode}" if engine == "agents" else "")
         )

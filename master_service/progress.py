@@ -14,14 +14,20 @@ from typing import IO, Any
 from master_service.evaluation import Progress
 from master_service.rundir import for_console
 from minimize_surprise.safety import SAFETY_DOMINATES
-from minimize_surprise.text import format_duration
+from minimize_surprise.text import format_duration, plural
 from telemetry.payloads import RunStatus, now
 
-__all__ = ["ProgressDisplay", "describe"]
+__all__ = ["ProgressDisplay", "describe", "planned_text"]
 
 #: Redraws per second of the live panel: smooth enough for a clock, cheap for the event loop.
 REFRESH_PER_SECOND = 4
 _FORMAT = "%(asctime)s %(levelname)s %(message)s"
+
+
+def planned_text(evaluations: int | None) -> str:
+    """The evaluations a run plans, as its first line says them: ``300 evaluations``, or
+    ``endless evaluations`` (``evaluations: null``)."""
+    return "endless evaluations" if evaluations is None else plural(evaluations, "evaluation")
 
 
 def describe(progress: Progress) -> str:
