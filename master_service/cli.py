@@ -59,9 +59,9 @@ import msgspec
 from master_service import cli_fleet, cli_lab, cli_qd
 from master_service.config import load_master_config, required_secret
 from master_service.console import Console
-from master_service.escape import escape_from_console
+from master_service.mark import hand_console
 from master_service.master import Master
-from master_service.progress import ProgressDisplay
+from master_service.progress import ProgressDisplay, planned_text
 from master_service.rundir import RunDir, RunDirError
 from master_service.stopping import cancelled_by_signal, stop_flag, until_signal
 from minimize_surprise.config import ExperimentConfig, load_experiment
@@ -353,7 +353,7 @@ def _replay_of(run: RunDir) -> ReplaySource | None:
 def _serve(master: Master, args: argparse.Namespace) -> int:
     level = logging.DEBUG if args.verbose else logging.INFO
     master.evolution.pause_before_post = args.pause_before_post
-    console = Console(master.log, escape=escape_from_console(master.run_dir, master.log))
+    console = hand_console(master.run_dir, master.log)
     master.evolution.pauses.console = True
     master.evolution.pauses.terminal = console
     try:
@@ -528,8 +528,8 @@ def _run_simulation(
         print(
             f"{'resuming' if resume else what} {experiment.place} "
             f"({experiment.setting} setting, {engine} engine): {experiment.robots} robots, "
-            f"{plural(experiment.evolution.evaluations, 'evaluation')} of "
-            f"{experiment.evaluation_steps} steps of {experiment.step_period:g} s, seed "
+            f"{planned_text(experiment.evolution.evaluations)}"
+            f" of {experiment.evaluation_steps} steps of {experiment.step_period:g} s, seed "
             f"{experiment.seed}" + (f", {mode}" if engine == "agents" else "")
         )
         print_if_compiling(engine)
@@ -554,7 +554,7 @@ def _stopped_text(out: Path, experiment: ExperimentConfig, signum: int) -> str:
     done = 0 if state is None else state.optimizer.evaluations
     total = experiment.evolution.evaluations
     where = (
-        f"stopped by {signal.Signals(signum).name} at evaluation {done}/{total}"
+        f"stopped by {signal.Signals(signum).name} at evaluation {done}/{total or 'endless'}"
         if state is None or state.phase == "evolution"
         else f"stopped by {signal.Signals(signum).name} in the post-evaluation"
     )

@@ -1,6 +1,6 @@
 """The handlers of ``surprise-master``'s commands around a run: ``report``, ``status``,
 ``check`` (the preflight), ``continue`` (after a pause), ``escape`` (the experimenter's hand),
-``swap`` (a spare for a robot gone for good),
+``swap`` (a spare for a robot gone for good), ``mark`` (a change a person made),
 ``watch``, ``dashboard`` and ``track`` (the overhead camera, with its options here), and the
 parsers of a person's actions on a running run (:func:`add_hand_commands`); the rest of the
 parser and the commands that run experiments are in :mod:`master_service.cli`."""
@@ -26,6 +26,7 @@ __all__ = [
     "continue_command",
     "dashboard_command",
     "escape_command",
+    "mark_command",
     "report_command",
     "secret_command",
     "status_command",
@@ -72,6 +73,13 @@ def report_command(args: argparse.Namespace) -> int:
         print(line)
     for line in gap_lines(metrics.get("reality_gap")):
         print(line)
+    for change in metrics.get("recovery") or []:
+        back = change["recovery"]
+        drop = "-" if change["drop"] is None else f"{change['drop']:.4f}"
+        print(
+            f"after evaluation {change['evaluation']}, {change['detail']}: fitness drop {drop}, "
+            + ("not recovered" if back is None else f"recovered after {back} evaluations")
+        )
     comparison = metrics.get("baseline")
     if comparison:
         print(baseline_text(comparison))
@@ -150,10 +158,23 @@ def swap_command(args: argparse.Namespace) -> int:
     return 0
 
 
+def mark_command(args: argparse.Namespace) -> int:
+    """``surprise-master mark``: 0 once the running master logged the mark."""
+    from master_service.mark import request_mark
+
+    event = request_mark(RunDir(args.dir), " ".join(args.text), timeout=args.timeout)
+    print(
+        f"marked after evaluation {event.evaluation}: {event.detail} "
+        f"(logged in {args.dir}/events.jsonl)"
+    )
+    return 0
+
+
 def add_hand_commands(sub: argparse._SubParsersAction) -> None:
-    """Add the commands by which a person acts on a running run: ``continue``, ``escape`` and
-    ``swap``."""
+    """Add the commands by which a person acts on a running run: ``continue``, ``escape``,
+    ``swap`` and ``mark``."""
     from master_service.escape import ANSWER_TIMEOUT
+    from master_service.mark import MARK_TIMEOUT
     from master_service.swap import ANSWER_TIMEOUT as SWAP_TIMEOUT
 
     go_on = sub.add_parser(
@@ -192,6 +213,22 @@ def add_hand_commands(sub: argparse._SubParsersAction) -> None:
         help=f"seconds to wait for the master's answer (default: {SWAP_TIMEOUT:g})",
     )
     swap.set_defaults(handler=swap_command)
+
+    mark = sub.add_parser(
+        "mark",
+        help="mark a change you made to a running run (moved the light): the report shows the "
+        "fitness around it",
+    )
+    mark.add_argument("dir", type=Path, metavar="DIR", help="the run directory")
+    mark.add_argument("text", nargs="+", metavar="TEXT", help="what you changed")
+    mark.add_argument(
+        "--timeout",
+        type=float,
+        default=MARK_TIMEOUT,
+        metavar="S",
+        help=f"seconds to wait for the master's answer (default: {MARK_TIMEOUT:g})",
+    )
+    mark.set_defaults(handler=mark_command)
 
 
 def status_command(args: argparse.Namespace) -> int:

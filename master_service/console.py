@@ -7,6 +7,9 @@ Two things can be typed where ``surprise-master run`` (or ``resume``) shows its 
   ``surprise-master escape RUN_DIR ROBOT`` does (paper Sec. V-C, docs/safety.md). The line drops
   the same request into the run directory; the master's escape desk takes it and logs how it
   went.
+* ``mark TEXT`` and Enter: the change a person just made (``mark moved the light``) goes into
+  the run's events with the evaluation it happened at, as ``surprise-master mark RUN_DIR TEXT``
+  does (docs/changing-arenas.md).
 
 The terminal is read only when stdin is one and the master runs in its foreground: reading it
 from the background (``&``) would stop the whole master (SIGTTIN). Anything else typed gets one
@@ -48,9 +51,17 @@ class Console:
     a pause waits on, :meth:`arm` clears it (and what was typed before) when a pause begins.
     """
 
-    def __init__(self, log: logging.Logger, *, escape: Callable[[str], None] | None = None):
+    def __init__(
+        self,
+        log: logging.Logger,
+        *,
+        escape: Callable[[str], None] | None = None,
+        mark: Callable[[str], None] | None = None,
+    ):
         self.log = log
         self.escape = escape
+        #: called with the text of a ``mark TEXT`` line (None: the console has no run)
+        self.mark = mark
         self._entered: asyncio.Event | None = None
         self._fd: int | None = None
         self._pending = b""
@@ -121,6 +132,11 @@ class Console:
         words = text.split()
         if not words:
             self.enter().set()
+        elif len(words) >= 2 and words[0].lower() == "mark":
+            if self.mark is None:
+                self.log.warning("no run to mark")
+            else:
+                self.mark(" ".join(words[1:]))
         elif len(words) == 2 and words[0].lower() in ESCAPE_WORDS:
             if self.escape is None:
                 self.log.warning("no run to escape in")
@@ -128,7 +144,7 @@ class Console:
                 self.escape(words[1])
         else:
             self.log.warning(
-                "the console knows: Enter (a paused run goes on) and 'escape ROBOT' (that "
-                "robot escapes now); not %r",
+                "the console knows: Enter (a paused run goes on), 'escape ROBOT' (that "
+                "robot escapes now) and 'mark TEXT' (a change you made); not %r",
                 text.strip(),
             )

@@ -26,6 +26,7 @@ from runfiles.schema import (
     EscapeRequest,
     Event,
     Live,
+    MarkRequest,
     RunDirError,
     StopRequest,
     SwapRequest,
@@ -48,7 +49,7 @@ __all__ = [
 ANSWER_POLL: Final = 0.1
 
 #: The kinds of request a person's command drops for the running master.
-Request = TypeVar("Request", EscapeRequest, SwapRequest, StopRequest)
+Request = TypeVar("Request", EscapeRequest, SwapRequest, StopRequest, MarkRequest)
 
 
 def new_token() -> str:

@@ -16,10 +16,11 @@ from typing import Any, Protocol
 import numpy as np
 
 from master_service.rundir import RunDir, RunState
+from minimize_surprise.events import ArenaEvent
 from minimize_surprise.wire import EvaluationStats, Result
 from runfiles.schema import Phase
 
-__all__ = ["Evaluation", "Evaluator", "Progress", "RunSummary"]
+__all__ = ["ArenaChange", "Evaluation", "Evaluator", "Progress", "RunSummary"]
 
 
 @dataclass(frozen=True)
@@ -34,7 +35,8 @@ class Progress:
     phase: Phase
     waiting: bool
     evaluations: int
-    total: int
+    #: the evaluations planned (None: an endless run)
+    total: int | None
     best_fitness: float | None
     last_fitness: float | None
     robots_connected: int
@@ -84,6 +86,16 @@ class Evaluation:
     started_at: float | None = None
 
 
+@dataclass(frozen=True)
+class ArenaChange:
+    """What an evaluator did for one of the experiment's events: ``detail`` in a line, and the
+    robots that ``left`` and ``joined`` the swarm (``robots-leave``, ``robots-join``)."""
+
+    detail: str
+    left: tuple[str, ...] = ()
+    joined: tuple[str, ...] = ()
+
+
 class Evaluator(Protocol):
     """What an :class:`EvolutionRun` drives: evaluations of one genome on the whole swarm.
 
@@ -127,3 +139,7 @@ class Evaluator(Protocol):
     def snapshot(self) -> dict[str, Any] | None:
         """A simulator's state, kept in every checkpoint so a resumed run goes on exactly;
         None for real robots. Called between evaluations, every robot idle."""
+
+    async def change_arena(self, event: ArenaEvent, index: int) -> ArenaChange | None:
+        """Make the experiment's event ``index`` happen, between evaluations (a simulator
+        changes its world); None where a person must make it (real robots: the run pauses)."""

@@ -13,6 +13,10 @@ while the next evaluation runs, once the previous one is on disk. Where ids leav
 resumed run skips one id: an id is never reused (see :mod:`master_service.master`). Where they do
 not (the engine), commits come at most every ``commit_interval`` seconds, so a thousand
 evaluations a minute do not spend their time in fsync; a stopped run repeats at most that much.
+
+Why one file of over 600 lines: :class:`EvolutionRun` is one object, the loop and the state its
+commits write; what could stand alone already does (pauses, the swarm's changes, when the
+arena's events are due: :mod:`master_service.arena_events`).
 """
 
 from __future__ import annotations
@@ -28,14 +32,16 @@ from typing import Final
 
 import numpy as np
 
+from master_service.arena_events import arena_event, due_events, person_text
 from master_service.config import MasterConfig
-from master_service.evaluation import Evaluation, Evaluator, Progress, RunSummary
+from master_service.evaluation import ArenaChange, Evaluation, Evaluator, Progress, RunSummary
 from master_service.pause import Pause, PauseGate, low_batteries
 from master_service.replay import ReplaySource, check_spec
 from master_service.rundir import FILE_ONLY, RunDir, RunState
 from master_service.swarm import changed, dropped_event, gone_text
 from minimize_surprise.dominance import dominance, ground_at_start
 from minimize_surprise.errors import FileWriteError
+from minimize_surprise.events import describe
 from minimize_surprise.evolution import OnePlusOne
 from minimize_surprise.fitness import swarm_fitness
 from minimize_surprise.network import GenomeLayout, NetworkSpec
@@ -257,12 +263,14 @@ class EvolutionRun:
         state = self._require_state()
         opt = state.optimizer
         experiment = self.experiment
-        total = experiment.evolution.evaluations
+        total = experiment.evolution.evaluations or "endless"
         while not opt.done:
             if should_stop is not None and should_stop():
                 await self._commit()
                 self.log.info("stopped after %d evaluations", opt.evaluations)
                 return False
+            if experiment.events:
+                await self._arena_events()
             if not self.ids_leave_process and self._commit_due():
                 # Before ask: the checkpoint holds no candidate in flight, so a resumed run
                 # counts its attempts as the uninterrupted run does.
@@ -300,7 +308,7 @@ class EvolutionRun:
             self._best_changed |= outcome.accepted
             self._counted(outcome.fitness, attempt.safety_share)
             self.log.info(
-                "evaluation %d/%d %s: fitness %.4f, best %.4f%s (attempt %d, %.1f s, safety "
+                "evaluation %d/%s %s: fitness %.4f, best %.4f%s (attempt %d, %.1f s, safety "
                 "%.0f %%)%s",
                 outcome.evaluation,
                 total,
@@ -461,6 +469,39 @@ class EvolutionRun:
         await self.pause(pause, settled)
         await self.commit_swarm()
 
+    async def _arena_events(self) -> None:
+        """Make the experiment's events due now happen, between evaluations: each once, in
+        the checkpoint before its line goes into events.jsonl (docs/changing-arenas.md)."""
+        state = self._require_state()
+        events, done = self.experiment.events, state.optimizer.evaluations
+        for index in due_events(events, state.events_applied, done, self.elapsed_s):
+            event = events[index]
+            change = await self.evaluator.change_arena(event, index)
+            if change is None:  # real robots: a person makes it
+                await self.pause(
+                    Pause("arena-change", person_text(event, index, self.run_dir.path))
+                )
+                change = ArenaChange(describe(event))
+            for robot in change.left:
+                self.change_swarm(robot, None)
+            if change.joined:
+                roster = [*(state.roster or []), *change.joined]
+                base = self._header or evaluation_header(
+                    state.roster or [], robot_stats=self._robot_stats
+                )
+                self._header = widen_header(base, roster, robot_stats=self._robot_stats)
+                state.roster = roster
+                self._widen = True
+            state.events_applied.append(index)
+            await self._commit()
+            await self._flush()
+            line = arena_event(index, change.detail, done, self.elapsed_s)
+            self.log.info("after evaluation %d: %s (event %d)", done, change.detail, index)
+            try:
+                append_event(self.run_dir.path, line)
+            except OSError as exc:
+                self.log.warning("the arena's change could not be logged: %s", exc)
+
     # -- commits -----------------------------------------------------------------------------
 
     def _commit_due(self) -> bool:
@@ -545,7 +586,10 @@ class EvolutionRun:
         if state.phase == "done":
             return 0.0
         steps = self.experiment.evaluation_steps
-        remaining = self.experiment.evolution.evaluations - state.optimizer.evaluations
+        total = self.experiment.evolution.evaluations
+        if total is None:  # an endless run: until the person stops it
+            return None
+        remaining = total - state.optimizer.evaluations
         # Measured once possible, so a simulated swarm in lockstep (far faster than 10 Hz) is
         # estimated right too, its post-evaluation included.
         if self._intervals:

@@ -49,8 +49,9 @@ import numpy as np
 
 from master_service.config import MasterConfig, build_ssl_context, inventory_of
 from master_service.escape import EscapeDesk
-from master_service.evaluation import Evaluation, Progress, RunSummary
+from master_service.evaluation import ArenaChange, Evaluation, Progress, RunSummary
 from master_service.evolution_run import EvolutionRun
+from master_service.mark import MarkDesk
 from master_service.pause import Pause
 from master_service.progress import run_status
 from master_service.replay import ReplaySource, write_replay_file
@@ -62,6 +63,7 @@ from master_service.swap import SwapDesk
 from master_service.swarm import AwayClock, changes_text
 from minimize_surprise import __version__
 from minimize_surprise.errors import ConfigError
+from minimize_surprise.events import ArenaEvent, RobotsJoin
 from minimize_surprise.network import GenomeLayout, spec_from_config
 from minimize_surprise.provenance import software_commit
 from minimize_surprise.session import TAG_SIZE
@@ -120,6 +122,7 @@ class Master:
         before_post_evaluation: Callable[[], Awaitable[None]] | None = None,
         snapshot: Callable[[], dict[str, Any]] | None = None,
         replay: ReplaySource | None = None,
+        change_arena: Callable[[ArenaEvent, int], Awaitable[ArenaChange]] | None = None,
     ) -> None:
         if config.experiment is None:
             raise ConfigError(
@@ -153,6 +156,14 @@ class Master:
         self.replay = replay
         self._before_post_evaluation = before_post_evaluation
         self._snapshot = snapshot
+        self._change_arena = change_arena
+        for index, event in enumerate(self.experiment.events):
+            if change_arena is None and isinstance(event, RobotsJoin):
+                raise ConfigError(
+                    "robots join only in simulation; on real robots a spare joins through "
+                    "`surprise-master swap`",
+                    key=f"events[{index}].kind",
+                )
         self._ssl = build_ssl_context(config.tls) if config.tls is not None else None
         # One logger per run; the run's log file hangs on it, so two masters in one process
         # (tests, the sim command) keep separate logs and there is no global state.
@@ -221,6 +232,9 @@ class Master:
             self.run_dir, self.server, self.log, members=self._members, on_stop=self._fleet_stop
         )
         self._stop_task: asyncio.Task[None] | None = None
+        #: a person's marks (``surprise-master mark``)
+        self.marks = MarkDesk(self.run_dir, self.log, lambda: self.state, lambda: self.elapsed_s)
+        self._mark_task: asyncio.Task[None] | None = None
         #: the pause a fleet stop asked for, taken by the next swarm()
         self._stop_pause: Pause | None = None
         #: since when each robot of the swarm has been away (gone for good: robot_gone_after)
@@ -257,10 +271,11 @@ class Master:
         self._escape_task = asyncio.create_task(self.escapes.run(), name="escapes")
         self._swap_task = asyncio.create_task(self.swaps.run(), name="swaps")
         self._stop_task = asyncio.create_task(self.stops.run(), name="fleet-stops")
+        self._mark_task = asyncio.create_task(self.marks.run(), name="marks")
         self.away.start(self._require_state().roster or [])  # a resumed swarm's: not back yet
         optimizer = self._require_state().optimizer
         self.log.info(
-            "%s run %s: listening on %s:%d%s; %d/%d evaluations done, swarm of %d robots%s",
+            "%s run %s: listening on %s:%d%s; %d/%s evaluations done, swarm of %d robots%s",
             "resumed" if self.resume else "started",
             self.run_id,
             self.host,
@@ -277,12 +292,14 @@ class Master:
 
     async def close(self) -> None:
         """Finish pending writes, say Bye to the robots, close the connections and the log."""
-        for task in (self._live_task, self._escape_task, self._swap_task, self._stop_task):
+        tasks = (self._live_task, self._escape_task, self._swap_task, self._stop_task)
+        for task in (*tasks, self._mark_task):
             if task is not None:
                 task.cancel()
                 with contextlib.suppress(asyncio.CancelledError):
                     await task
         self._live_task = self._escape_task = self._swap_task = self._stop_task = None
+        self._mark_task = None
         await self.server.close()
         await self.evolution.close()
         self.run_dir.close()
@@ -476,6 +493,11 @@ class Master:
     def snapshot(self) -> dict[str, Any] | None:
         """A simulator's state for the checkpoint (None for real robots)."""
         return None if self._snapshot is None else self._snapshot()
+
+    async def change_arena(self, event: ArenaEvent, index: int) -> ArenaChange | None:
+        """A simulator's world changes (the ``change_arena`` hook); None for real robots,
+        whose run pauses for a person to make the change."""
+        return None if self._change_arena is None else await self._change_arena(event, index)
 
     # -- the robots' connections -------------------------------------------------------------
 

@@ -14,14 +14,20 @@ from typing import IO, Any
 from master_service.evaluation import Progress
 from master_service.rundir import for_console
 from minimize_surprise.safety import SAFETY_DOMINATES
-from minimize_surprise.text import format_duration
+from minimize_surprise.text import format_duration, plural
 from telemetry.payloads import RunStatus, now
 
-__all__ = ["ProgressDisplay", "describe"]
+__all__ = ["ProgressDisplay", "describe", "planned_text"]
 
 #: Redraws per second of the live panel: smooth enough for a clock, cheap for the event loop.
 REFRESH_PER_SECOND = 4
 _FORMAT = "%(asctime)s %(levelname)s %(message)s"
+
+
+def planned_text(evaluations: int | None) -> str:
+    """The evaluations a run plans, as its first line says them: ``300 evaluations``, or
+    ``endless evaluations`` (``evaluations: null``)."""
+    return "endless evaluations" if evaluations is None else plural(evaluations, "evaluation")
 
 
 def describe(progress: Progress) -> str:
@@ -36,7 +42,8 @@ def describe(progress: Progress) -> str:
     left = "-" if progress.time_left_s is None else format_duration(progress.time_left_s)
     safety = "-" if progress.safety_share is None else f"{100 * progress.safety_share:.0f} %"
     return (
-        f"{state} | evaluations {progress.evaluations}/{progress.total} | best {best} | "
+        f"{state} | evaluations {progress.evaluations}/{progress.total or 'endless'} | "
+        f"best {best} | "
         f"robots {progress.robots_connected}/{progress.robots_expected} | "
         f"safety drove {safety} | failed attempts {progress.failed_attempts} | elapsed "
         f"{format_duration(progress.elapsed_s)} | left ~{left}"
@@ -117,7 +124,8 @@ class ProgressDisplay:
         grid.add_column()
         grid.add_column()
         bar = ProgressBar(total=progress.total, completed=progress.evaluations, width=30)
-        grid.add_row("evaluations", f"{progress.evaluations}/{progress.total}", bar)
+        done = f"{progress.evaluations}/{progress.total or 'endless'}"
+        grid.add_row("evaluations", done, bar)
         best = "-" if progress.best_fitness is None else f"{progress.best_fitness:.4f}"
         last = "-" if progress.last_fitness is None else f"{progress.last_fitness:.4f}"
         grid.add_row("best fitness", best, f"last {last}")
@@ -149,7 +157,7 @@ def run_status(progress: Progress, robots: list[str], *, online: bool = True) ->
         phase=progress.phase,
         waiting=progress.waiting,
         evaluations=progress.evaluations,
-        total=progress.total,
+        total=progress.total or 0,  # 0: an endless run
         best_fitness=progress.best_fitness,
         last_fitness=progress.last_fitness,
         robots_connected=progress.robots_connected,

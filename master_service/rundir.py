@@ -154,6 +154,8 @@ class RunState:
     #: a simulated run's world and robots at this commit, so that it resumes exactly
     simulation: dict[str, Any] | None = None
     swarms: list[SwarmChange] = field(default_factory=list)
+    #: the experiment's events that happened (indexes in its ``events``), in order
+    events_applied: list[int] = field(default_factory=list)
 
     @property
     def swarm_number(self) -> int:
@@ -175,6 +177,7 @@ class RunState:
             optimizer=self.optimizer.state(),
             simulation=self.simulation,
             swarms=list(self.swarms) or None,
+            events_applied=list(self.events_applied) or None,
         )
 
     @classmethod
@@ -197,6 +200,7 @@ class RunState:
             elapsed_s=checkpoint.elapsed_s,
             simulation=checkpoint.simulation,
             swarms=list(checkpoint.swarms or ()),
+            events_applied=list(checkpoint.events_applied or ()),
         )
 
 

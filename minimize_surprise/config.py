@@ -15,6 +15,7 @@ import msgspec
 import yaml
 
 from minimize_surprise.errors import ConfigError
+from minimize_surprise.events import ArenaEvent, check_events
 from minimize_surprise.optimizer import OptimizerConfig
 from minimize_surprise.sensors import check_sensor_names
 from minimize_surprise.settings import SETTINGS, Setting, experiment_defaults
@@ -123,8 +124,9 @@ class EvolutionConfig(Strict, frozen=True):
     """(1+1) online evolution with re-evaluation (paper Sec. V-A)."""
 
     #: counted evaluations of a run before the post-evaluation (failed rounds do not count; the
-    #: paper: 1000 in simulation, 350 on real robots, the lab setting's default)
-    evaluations: PositiveInt = 350
+    #: paper: 1000 in simulation, 350 on real robots, the lab setting's default); ``null``: an
+    #: endless run, stopped by the person and resumable (docs/changing-arenas.md)
+    evaluations: PositiveInt | None = 350
     #: probability that a round evaluates the current best again instead of an offspring
     reevaluation_probability: Probability = 0.2
     #: weight of the new fitness in F = w f + (1 - w) F when the best is re-evaluated
@@ -204,6 +206,9 @@ class ExperimentConfig(Strict, frozen=True):
     #: the optimizer: left out, the (1+1) of ``evolution``; ``{name: map-elites, measures:
     #: [...], ...}`` quality diversity (docs/quality-diversity.md)
     optimizer: OptimizerConfig | None = None
+    #: changes of the arena during the evolution, each at an evaluation or after some seconds
+    #: (docs/changing-arenas.md)
+    events: list[ArenaEvent] = msgspec.field(default_factory=list)
 
     @property
     def arena_name(self) -> str:
@@ -237,6 +242,7 @@ class ExperimentConfig(Strict, frozen=True):
                 raise ValueError(
                     f"`predefined.{name}`: expected a prediction in [0, 1], got {value}"
                 )
+        check_events(self.events, self.evolution.evaluations, self.robots)
 
 
 _DEFAULT_SENSORS = len(ExperimentConfig().sensors)

@@ -91,8 +91,10 @@ class OnePlusOne:
 
     @property
     def done(self) -> bool:
-        """True once the configured number of evaluations has been counted."""
-        return self.evaluations >= self.config.evaluations
+        """True once the configured number of evaluations has been counted (never for an
+        endless run, ``evaluations: null``)."""
+        total = self.config.evaluations
+        return total is not None and self.evaluations >= total
 
     def ask(self) -> Candidate:
         """The next candidate; the same one again until it is told a fitness."""

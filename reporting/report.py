@@ -9,8 +9,9 @@ cluster size and their classes, the box displacement d_B from ``simulation.json`
 its path length and rotation; a real run's the same from a tracker's file (:mod:`.tracker`).
 
 Pictures (``plots/``, each as PNG and PDF; :mod:`reporting.pictures`): ``fitness``,
-``robot_fitness``, ``predictions``, in simulation ``trajectories`` on the arena, with a baseline
-``evolved_vs_random``; with ``animate`` also ``post_evaluation.gif``.
+``robot_fitness``, ``predictions``, for a run whose arena changed ``recovery`` (and its table
+``recovery.md``, :mod:`reporting.recovery`), in simulation ``trajectories`` on the arena, with a
+baseline ``evolved_vs_random``; with ``animate`` also ``post_evaluation.gif``.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from minimize_surprise.dominance import dominance, ground_at_start
 from minimize_surprise.errors import ConfigError
 from minimize_surprise.safety import intervention_reasons, intervention_share
 from reporting import pictures, reality_gap, tracker
+from reporting.recovery import recoveries, recovery_metrics, recovery_picture, recovery_table
 from reporting.robot_stats import parse_robot_stats, robot_stats
 from runfiles import schema
 from runfiles.schema import (
@@ -314,6 +316,9 @@ def _metrics(data: _Run) -> dict[str, Any]:
                 if (values := [r["robots"][robot] for r in rows if robot in r["robots"]])
             },
         )
+    changes = recoveries([r["fitness"] for r in rows], schema.read_events(run))
+    if changes:  # the arena changed, or a person marked a change (docs/changing-arenas.md)
+        metrics["recovery"] = recovery_metrics(changes)
     metrics["robot_stats"] = robot_stats(rows, robots)
     metrics["safety"] = _safety_metrics(rows, data.post, data.traces)
     metrics["warnings"] = list((metrics["safety"] or {}).get("warnings", []))
@@ -510,6 +515,12 @@ def _draw(data: _Run, metrics: dict[str, Any], *, plots: bool, animate: bool) ->
                 post_steps=post.get("steps"),
             )
             drawn += pictures.robot_fitness_picture(directory, data.rows, data.robots, title)
+        if metrics.get("recovery"):
+            fitness = [r["fitness"] for r in data.rows]
+            found = recoveries(fitness, schema.read_events(data.run))
+            drawn += recovery_picture(directory, fitness, found, title)
+            write_atomic(directory / "recovery.md", recovery_table(found).encode())
+            drawn.append(directory / "recovery.md")
         if post.get("sensors"):
             drawn += pictures.predictions_picture(directory, post["sensors"], title)
         comparison = metrics.get("baseline")

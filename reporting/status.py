@@ -35,7 +35,7 @@ def status_text(path: str | Path) -> str:
     path = Path(path)
     config = schema.read_config(path)
     assert config.experiment is not None
-    planned = config.experiment.evolution.evaluations
+    planned = config.experiment.evolution.evaluations or "endless"
     checkpoint = schema.read(path, Checkpoint)
     lines = [f"run {path.resolve().name} ({path})"]
     if checkpoint is None:

@@ -184,7 +184,7 @@ def _run_panel(state: SwarmState) -> Panel:
     grid.add_row("phase", what + ("" if run.online else " (master stopped)"))
     if run.paused:
         grid.add_row("paused", Text(run.paused, style="yellow"))
-    grid.add_row("evaluations", f"{run.evaluations}/{run.total}")
+    grid.add_row("evaluations", f"{run.evaluations}/{run.total or 'endless'}")
     grid.add_row("fitness", f"best {_number(run.best_fitness)}, last {_number(run.last_fitness)}")
     robots = f"{run.robots_connected}/{run.robots_expected}"
     if run.robots:

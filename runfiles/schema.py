@@ -79,8 +79,10 @@ __all__ = [
     "EVALUATIONS",
     "EVALUATION_COLUMNS",
     "EVENTS",
+    "EVENT_ARENA",
     "EVENT_ESCAPE",
     "EVENT_FLEET_STOP",
+    "EVENT_MARK",
     "EVENT_POST_EVALUATION",
     "EVENT_SWARM_CHANGE",
     "LIVE_INTERVAL",
@@ -104,6 +106,7 @@ __all__ = [
     "EscapeRequest",
     "Event",
     "Live",
+    "MarkRequest",
     "PauseFile",
     "PauseNote",
     "Phase",
@@ -168,6 +171,10 @@ EVENT_FLEET_STOP: Final = "fleet-stop"
 EVENT_POST_EVALUATION: Final = "post-evaluation-start"
 #: Event kinds: the swarm changed (a robot gone, a spare swapped in), or a swap was refused.
 EVENT_SWARM_CHANGE: Final = "swarm-change"
+#: Event kinds: one of the experiment's ``events`` changed the arena (docs/changing-arenas.md).
+EVENT_ARENA: Final = "arena-change"
+#: Event kinds: a person marked something they did (``surprise-master mark``).
+EVENT_MARK: Final = "mark"
 
 #: How often a master rewrites live.json at the least.
 LIVE_INTERVAL: Final = 2.0
@@ -308,7 +315,7 @@ class Checkpoint(RunFile, frozen=True, kw_only=True):
 
     FILE: ClassVar[str] = "checkpoint.json"
     FORMAT: ClassVar[int] = 1
-    OMIT_NONE: ClassVar[tuple[str, ...]] = ("swarms",)
+    OMIT_NONE: ClassVar[tuple[str, ...]] = ("swarms", "events_applied")
 
     run_id: str
     phase: Phase
@@ -324,6 +331,8 @@ class Checkpoint(RunFile, frozen=True, kw_only=True):
     optimizer: dict[str, Any] = msgspec.field(default_factory=dict)
     simulation: dict[str, Any] | None = None
     swarms: list[SwarmChange] | None = None
+    #: the experiment's events (their indexes in its ``events``) that happened, in order
+    events_applied: list[int] | None = None
 
     @property
     def evaluations(self) -> int:
@@ -550,6 +559,20 @@ class SoftwareRecord(RunFile, frozen=True, kw_only=True):
     joined_at: dict[str, float] = msgspec.field(default_factory=dict)
 
 
+class MarkRequest(RunFile, frozen=True, kw_only=True):
+    """A request of ``surprise-master mark``: a person made a change (``text``) the running
+    master is to note in ``events.jsonl`` with the evaluation it happened at, as an
+    :class:`Event` of kind ``mark`` naming the same ``token`` (see :class:`EscapeRequest`)."""
+
+    FILE: ClassVar[str] = "mark-request.json"
+    FORMAT: ClassVar[int] = 1
+
+    text: str
+    token: str
+    #: when the person asked (seconds since the epoch)
+    requested_at: float
+
+
 class EscapeRequest(RunFile, frozen=True, kw_only=True):
     """A request of ``surprise-master escape`` for the running master: robot ``robot`` is to run
     its safety layer's escape now. Written as ``requests/escape-<token>.json`` (``FILE`` is the
@@ -613,6 +636,10 @@ class Event(msgspec.Struct, frozen=True, kw_only=True):
     ``fleet-stop``: ``surprise-master fleet stop`` asked (``request`` its token); the robots
     that ``confirmed`` their motors stopped and those that did not answer (``unanswered``);
     ``accepted`` when every robot confirmed.
+    ``arena-change``: the experiment's event ``index`` (``detail`` what it did) happened after
+    ``evaluation`` counted evaluations, the run served ``seconds`` seconds.
+    ``mark``: a person marked ``detail`` (``surprise-master mark``, ``request`` its token) after
+    ``evaluation`` counted evaluations.
     """
 
     #: the version of a line's structure; each line carries it as ``format``
@@ -628,6 +655,12 @@ class Event(msgspec.Struct, frozen=True, kw_only=True):
     joined: str | None = None
     confirmed: list[str] | None = None
     unanswered: list[str] | None = None
+    #: counted evaluations before it (``arena-change``, ``mark``)
+    evaluation: int | None = None
+    #: the run's served seconds then (``arena-change``, ``mark``)
+    seconds: float | None = None
+    #: the experiment's event (its index in ``events``) of an ``arena-change``
+    index: int | None = None
 
 
 def append_event(run_dir: str | Path, event: Event) -> None:

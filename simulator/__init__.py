@@ -11,6 +11,8 @@
 * :mod:`simulator.physics` - motion, contacts, boxes and sensors as compiled kernels;
 * :mod:`simulator.world` - the world stepped one step at a time (``World``);
 * :mod:`simulator.engine` - whole evaluations of a swarm in one compiled loop (``Swarm``);
+* :mod:`simulator.events` - what an experiment's events (the light moves, boxes come and go, a
+  wall appears, robots leave or join) do to a world, and which an arena refuses;
 * :mod:`simulator.body` - the drivers' ``Body`` over a shared world, in lockstep or real time
   (``SimSwarm``, ``SimBody``, ``LockstepClock``);
 * :mod:`simulator.battery` - a simulated robot's battery, for the lab's battery pauses;

@@ -357,6 +357,7 @@ class Swarm:
         self.spec = spec
         self.layout = GenomeLayout(spec)
         self.ids = robot_ids(world_config.robots)
+        self._issued = len(self.ids)
         layer = SafetyLayer(world_config.sensors, safety)
         self.layer = layer
         self.safety = np.zeros((world_config.robots, 5), dtype=np.int64)
@@ -369,6 +370,22 @@ class Swarm:
             [world_config.sensors.index(name) for name in spec.sensors], dtype=np.int64
         )
 
+    def resize(self, keep: Sequence[int], joined: int) -> tuple[list[str], list[str]]:
+        """After the world's robots changed (``simulator.events``): robots ``keep`` stayed, in
+        order, ``joined`` new ones came after them with fresh safety layers and new ids; the
+        ids that left and those that joined."""
+        ids = [self.ids[k] for k in keep]
+        left = [robot for robot in self.ids if robot not in ids]
+        # A robot that joins never takes the id of one that left: the CSV keeps their columns.
+        new = [f"sim-{self._issued + i}" for i in range(joined)]
+        self._issued += joined
+        fresh = [self.layer.initial_state(safety_seed(robot)).to_array() for robot in new]
+        self.safety = np.concatenate(
+            [self.safety[list(keep)], np.array(fresh, dtype=np.int64).reshape(-1, 5)]
+        )
+        self.ids = ids + new
+        return left, new
+
     def snapshot(self) -> dict[str, object]:
         """The swarm's state (world and safety layers) as plain data; see :meth:`restore`."""
         return {"world": self.world.snapshot(), "safety": self.safety.tolist()}
@@ -376,7 +393,7 @@ class Swarm:
     def restore(self, snapshot: dict[str, object]) -> None:
         """Return to the state of :meth:`snapshot`."""
         self.world.restore(snapshot["world"])  # type: ignore[arg-type]
-        self.safety[:] = np.array(snapshot["safety"], dtype=np.int64)
+        self.safety = np.array(snapshot["safety"], dtype=np.int64).reshape(-1, 5)
 
     def evaluate(self, genome: np.ndarray, steps: int, *, record: bool = False) -> EvaluationRecord:
         """Run ``genome`` on every robot for ``steps`` steps from where the swarm stands."""

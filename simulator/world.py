@@ -276,6 +276,48 @@ class World:
         self._pending = np.zeros(len(self._boxes), dtype=bool)
         self._cache = None
 
+    # --- changes of the arena (simulator.events) ---------------------------------------------
+
+    def reconfigure(self, config: WorldConfig) -> None:
+        """Go on in ``config`` (a moved lamp, another number of robots) from the current state:
+        the kernels' constants are compiled anew with the same seed."""
+        self.config = config
+        self._body_reach = body_reach(config)
+        self._geometry, self._sensing = compile_world(config, self.seed)
+        self._cache = None
+
+    def add_boxes(self, positions: np.ndarray) -> None:
+        """Add boxes at ``positions`` (K, 2); the box physics separates any they overlap."""
+        new = np.array(positions, dtype=float).reshape(-1, 2)
+        self._boxes = np.concatenate([self._boxes, new])
+        start = np.concatenate([self._box_start, new])
+        start.flags.writeable = False
+        self._box_start = start
+        self._pending = np.concatenate([self._pending, np.ones(len(new), dtype=bool)])
+        self._cache = None
+
+    def remove_boxes(self, count: int) -> None:
+        """Take the last ``count`` boxes away."""
+        keep = max(0, len(self._boxes) - count)
+        self._boxes = self._boxes[:keep].copy()
+        self._box_start = self._box_start[:keep].copy()
+        self._box_start.flags.writeable = False
+        self._pending = self._pending[:keep].copy()
+        self._cache = None
+
+    def resize_swarm(self, keep: np.ndarray, poses: np.ndarray, config: WorldConfig) -> None:
+        """The robots ``keep`` (indexes, in order) stay, robots at ``poses`` (K, 3) join after
+        them, idle; ``config`` the world's with the new number of robots. Boxes a new robot
+        stands on are pushed off it by the next step's box physics."""
+        self._pose = np.concatenate([self._pose[keep], np.asarray(poses, float).reshape(-1, 3)])
+        self._cmd = np.concatenate([self._cmd[keep], np.zeros((len(poses), 2))])
+        self._force = np.concatenate([self._force[keep], np.zeros(len(poses))])
+        self._n = len(self._pose)
+        self._sense_work = sense_work(self._n)
+        if len(poses):
+            self._pending[:] = True
+        self.reconfigure(config)
+
     # --- snapshots ------------------------------------------------------------------------------
 
     def snapshot(self) -> dict[str, object]:

@@ -22,6 +22,9 @@ import time
 from pathlib import Path
 from typing import Any, Final
 
+import msgspec
+
+from minimize_surprise.events import RobotsJoin, RobotsLeave
 from studies.tasks import (
     evolved_summary,
     failed_summary,
@@ -38,6 +41,9 @@ from studies.tasks import (
 )
 
 __all__ = ["BATCH_RUNS", "batch_key", "plan_batches", "run_tasks"]
+
+#: The events that change a swarm's size (runs of one batch must share them).
+_SWARM_EVENTS = (RobotsLeave, RobotsJoin)
 
 #: Runs per batch at most, by default: four runs of ten robots fill five vectors of eight lanes
 #: exactly, and four of four robots two; more lanes gain little (benchmarks/engine.py).
@@ -66,7 +72,11 @@ def batch_key(task: dict[str, Any]) -> str | None:
         experiment.evaluation_steps,
         experiment.post_evaluation_steps,
         run_plots(task),
+        # The swarm's size changes with these: at the same evaluations in every run of a batch.
+        [msgspec.to_builtins(e) for e in experiment.events if isinstance(e, _SWARM_EVENTS)],
     )
+    if any(e.seconds is not None for e in experiment.events if isinstance(e, _SWARM_EVENTS)):
+        return None  # when is the wall clock's: alone
     return json.dumps(shape)
 
 

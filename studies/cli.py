@@ -194,6 +194,13 @@ def _report(args: argparse.Namespace) -> int:
     )
     for line in result["problems"]:  # also in the report's problems.txt
         print(f"  left out: {line}")
+    for row in result["recovery"]:  # also in the report's recovery.md
+        drop = "-" if row["median_drop"] is None else f"{row['median_drop']:.4f}"
+        back = "-" if row["median_recovery"] is None else f"{row['median_recovery']:g}"
+        print(
+            f"  {row['group']}, {row['detail']}: median drop {drop}, recovered "
+            f"{row['recovered']}/{row['runs']}, median recovery {back} evaluations"
+        )
     return 0
 
 

@@ -23,6 +23,8 @@ and writes into ``DIR/report/``:
 * ``qd.csv`` and ``qd.md``: with ``qd`` (MAP-Elites) runs, the classes each MAP-Elites run and
   its peer evolved runs found and, per class, the best elite's fitness against the runs' median
   best fitness (:mod:`studies.qd_tables`);
+* ``recovery.csv`` and ``recovery.md``: for runs whose arena changes, per group and change the
+  median drop of fitness and evaluations to recover across seeds (:mod:`studies.recovery`);
 * ``problems.txt``: one line per run left out (failed; a recorded run missing, unfinished or
   unreadable), naming it and why;
 * ``figures/``: best fitness over evaluations with medians (the paper's Fig. 11; recorded groups
@@ -57,6 +59,7 @@ from studies.clusters import (
 )
 from studies.qd_tables import qd_comparison, qd_markdown
 from studies.recorded import RECORDED, refreshed
+from studies.recovery import recovery_markdown, recovery_rows
 from studies.runner import STUDY_FILE, TASKS_FILE
 from studies.spec import load_study
 from studies.tasks import FAILED, SUMMARY, run_dir
@@ -188,6 +191,10 @@ def write_study_report(out: str | Path) -> dict[str, Any]:
     if evaluations is not None:
         evaluations.to_parquet(target / "evaluations.parquet", index=False)
     figures = _figures(out, target / "figures", done, evaluations)
+    changes = recovery_rows(done) if len(done) else []
+    if changes:  # the runs' arena changed (docs/changing-arenas.md)
+        pd.DataFrame(changes).to_csv(target / "recovery.csv", index=False)
+        (target / "recovery.md").write_text(recovery_markdown(changes), encoding="utf-8")
     found = _clusters(target, done) if len(done) else []
     figures += [f for c in found if not c.note for f in _save(
         clusters_figure(c), target / "figures", f"clusters-{c.family}"
@@ -201,6 +208,7 @@ def write_study_report(out: str | Path) -> dict[str, Any]:
         "figures": figures,
         "problems": problems,
         "clusters": {c.family: {"clusters": c.clusters, "ari": c.ari} for c in found},
+        "recovery": changes,
         "report": str(target),
         "qd": len(qd_rows),
     }

@@ -403,6 +403,8 @@ def evolved_summary(
         "mean_sensors": [v["mean_real"] for v in sensors.values()],
         "mean_predictions": [v["mean_predicted"] for v in sensors.values()],
         "evaluations_file": "evaluations.csv",
+        # Fitness around each change of the arena (none: it never changed).
+        "recovery": metrics.get("recovery"),
     }
 
 

@@ -46,6 +46,7 @@ import yaml
 from master_service.config import MasterConfig as MasterFileConfig
 from master_service.inventory import Inventory
 from minimize_surprise.config import ExperimentConfig, with_setting
+from minimize_surprise.events import ArenaEvent
 from minimize_surprise.safety import SafetyConfig
 from minimize_surprise.sensors import ALL_SENSORS
 from minimize_surprise.settings import SETTINGS
@@ -179,6 +180,9 @@ def type_text(tp: Any, hex_: bool = False) -> str:
     origin, args = typing.get_origin(tp), typing.get_args(tp)
     if origin is typing.Literal:
         return " or ".join(f"`{_yaml(a)}`" for a in args)
+    if origin in (typing.Union, types.UnionType) and all(_tag(a) for a in args):
+        # Structures told apart by their ``kind``: each by its tag.
+        return " or ".join(f"`{_tag(a)}`" for a in args)
     if origin in (typing.Union, types.UnionType):
         present = [a for a in args if a not in (type(None), msgspec.UnsetType)]
         text = " or ".join(type_text(a, hex_) for a in present)
@@ -225,6 +229,14 @@ def _plain(value: Any) -> Any:
     return value
 
 
+def _tag(tp: Any) -> str | None:
+    """The ``kind`` a tagged structure is known by (None: not one)."""
+    if not _is_struct(tp):
+        return None
+    tag = tp.__struct_config__.tag
+    return tag if isinstance(tag, str) else None
+
+
 def _struct_members(tp: Any) -> tuple[list[type], bool]:
     """The structure classes a field's type holds (directly, in a union, or as list items), and
     whether they are list items."""
@@ -237,6 +249,9 @@ def _struct_members(tp: Any) -> tuple[list[type], bool]:
         return [a for a in found if _is_struct(a)], False
     if origin is list and args and _is_struct(_unwrap(args[0])[0]):
         return [_unwrap(args[0])[0]], True
+    if origin is list and args and typing.get_origin(args[0]) in (typing.Union, types.UnionType):
+        found = [_unwrap(a)[0] for a in typing.get_args(args[0])]
+        return [a for a in found if _is_struct(a)], True
     return [], False
 
 
@@ -330,7 +345,7 @@ def _walk(document: Document, cls: type, prefix: str, parent: Any, path: str) ->
         text = meaning[info.name]
         members, is_list = _struct_members(info.type)
         shown_elsewhere = [m for m in members if m in document.elsewhere]
-        links = [document.elsewhere[m] for m in shown_elsewhere]
+        links = list(dict.fromkeys(document.elsewhere[m] for m in shown_elsewhere))
         if dotted in document.see:
             links.append(document.see[dotted])
         for anchor, title in links:
@@ -443,6 +458,35 @@ def safety_changes() -> list[str]:
 _EXPERIMENT = ("the-experiment-file", "the experiment file")
 _SIMULATION = ("the-simulation-section", "the simulation section")
 _SAFETY = ("the-safety-section", "the safety section")
+_EVENTS = ("the-events", "the events")
+
+
+class _EventKeys(msgspec.Struct, kw_only=True):
+    """Every key of the events, each kind's in its own (the reference's one table of them)."""
+
+    #: what changes: `light-moves`, `boxes-added`, `boxes-removed`, `wall-appears`,
+    #: `robots-leave` or `robots-join`
+    kind: str
+    #: the counted evaluation that is the first in the changed arena (1 .. `evaluations`)
+    evaluation: typing.Annotated[int, msgspec.Meta(ge=1)] | None = None
+    #: or: the run's served seconds (over its resumptions) after which the change happens
+    seconds: typing.Annotated[float, msgspec.Meta(ge=0.0)] | None = None
+    #: what a person reads in the report beside the event (default: what it does)
+    note: str = ""
+    #: `light-moves`: the point under the lamp then, [x, y] metres on the floor
+    position: tuple[float, float] | None = None
+    #: `boxes-added`, `boxes-removed`, `robots-leave`, `robots-join`: how many
+    count: typing.Annotated[int, msgspec.Meta(ge=1)] | None = None
+    #: `boxes-added`: [x0, y0, x1, y1] where the boxes appear (default: the whole floor)
+    region: tuple[float, float, float, float] | None = None
+    #: `boxes-removed`: every box instead of `count`
+    all: bool = False
+    #: `wall-appears`: one end of the wall, [x, y]; the wall is horizontal or vertical
+    start: tuple[float, float] | None = None
+    #: `wall-appears`: its other end, [x, y]
+    end: tuple[float, float] | None = None
+
+
 _TELEMETRY = ("the-telemetry-section", "the telemetry section")
 
 
@@ -466,6 +510,19 @@ def documents() -> list[Document]:
             ),
             see={"simulation": _SIMULATION, "safety": _SAFETY},
             defaults=setting_defaults(),
+            elsewhere={kind: _EVENTS for kind in typing.get_args(ArenaEvent)},
+        ),
+        Document(
+            title="The events",
+            anchor=_EVENTS[0],
+            root=_EventKeys,
+            prefix="events[].",
+            intro=(
+                "`minimize_surprise.events`: each item of an experiment's `events` is one change "
+                "of the arena, its `kind` one of `light-moves`, `boxes-added`, `boxes-removed`, "
+                "`wall-appears`, `robots-leave`, `robots-join`, with the keys below that its kind "
+                "has (docs/changing-arenas.md). Each needs `evaluation` or `seconds`."
+            ),
         ),
         Document(
             title="The simulation section",

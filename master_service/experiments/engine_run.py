@@ -27,7 +27,7 @@ from typing import Any, Final, NamedTuple
 import numpy as np
 
 from master_service.config import MasterConfig
-from master_service.evaluation import Evaluation, Progress, RunSummary
+from master_service.evaluation import ArenaChange, Evaluation, Progress, RunSummary
 from master_service.evolution_run import EvolutionRun
 from master_service.experiments.simulation_setup import (
     SimulatedRun,
@@ -39,9 +39,11 @@ from master_service.experiments.simulation_setup import (
 from master_service.replay import ReplaySource, write_replay_file
 from master_service.rundir import RunDir, RunState
 from minimize_surprise.config import ExperimentConfig
+from minimize_surprise.events import ArenaEvent, describe
 from minimize_surprise.network import spec_from_config
 from minimize_surprise.wire import EvaluationStats, Result, Trace
 from simulator.engine import EvaluationRecord, Swarm, evaluate_swarms
+from simulator.events import apply_to_world, check_arena_events, event_rng
 from simulator.world import box_frame_steps
 
 __all__ = ["COMMIT_INTERVAL", "EngineEvaluator", "FastRun", "SwarmBatcher", "run_batch"]
@@ -65,9 +67,9 @@ class FastRun:
         self.experiment = experiment
         self.on_progress = on_progress
         self.spec = spec_from_config(experiment)
-        self.swarm = Swarm(
-            world_config(experiment), simulated_safety(experiment), self.spec, experiment.seed
-        )
+        world = world_config(experiment)
+        check_arena_events(experiment.events, world)
+        self.swarm = Swarm(world, simulated_safety(experiment), self.spec, experiment.seed)
         self.evaluator = EngineEvaluator(self.swarm, experiment)
         self.ids = self.evaluator.ids
         # The configuration snapshot of the run directory: what the master of ``--engine
@@ -130,6 +132,10 @@ class FastRun:
             if not resume:
                 self._write_simulation_file(directory.path)
             elif state.simulation is not None:
+                # The events that happened change the world's set-up (a lamp, the swarm's
+                # size); the snapshot then gives its state.
+                for index in state.events_applied:
+                    self.evaluator.apply(self.experiment.events[index], index)
                 self.swarm.restore(state.simulation)
             if resume:
                 log.info("resumed: %d evaluations done", state.optimizer.evaluations)
@@ -255,6 +261,19 @@ class EngineEvaluator:
     def snapshot(self) -> dict[str, Any]:
         """The world and the safety layers (between evaluations: consistent)."""
         return self.engine.snapshot()
+
+    async def change_arena(self, event: ArenaEvent, index: int) -> ArenaChange:
+        """The experiment's event ``index`` happens to the engine's world
+        (:mod:`simulator.events`)."""
+        return self.apply(event, index)
+
+    def apply(self, event: ArenaEvent, index: int) -> ArenaChange:
+        """:meth:`change_arena`, also called to set a resumed run's world up as it was."""
+        rng = event_rng(self.experiment.seed, index)
+        keep, joined = apply_to_world(self.engine.world, event, rng)
+        left, new = self.engine.resize(keep, joined)
+        self.ids = list(self.engine.ids)
+        return ArenaChange(describe(event), tuple(left), tuple(new))
 
 
 @dataclass

@@ -24,8 +24,9 @@ from typing import Any
 
 import numpy as np
 
+from master_service.arena_events import leaving
 from master_service.config import DEFAULT_ROBOT_GONE_AFTER, MasterConfig
-from master_service.evaluation import Progress
+from master_service.evaluation import ArenaChange, Progress
 from master_service.experiments.simulation_setup import (
     SimulatedRun,
     robot_ids,
@@ -40,6 +41,8 @@ from master_service.replay import ReplaySource
 from master_service.rundir import RunDir
 from minimize_surprise.backoff import BackoffConfig
 from minimize_surprise.config import ExperimentConfig
+from minimize_surprise.errors import ConfigError
+from minimize_surprise.events import ArenaEvent, RobotsJoin, RobotsLeave, describe
 from minimize_surprise.safety import SafetyState
 from robot_agent.agent import Agent
 from robot_agent.config import AgentConfig, LoopConfig
@@ -47,6 +50,7 @@ from robot_agent.config import MasterConfig as AgentMasterConfig
 from simulator import metrics as sim_metrics
 from simulator.battery import SimBattery
 from simulator.body import SimSwarm
+from simulator.events import apply_to_world, check_arena_events, event_rng
 from simulator.scenarios import SCENARIOS
 from simulator.world import World, box_frame_steps
 
@@ -102,7 +106,16 @@ class SimulatedSwarm:
         self.batteries = list(batteries)
         #: wait for ``surprise-master continue`` before the post-evaluation, as a lab does
         self.pause_before_post = pause_before_post
-        self.world = World(world_config(experiment), seed=experiment.seed)
+        config = world_config(experiment)
+        check_arena_events(experiment.events, config)
+        for index, event in enumerate(experiment.events):
+            if isinstance(event, RobotsJoin):
+                raise ConfigError(
+                    "robots join only on the fast engine (--engine fast); with agents, a spare "
+                    "joins through `surprise-master swap`",
+                    key=f"events[{index}].kind",
+                )
+        self.world = World(config, seed=experiment.seed)
         self.ids = robot_ids(experiment.robots)
         # Nobody outside this process talks to this master: a fresh random secret per run.
         self._secret = secrets.token_bytes(32)
@@ -157,6 +170,18 @@ class SimulatedSwarm:
                 agent.runner.safety_state = SafetyState.from_array(np.array(state, np.int64))
         self._safety_before = [a.runner.safety_state.to_array().tolist() for a in self._agents]
         self.world.start_recording()  # the boxes' track, for the report's animation
+
+    async def _change_arena(self, event: ArenaEvent, index: int) -> ArenaChange:
+        # Every robot is idle between two rounds. A robot that leaves stops its agent, as one
+        # gone for good does: its body stays in the world, standing still.
+        if isinstance(event, RobotsLeave):
+            assert self.master is not None and self.master.state is not None
+            left = leaving(event, self.master.state.roster or [])
+            for robot in left:
+                await self.stop_agent(robot)
+            return ArenaChange(describe(event), left=left)
+        apply_to_world(self.world, event, event_rng(self.experiment.seed, index))
+        return ArenaChange(describe(event))
 
     def _snapshot(self) -> dict[str, Any]:
         # The master commits between rounds, while every robot is idle: a consistent state.
@@ -251,6 +276,7 @@ class SimulatedSwarm:
             before_post_evaluation=self._reset_arena,
             snapshot=self._snapshot,
             replay=replay,
+            change_arena=self._change_arena,
         )
         master.evolution.pause_before_post = self.pause_before_post
         self._agents = []
@@ -272,6 +298,12 @@ class SimulatedSwarm:
                     await self.stop_agent(self.ids[index])
                     self._drivers[index] = None
             if simulation is not None:
+                # The events that happened set the world up (a moved lamp); the snapshot then
+                # gives its state (robots that left: their drivers, above).
+                for index in [] if checkpoint is None else checkpoint.events_applied:
+                    event = self.experiment.events[index]
+                    if not isinstance(event, RobotsLeave):
+                        apply_to_world(self.world, event, event_rng(self.experiment.seed, index))
                 self._restore(simulation)
             try:
                 summary = await master.run()

@@ -28,6 +28,7 @@ from runfiles.schema import (
     EscapeRequest,
     Event,
     Live,
+    MarkRequest,
     PauseFile,
     PauseNote,
     PostEvaluation,
@@ -137,6 +138,11 @@ GOLDEN: dict[type[RunFile], tuple[RunFile, str]] = {
         ),
         '{"format": 1, "gone": "thymio-3", "spare": "thymio-9", "token": "1a2b3c4d5e6f7081", '
         '"requested_at": 1700000006.5}',
+    ),
+    MarkRequest: (
+        MarkRequest(text="moved the light", token="3c4d5e6f70819203", requested_at=1700000008.5),
+        '{"format": 1, "text": "moved the light", "token": "3c4d5e6f70819203", '
+        '"requested_at": 1700000008.5}',
     ),
     StopRequest: (
         StopRequest(token="2b3c4d5e6f708192", requested_at=1700000007.5),
