@@ -130,6 +130,17 @@ def qd_experiment(experiment: ExperimentConfig) -> tuple[ExperimentConfig, Optim
     :class:`ConfigError` naming its key."""
     optimizer = experiment.optimizer or OptimizerConfig()
     optimizer = msgspec.structs.replace(optimizer, name="map-elites")
+    if experiment.evolution.evaluations is None:
+        raise ConfigError(
+            "MAP-Elites needs a budget: give the number of evaluations",
+            key="evolution.evaluations",
+        )
+    if experiment.events:
+        raise ConfigError(
+            "MAP-Elites evaluates every candidate in an arena of its own: an arena that changes "
+            "is for the (1+1)'s online evolution (docs/changing-arenas.md)",
+            key="events",
+        )
     boxes = world_config(experiment).boxes
     for index, measure in enumerate(optimizer.measures):
         if measure.name == "box_displacement" and not boxes:
@@ -165,7 +176,9 @@ class QDRun:
         self.spec = spec_from_config(experiment)
         self.size = GenomeLayout(self.spec).size
         self.batch = self.optimizer.batch * self.optimizer.emitters
-        self.batches = math.ceil(experiment.evolution.evaluations / self.batch)
+        evaluations = self.experiment.evolution.evaluations
+        assert evaluations is not None  # qd_experiment refuses an endless run
+        self.batches = math.ceil(evaluations / self.batch)
         world, safety = world_config(experiment), simulated_safety(experiment)
         self.swarms = [Swarm(world, safety, self.spec, experiment.seed) for _ in range(self.batch)]
         self._safety = self.swarms[0].safety.copy()

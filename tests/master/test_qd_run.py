@@ -82,6 +82,18 @@ def test_box_displacement_in_an_arena_without_boxes_is_refused_by_key():
     assert caught.value.key == "optimizer.measures[1].name"
 
 
+def test_an_endless_budget_or_arena_events_are_refused_by_key():
+    endless = _experiment(optimizer={"name": "map-elites"}, evolution={"evaluations": None})
+    with pytest.raises(ConfigError, match="needs a budget") as caught:
+        qd_experiment(endless)
+    assert caught.value.key == "evolution.evaluations"
+    events = [{"kind": "light-moves", "evaluation": 5, "position": [0.1, 0.1]}]
+    changing = _experiment(optimizer={"name": "map-elites"}, events=events)
+    with pytest.raises(ConfigError, match="an arena of its own") as caught:
+        qd_experiment(changing)
+    assert caught.value.key == "events"
+
+
 def test_every_elite_is_what_its_genome_does_in_its_arena(tmp_path):
     # Asked and told in batches: each elite's fitness, measures and class are those of its
     # genome evaluated again in the arena it was evaluated in, and it sits in their cell.
