@@ -173,8 +173,9 @@ def _elites_of(archive) -> Elites:
     )  # fmt: skip
 
 
-def _progress_row(batch: int, evaluations: int, archive, batch_fitness: np.ndarray) -> list:
-    elites = _elites_of(archive)
+def _progress_row(
+    batch: int, evaluations: int, archive, elites: Elites, batch_fitness: np.ndarray
+) -> list:
     per_class = np.bincount(elites.pattern, minlength=len(PATTERNS))
     stats = archive.stats
     return [
@@ -251,18 +252,18 @@ def run_map_elites(
     last_checkpoint = time.monotonic()
 
     def checkpoint() -> None:
+        # The elites first, then the file naming them: a kill in between leaves the last
+        # checkpoint whole, and the one before (or a stray one) is removed only after.
         name = f"archive-{batch}.npz"
         write_atomic(out / name, elites.to_npz())
-        previous = None
-        if checkpoint_file.exists():
-            previous = json.loads(checkpoint_file.read_text(encoding="utf-8"))["archive"]
         write_json(checkpoint_file, {
             "version": CHECKPOINT_VERSION, "batch": batch, "archive": name, "rows": rows,
             "elapsed_s": elapsed,
         })  # fmt: skip
         _write_csv(out / "qd_progress.csv", columns, rows)
-        if previous and previous != name:
-            (out / previous).unlink(missing_ok=True)
+        for old in out.glob("archive-*.npz"):
+            if old.name != name:
+                old.unlink(missing_ok=True)
 
     GaussianEmitter, Scheduler = _ribs()
     while batch < config.generations:
@@ -292,7 +293,7 @@ def run_map_elites(
         )  # fmt: skip
         elites = _elites_of(archive)
         batch += 1
-        rows.append(_progress_row(batch, done + genomes.shape[0], archive, fitness))
+        rows.append(_progress_row(batch, done + genomes.shape[0], archive, elites, fitness))
         elapsed += time.perf_counter() - started
         if time.monotonic() - last_checkpoint >= checkpoint_seconds:
             checkpoint()
