@@ -17,11 +17,15 @@ predictor's share of the time.
 and to our simulator and compares, genome by genome: the fitness of the run, the mean prediction
 per sensor, and the whole trajectory of the C code's second (logged) run, step by step.
 
+``--qd N`` times N batches of MAP-Elites (:mod:`gridworld.qd`, the archive of the shipped study
+``qd-grid``) against N generations of the GA on the same core: what the archive, the emitter and
+the classification of every candidate's final grid add to the same evaluations.
+
 The C sources: ``--c-source`` names a checkout or bare git directory of the repository
 Minimize-Surprise/Self-assembly-Torus (e.g. ``git clone`` of it from GitHub). Without it only
 ours is measured. Run:
 ``python benchmarks/gridworld.py --c-source PATH [--generations 100] [--c-generations 3]
-[--check 20] [--parts]``
+[--check 20] [--parts] [--qd 100]``
 """
 
 from __future__ import annotations
@@ -77,6 +81,38 @@ def ours(generations: int, seed: int = 1) -> tuple[float, list[float]]:
         )
         best.append(ga.tell(result.fitness).best_fitness)
     return time.process_time() - started, best
+
+
+#: The archive of the shipped study qd-grid (studies/files/qd-grid.yaml).
+QD_MEASURES = [
+    {"name": "LN", "bins": 4}, {"name": "PR", "bins": 4}, {"name": "RD", "bins": 4},
+    {"name": "AG", "bins": 3}, {"name": "LG", "bins": 3},
+    {"name": "TL", "range": [0.0, 0.3], "bins": 3}, {"name": "SW", "range": [0.0, 0.3], "bins": 3},
+]  # fmt: skip
+
+
+def map_elites(batches: int, seed: int = 1) -> float:
+    """CPU seconds of ``batches`` batches of 50 of a paper-scale MAP-Elites run (its loop, up to
+    the last batch's checkpoint-free progress report; no plots)."""
+    from gridworld.config import decode_run_config
+    from gridworld.qd import run_map_elites
+
+    with tempfile.TemporaryDirectory(prefix="qd-bench-") as tmp:
+        tiny = {"optimizer": "map-elites", "size": 8, "agents": 16, "repetitions": 1,
+                "steps": 5, "population": 4, "generations": 2, "measures": QD_MEASURES}  # fmt: skip
+        run_map_elites(decode_run_config(tiny), seed, Path(tmp) / "warm", plots=False)
+        config = decode_run_config(
+            {"optimizer": "map-elites", "generations": batches, "measures": QD_MEASURES}
+        )
+        evaluator = evaluator_of(config)
+        evaluator.evaluate(
+            np.zeros((1, evaluator.layout.size)), generation_starts(config, seed, 0)[:1]
+        )  # compile (or load the cache) before timing
+        marks: list[float] = []
+        started = time.process_time()
+        run_map_elites(config, seed, Path(tmp) / "run", plots=False, checkpoint_seconds=1e9,
+                       progress=lambda _: marks.append(time.process_time()))  # fmt: skip
+        return marks[-1] - started
 
 
 def parts(seed: int = 1, repeats: int = 3) -> dict[str, float]:
@@ -242,6 +278,8 @@ def main() -> None:
     parser.add_argument("--c-source", type=Path)
     parser.add_argument("--check", type=int, default=0)
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--qd", type=int, default=0, metavar="N",
+                        help="time N batches of MAP-Elites against N GA generations")  # fmt: skip
     parser.add_argument(
         "--parts",
         action="store_true",
@@ -249,6 +287,13 @@ def main() -> None:
     )
     args = parser.parse_args()
     core = pin_to_one_core()
+    if args.qd:
+        qd_seconds = map_elites(args.qd, args.seed)
+        ga_seconds, _ = ours(args.qd, args.seed)
+        print(f"qd_seconds_{args.qd}_batches: {qd_seconds:.2f} s (map-elites, batches of 50)")
+        print(f"ga_seconds_{args.qd}_generations: {ga_seconds:.2f} s (the GA, population 50)")
+        print(f"qd_time_per_ga_time: {qd_seconds / ga_seconds:.2f} x")
+        return
     if args.parts:
         for name, ns in parts(args.seed).items():
             print(f"ours_ns_per_agent_step_{name}: {ns:.1f} ns")

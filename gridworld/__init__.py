@@ -11,7 +11,9 @@ Modules: :mod:`gridworld.world` (geometry, sensor models, start configurations),
 of whole generations), :mod:`gridworld.predictor` and :mod:`gridworld.simd` (the predictor's
 step on vectors of lanes, written as LLVM intrinsics),
 :mod:`gridworld.patterns` (the nine patterns and solution quality), :mod:`gridworld.config`,
-:mod:`gridworld.evolve` (a run with checkpoints), :mod:`gridworld.tasks` (the studies' entry
-point), :mod:`gridworld.plots`, :mod:`gridworld.figures` and :mod:`gridworld.cli`
-(``surprise-grid``). docs/gridworld.md describes the scenario and every choice made.
+:mod:`gridworld.evolve` (a run with checkpoints), :mod:`gridworld.qd` and
+:mod:`gridworld.qd_plots` (MAP-Elites over pattern measures, through pyribs),
+:mod:`gridworld.tasks` (the studies' entry point), :mod:`gridworld.plots`,
+:mod:`gridworld.figures` and :mod:`gridworld.cli` (``surprise-grid``). docs/gridworld.md
+describes the scenario and every choice made.
 """

@@ -5,7 +5,11 @@ Subcommands::
     surprise-grid evolve --size L [--seed S] [--sensors 14|6|8] [--predefined NAME] [--novelty]
                          [--noise P] [--population N] [--generations N] [--agents N]
                          [--repetitions N] [--steps N] [--out DIR]
-        one run; on a DIR holding an unfinished run it continues it bit for bit
+                         [--optimizer ga|map-elites] [--measure NAME[:BINS|:LOW:HIGH:BINS]]...
+                         [--sigma S]
+        one run (the GA, or MAP-Elites over pattern measures: then the population is the batch
+        and the generations the batches); on a DIR holding an unfinished run it continues it
+        bit for bit
     surprise-grid replay DIR [--every K]
         run the best genome again: final grid with headings and an animated GIF
     surprise-grid classify GRID
@@ -54,6 +58,14 @@ def _parser() -> argparse.ArgumentParser:
                     help="probability of mutating each gene (default 0.1)")  # fmt: skip
     ev.add_argument("--fitness-of", choices=("min", "mean", "max"), dest="fitness_of",
                     help="a genome's fitness from its runs (default min)")  # fmt: skip
+    ev.add_argument("--optimizer", choices=("ga", "map-elites"),
+                    help="the genetic algorithm (default) or MAP-Elites")  # fmt: skip
+    ev.add_argument("--measure", action="append", dest="measure", metavar="NAME[:BINS]",
+                    help="map-elites: an archive axis, a pattern code (LN, PR, ...) with its "
+                    "bins, or NAME:LOW:HIGH:BINS; repeat for more axes (default LN and PR, "
+                    "10 bins over [0, 1])")  # fmt: skip
+    ev.add_argument("--sigma", type=float,
+                    help="map-elites: noise added to every gene (default 0.07)")  # fmt: skip
     ev.add_argument("--out", type=Path, help="run directory (default runs/grid-<time>)")
     ev.set_defaults(handler=_evolve)
     rp = sub.add_parser("replay", help="run the best genome again and animate it")
@@ -125,9 +137,26 @@ class _Progress:
             )
 
 
+def _measure(text: str) -> dict[str, Any]:
+    # NAME, NAME:BINS or NAME:LOW:HIGH:BINS; the configuration checks the values.
+    parts = text.split(":")
+    try:
+        if len(parts) == 1:
+            return {"name": parts[0]}
+        if len(parts) == 2:
+            return {"name": parts[0], "bins": int(parts[1])}
+        if len(parts) == 4:
+            return {"name": parts[0], "range": [float(parts[1]), float(parts[2])],
+                    "bins": int(parts[3])}  # fmt: skip
+    except ValueError:
+        pass
+    raise ConfigError(f"{text!r}: expected NAME, NAME:BINS or NAME:LOW:HIGH:BINS", key="--measure")
+
+
 def _evolve(args: argparse.Namespace) -> int:
     from gridworld.config import decode_run_config
     from gridworld.evolve import RunFinished, run_evolution
+    from gridworld.qd import run_map_elites
 
     out = args.out or Path("runs") / time.strftime("grid-%Y%m%d-%H%M%S")
     options = {
@@ -145,11 +174,15 @@ def _evolve(args: argparse.Namespace) -> int:
             "steps",
             "mutation_rate",
             "fitness_of",
+            "optimizer",
+            "sigma",
         )
         if getattr(args, key) is not None
     }
     if args.novelty:
         options["novelty"] = True
+    if args.measure:
+        options["measures"] = [_measure(text) for text in args.measure]
     resuming = (out / "config.json").exists()
     if resuming:
         if options:
@@ -159,15 +192,19 @@ def _evolve(args: argparse.Namespace) -> int:
         stored = json.loads((out / "config.json").read_text(encoding="utf-8"))
         total = int(stored["config"].get("generations", 100))
         done = 0
+        qd = stored["config"].get("optimizer", "ga") == "map-elites"
         if (out / "checkpoint.json").exists():
-            done = int(json.loads((out / "checkpoint.json").read_text())["ga"]["generation"])
+            ck = json.loads((out / "checkpoint.json").read_text())
+            done = int(ck["batch"] if qd else ck["ga"]["generation"])
     else:
         config = decode_run_config(options, file="<command line>")
         seed = args.seed if args.seed is not None else 0
         total, done = config.generations, 0
+        qd = config.optimizer == "map-elites"
+    run = run_map_elites if qd else run_evolution
     try:
         with _Progress(total, done) as progress:
-            summary = run_evolution(config, seed, out, progress=progress)
+            summary = run(config, seed, out, progress=progress)
     except RunFinished as finished:
         print(f"{out}: the run is finished (best fitness {finished.summary['best_fitness']}, "
               f"{finished.summary['pattern']})")  # fmt: skip
@@ -185,6 +222,10 @@ def _print_summary(out: Path, summary: dict[str, Any]) -> None:
     print(f"best fitness: {best_text}")
     print(f"pattern: {summary['pattern']} ({PATTERN_NAMES[summary['pattern']]}), "
           f"quality {summary['quality']:.0%}")  # fmt: skip
+    if "patterns_found" in summary:
+        print(f"archive: {summary['elites']} elites of {summary['cells']} cells, QD score "
+              f"{summary['qd_score']:.3f}; classes {' '.join(summary['patterns_found'])}; "
+              f"post-evaluated {' '.join(summary['post_patterns_found'])}")  # fmt: skip
 
 
 def _replay(args: argparse.Namespace) -> int:

@@ -2,6 +2,9 @@
 
 Defaults are the paper's (Table I): a 15 x 15 torus, 100 agents, 14 sensors, population 50,
 100 generations, 10 repetitions of 500 steps scored by their minimum, mutation 0.1 of +-0.4.
+``optimizer: map-elites`` runs quality diversity instead of the GA (:mod:`gridworld.qd`): an
+archive over pattern measures (:class:`GridMeasure`), a batch of ``population`` candidates per
+"generation".
 """
 
 from __future__ import annotations
@@ -15,9 +18,60 @@ from minimize_surprise.config import Probability, Strict, decode
 from minimize_surprise.genetic import GeneticConfig
 from minimize_surprise.gridnet import GridNetSpec
 
-__all__ = ["GridRunConfig", "GridWorldParams", "PositiveInt", "decode_run_config"]
+__all__ = [
+    "DEFAULT_MEASURES",
+    "MAX_ARCHIVE_CELLS",
+    "MEASURE_NAMES",
+    "GridMeasure",
+    "GridRunConfig",
+    "GridWorldParams",
+    "PositiveInt",
+    "decode_run_config",
+]
 
 PositiveInt = Annotated[int, msgspec.Meta(ge=1)]
+
+#: The measures a MAP-Elites archive can span: the nine patterns' fractions
+#: (:data:`gridworld.patterns.PATTERNS`, in that order; config sits below patterns, so it
+#: repeats the codes and a test keeps the two equal).
+MEASURE_NAMES: tuple[str, ...] = ("CL", "AG", "LG", "LN", "PR", "TL", "SQ", "SW", "RD")
+
+#: The most cells an archive may have: each holds a genome (616 float64 with 14 sensors), so
+#: 100,000 cells are some 500 MB, about what a study's worker can spare.
+MAX_ARCHIVE_CELLS = 100_000
+
+
+class GridMeasure(Strict, frozen=True):
+    """One axis of a MAP-Elites archive: a pattern's fraction (``name``, a code of
+    :data:`MEASURE_NAMES`) over ``range`` (within [0, 1]) cut into ``bins`` equal cells."""
+
+    #: the pattern whose fraction of agents is the measure: CL, AG, LG, LN, PR, TL, SQ, SW or RD
+    name: str
+    #: the measure's low and high end, within [0, 1] (a fraction of the agents); values outside
+    #: fall into the first or last bin
+    range: tuple[float, float] = (0.0, 1.0)
+    #: cells along this axis
+    bins: PositiveInt = 10
+
+    def __post_init__(self) -> None:
+        if self.name not in MEASURE_NAMES:
+            raise ValueError(
+                f"`name`: unknown pattern {self.name!r}; expected one of {', '.join(MEASURE_NAMES)}"
+            )
+        lo, hi = self.range
+        if not (0.0 <= lo < hi <= 1.0):
+            raise ValueError(
+                f"`range`: [{lo}, {hi}] must be a non-empty interval [low, high] within [0, 1] "
+                "(a fraction of the agents)"
+            )
+
+
+#: The measures of a MAP-Elites run that names none: the fractions of agents in lines and in
+#: pairs, ten bins each (docs/gridworld.md, "MAP-Elites").
+DEFAULT_MEASURES: tuple[GridMeasure, ...] = (
+    GridMeasure(name="LN", range=(0.0, 1.0), bins=10),
+    GridMeasure(name="PR", range=(0.0, 1.0), bins=10),
+)
 
 
 class GridWorldParams(Strict, frozen=True):
@@ -73,7 +127,10 @@ class GridRunConfig(GridWorldParams, frozen=True):
     """One evolution run in the grid world: the world's parameters and the GA's.
 
     ``novelty`` evolves the actor alone by novelty search (no elitism; ``novelty_k`` nearest
-    neighbours, archive probability ``archive_probability``).
+    neighbours, archive probability ``archive_probability``). ``optimizer: map-elites`` fills an
+    archive over ``measures`` instead (:mod:`gridworld.qd`): ``generations`` batches of
+    ``population`` candidates, each a copy of a random elite with Gaussian noise of ``sigma``
+    added to every gene.
     """
 
     #: genomes per generation
@@ -90,11 +147,45 @@ class GridRunConfig(GridWorldParams, frozen=True):
     novelty_k: PositiveInt = 10
     #: the probability that an evaluated individual joins the novelty archive
     archive_probability: Probability = 0.02
+    #: `ga` (the paper's genetic algorithm) or `map-elites` (quality diversity: an archive of the
+    #: best genome per cell of `measures`; `population` is then the batch size and `generations`
+    #: the number of batches)
+    optimizer: Literal["ga", "map-elites"] = "ga"
+    #: map-elites: the archive's axes, each `{name: <pattern code>, range: [low, high], bins: N}`
+    #: (default: LN and PR over [0, 1] in 10 bins each)
+    measures: tuple[GridMeasure, ...] | None = None
+    #: map-elites: the standard deviation of the Gaussian noise added to every gene of an elite
+    #: to make a candidate
+    sigma: Annotated[float, msgspec.Meta(gt=0.0)] = 0.07
 
     def __post_init__(self) -> None:
         super().__post_init__()
         if self.novelty and self.predefined is not None:
             raise ValueError("`predefined`: novelty search evolves the actor alone")
+        if self.optimizer == "ga":
+            if self.measures is not None:
+                raise ValueError("`measures`: only for `optimizer: map-elites`")
+            return
+        if self.novelty:
+            raise ValueError("`optimizer`: novelty search is a run of the genetic algorithm")
+        measures = self.archive_measures()
+        if not measures:
+            raise ValueError("`measures`: name at least one pattern")
+        names = [m.name for m in measures]
+        for i, name in enumerate(names):
+            if name in names[:i]:
+                raise ValueError(f"`measures[{i}].name`: {name} is already an axis")
+        cells = 1
+        for m in measures:
+            cells *= m.bins
+        if cells > MAX_ARCHIVE_CELLS:
+            raise ValueError(
+                f"`measures`: {cells} cells in all, at most {MAX_ARCHIVE_CELLS} (fewer bins)"
+            )
+
+    def archive_measures(self) -> tuple[GridMeasure, ...]:
+        """The archive's axes of a MAP-Elites run (``measures`` or :data:`DEFAULT_MEASURES`)."""
+        return DEFAULT_MEASURES if self.measures is None else self.measures
 
     def net_spec(self) -> GridNetSpec:
         """The network shape this run evolves."""

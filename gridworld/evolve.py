@@ -167,6 +167,8 @@ def run_evolution(
             raise ValueError(f"{out} holds no run: a configuration and a seed are needed")
         write_json(stored, {"config": to_builtins(config), "seed": seed})
     assert config is not None and seed is not None
+    if config.optimizer != "ga":
+        raise ValueError(f"{out}: a {config.optimizer} run (gridworld.qd), not the GA's")
     evaluator = evaluator_of(config)
     spec = config.net_spec()
     sensors = spec.sensors

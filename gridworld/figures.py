@@ -25,6 +25,8 @@ __all__ = [
     "fitness_and_quality_by",
     "fitness_over_generations",
     "pattern_distribution_by",
+    "patterns_found",
+    "patterns_found_by_group",
     "predictions_by_pattern",
     "study_figures",
 ]
@@ -164,6 +166,81 @@ def pattern_distribution_by(
     return _save(fig, Path(out))
 
 
+def patterns_found(frame: Any) -> list[dict[str, Any]]:
+    """Which of the nine patterns each group found, from its runs' summaries (``_summary``): a
+    MAP-Elites group (``grid-qd``) the classes among its archives' elites (``elites``: elites
+    per class) and those its classes' best elites showed again when post-evaluated
+    (``post``); any other group its runs' dominant patterns (``elites``: runs per pattern).
+    One dict per group: ``group``, ``kind``, ``runs``, ``evaluations`` (a MAP-Elites group's,
+    summed over its runs; None for other kinds), ``found`` (codes in PATTERNS order),
+    ``count``, ``per_pattern``, ``post`` and ``post_count`` (None for other kinds)."""
+    rows = []
+    for group, sub in frame.groupby("group", sort=False):
+        kind = str(sub["kind"].iloc[0])
+        per: dict[str, int] = {}
+        post: set[str] | None = None
+        evaluations = 0
+        for summary in sub["_summary"]:
+            if kind == "grid-qd":
+                for code, n in summary["elites_per_pattern"].items():
+                    per[code] = per.get(code, 0) + int(n)
+                post = (post or set()) | set(summary["post_patterns_found"])
+                evaluations += int(summary["evaluations"])
+            else:
+                per[summary["pattern"]] = per.get(summary["pattern"], 0) + 1
+        found = [p for p in PATTERNS if per.get(p)]
+        rows.append({
+            "group": str(group), "kind": kind, "runs": len(sub),
+            "evaluations": evaluations if kind == "grid-qd" else None, "found": found,
+            "count": len(found), "per_pattern": {p: per[p] for p in found},
+            "post": None if post is None else [p for p in PATTERNS if p in post],
+            "post_count": None if post is None else len(post),
+        })  # fmt: skip
+    return rows
+
+
+def patterns_found_by_group(frame: Any, out: str | Path) -> list[Path]:
+    """The patterns each group found (:func:`patterns_found`) as a chart, groups by patterns,
+    each found pattern a coloured cell holding its count (elites, or runs), a post-evaluated
+    MAP-Elites class ringed; and the same as ``<out>.csv``. The paths written."""
+    plt = _pyplot()
+    rows = patterns_found(frame)
+    fig, ax = plt.subplots(figsize=(7.5, 1.2 + 0.6 * len(rows)))
+    for y, row in enumerate(rows):
+        for x, code in enumerate(PATTERNS):
+            n = row["per_pattern"].get(code)
+            if n:
+                ax.add_patch(plt.Rectangle((x - 0.45, y - 0.4), 0.9, 0.8,
+                                           color=PATTERN_COLOURS[code], alpha=0.8))  # fmt: skip
+                ax.text(x, y, str(n), ha="center", va="center", fontsize=8)
+            if row["post"] is not None and code in row["post"]:
+                ax.add_patch(plt.Rectangle((x - 0.45, y - 0.4), 0.9, 0.8, fill=False,
+                                           edgecolor="black", linewidth=1.5))  # fmt: skip
+    ax.set_xlim(-0.5, len(PATTERNS) - 0.5)
+    ax.set_ylim(len(rows) - 0.5, -0.5)
+    ax.set_xticks(np.arange(len(PATTERNS)), list(PATTERNS))
+    labels = []
+    for row in rows:
+        what = "elites" if row["kind"] == "grid-qd" else "runs' best"
+        labels.append(f"{row['group']} ({row['runs']} runs, {what}): {row['count']}")
+    ax.set_yticks(np.arange(len(rows)), labels, fontsize=8)
+    ax.set_title("Patterns found (count per pattern; ringed: held when post-evaluated)",
+                 fontsize=9)  # fmt: skip
+    out = Path(out)
+    paths = _save(fig, out)
+    table = out.with_suffix(".csv")
+    lines = ["group,kind,runs,evaluations,count,found,post_count,post"]
+    for row in rows:
+        post = "" if row["post"] is None else " ".join(row["post"])
+        lines.append(",".join(str(v) for v in (
+            row["group"], row["kind"], row["runs"], "" if row["evaluations"] is None
+            else row["evaluations"], row["count"], " ".join(row["found"]),
+            "" if row["post_count"] is None else row["post_count"], post,
+        )))  # fmt: skip
+    table.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return [*paths, table]
+
+
 def predictions_by_pattern(frame: Any, out: str | Path) -> list[Path]:
     """Mean prediction per sensor drawn on the 14-cell sensor layout, grey from white (0) to
     black (1), one panel per pattern present (paper Fig. 6). The agent's own cell is marked."""
@@ -246,7 +323,8 @@ def study_figures(study: str | Path, frame: Any, directory: str | Path) -> list[
     for each sweep key (the grid size when nothing is swept), fitness and quality per value with
     every group side by side, and each group's pattern distribution per value (the other keys
     fixed); mean predictions per pattern on the sensor layout, and one example grid per pattern,
-    from the evolved runs.
+    from the evolved runs; with a MAP-Elites group (``grid-qd``), the patterns each group found
+    (``patterns_found``: :func:`patterns_found_by_group`).
     """
     study, directory = Path(study), Path(directory) / "grid"
     frame = frame.copy()
@@ -278,6 +356,8 @@ def study_figures(study: str | Path, frame: Any, directory: str | Path) -> list[
                     group_rows, directory / f"patterns_{group}_by_{key}{suffix}", by=key,
                     title=f"{group}: patterns of {len(group_rows)} runs{where}",
                 )  # fmt: skip
+    if (frame["kind"] == "grid-qd").any():
+        written += patterns_found_by_group(frame, directory / "patterns_found")
     with_predictions = evolved[
         evolved["mean_predictions"].map(lambda v: v is not None and len(v) == 14)
     ]

@@ -17,6 +17,10 @@ Kinds:
 - ``grid-selected-random``: the best by that score of ``candidates`` random genomes (default
   5000), all on the same start configurations (the code with population = candidates and one
   generation).
+- ``grid-qd``: a MAP-Elites run (:mod:`gridworld.qd`; ``GridRunConfig``'s keys with
+  ``optimizer: map-elites``, ``measures`` the archive's axes); the summary is the archive's:
+  ``patterns_found``, ``elites_per_pattern``, ``coverage``, ``qd_score``, the post-evaluation of
+  each class's best elite, and ``pattern``/``best_fitness`` of the fittest elite.
 - ``grid-novelty``: a novelty-search run; ``individuals.csv`` holds every individual's novelty,
   behaviour, pattern and quality, the summary its pattern counts and the quality-best one.
 - ``grid-damage``: rerun an evolved genome (``genome_run``: a run directory, or ``genome`` and
@@ -47,6 +51,7 @@ from gridworld.evolve import (
     write_final_grid,
 )
 from gridworld.patterns import classify
+from gridworld.qd import run_map_elites
 from gridworld.world import Poses, Torus, draw_starts
 from minimize_surprise.config import Probability, Strict, decode
 from minimize_surprise.errors import ConfigError
@@ -64,6 +69,7 @@ GRID_KINDS: tuple[str, ...] = (
     "grid-novelty",
     "grid-damage",
     "grid-rerun",
+    "grid-qd",
 )
 
 NonNegativeInt = Annotated[int, msgspec.Meta(ge=0)]
@@ -145,13 +151,20 @@ def check_params(kind: str, params: dict | None) -> Any:
     if kind not in GRID_KINDS:
         raise ConfigError(f"unknown kind {kind!r}; expected one of {', '.join(GRID_KINDS)}")
     params = dict(params or {})
-    if kind in ("grid-evolved", "grid-novelty"):
+    if kind in ("grid-evolved", "grid-novelty", "grid-qd"):
         if kind == "grid-novelty":
             params.setdefault("novelty", True)
+        if kind == "grid-qd":
+            params.setdefault("optimizer", "map-elites")
         config = _decode(params, GridRunConfig, kind)
         if config.novelty != (kind == "grid-novelty"):
             raise ConfigError("novelty must match the kind", file=f"<{kind} params>",
                               key="novelty")  # fmt: skip
+        if (config.optimizer == "map-elites") != (kind == "grid-qd"):
+            raise ConfigError(
+                f"optimizer {config.optimizer} does not match the kind (map-elites is grid-qd)",
+                file=f"<{kind} params>", key="optimizer",
+            )  # fmt: skip
         return config
     if kind in ("grid-random", "grid-selected-random"):
         return _decode(params, RandomParams, kind)
@@ -170,6 +183,11 @@ def run_task(kind: str, params: dict, seed: int, run_dir: str | Path) -> dict:
         try:
             summary = run_evolution(p, seed, run_dir)
         except RunFinished as finished:  # deterministic: the stored result is the result
+            return finished.summary
+    elif kind == "grid-qd":
+        try:
+            summary = run_map_elites(p, seed, run_dir)
+        except RunFinished as finished:
             return finished.summary
     elif kind in ("grid-random", "grid-selected-random"):
         summary = _random(kind, p, seed, run_dir)

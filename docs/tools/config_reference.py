@@ -246,8 +246,16 @@ def _struct_members(tp: Any) -> tuple[list[type], bool]:
         return [tp], False
     if origin in (typing.Union, types.UnionType):
         found = [_unwrap(a)[0] for a in args]
-        return [a for a in found if _is_struct(a)], False
-    if origin is list and args and _is_struct(_unwrap(args[0])[0]):
+        structs = [a for a in found if _is_struct(a)]
+        if structs:
+            return structs, False
+        for a in found:  # a list of sections or null
+            members, is_list = _struct_members(a)
+            if members:
+                return members, is_list
+        return [], False
+    listed = origin is list or (origin is tuple and len(args) == 2 and args[1] is Ellipsis)
+    if listed and args and _is_struct(_unwrap(args[0])[0]):
         return [_unwrap(args[0])[0]], True
     if origin is list and args and typing.get_origin(args[0]) in (typing.Union, types.UnionType):
         found = [_unwrap(a)[0] for a in typing.get_args(args[0])]
@@ -647,7 +655,8 @@ def _grid_documents() -> list[Document]:
     kinds = (
         ("grid-evolved and grid-novelty", GridRunConfig,
          "`gridworld.config.GridRunConfig`: an evolution run (also `surprise-grid evolve`'s "
-         "options); `grid-novelty` sets `novelty: true`"),
+         "options); `grid-novelty` sets `novelty: true`, `grid-qd` (MAP-Elites) "
+         "`optimizer: map-elites`"),
         ("grid-random and grid-selected-random", RandomParams,
          "`gridworld.tasks.RandomParams`: one random genome, or the best of `candidates`, scored "
          "as the GA scores a genome"),

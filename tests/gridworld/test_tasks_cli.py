@@ -91,7 +91,7 @@ def test_bad_params_name_the_key(tmp_path):
         run_task("grid-magic", {}, 1, tmp_path)
     with pytest.raises(ConfigError, match="genome"):
         run_task("grid-rerun", {}, 1, tmp_path)
-    assert len(GRID_KINDS) == 6
+    assert len(GRID_KINDS) == 7 and "grid-qd" in GRID_KINDS
 
 
 def test_evolve_resumes_bit_for_bit_and_knows_when_it_is_finished(tmp_path, capsys):

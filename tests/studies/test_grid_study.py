@@ -10,6 +10,7 @@ import pandas as pd
 import pytest
 from study_helpers import write_study
 
+from gridworld.tasks import check_params
 from minimize_surprise.errors import ConfigError
 from studies.executors import LocalPool
 from studies.report import write_study_report
@@ -140,6 +141,46 @@ def test_a_tiny_grid_study_from_runs_to_figures(tmp_path):
     assert (report / "evaluations.parquet").is_file()
 
 
+TINY_QD = """
+name: tiny-qd
+description: MAP-Elites beside GA runs, tiny
+defaults: {size: 8, agents: 16, repetitions: 2, steps: 20, population: 4}
+groups:
+  - name: evolved
+    kind: grid-evolved
+    params: {generations: 3}
+    seeds: 2
+  - name: map-elites
+    kind: grid-qd
+    params: {generations: 6, measures: [{name: LN, bins: 3}, {name: RD, bins: 3}]}
+    seeds: 1
+"""
+
+
+def test_a_map_elites_group_beside_ga_runs_reports_the_patterns_each_found(tmp_path):
+    out = tmp_path / "study"
+    pool = LocalPool(2)
+    try:
+        counts = run_study(write_study(tmp_path, TINY_QD), out, pool)
+    finally:
+        pool.close()
+    assert (counts.done, counts.failed) == (3, 0), counts.failures
+    qd = json.loads((out / "runs/map-elites/seed-1/summary.json").read_text())
+    assert qd["kind"] == "grid-qd" and qd["evaluations"] == 24
+    assert (out / "runs/map-elites/seed-1/archive.csv").is_file()
+    result = write_study_report(out)
+    found = pd.read_csv(out / "report/figures/grid/patterns_found.csv")
+    assert list(found["group"]) == ["evolved", "map-elites"]
+    assert list(found["runs"]) == [2, 1]
+    assert found["count"].iloc[1] == qd["pattern_count"] == len(qd["patterns_found"])
+    evolved = {json.loads((out / f"runs/evolved/seed-{s}/summary.json").read_text())["pattern"]
+               for s in (1, 2)}  # fmt: skip
+    assert found["count"].iloc[0] == len(evolved)
+    assert any(p.endswith("grid/patterns_found.png") for p in result["figures"])
+    runs = pd.read_csv(out / "report/runs.csv")
+    assert set(runs["kind"]) == {"grid-evolved", "grid-qd"} and set(runs["status"]) == {"done"}
+
+
 def test_a_bad_parameter_fails_the_study_before_any_run(tmp_path):
     path = write_study(
         tmp_path,
@@ -177,3 +218,10 @@ def test_the_shipped_grid_studies_are_the_papers():
     assert counts["paper-sec4-predefined"] == 6 * 50
     assert counts["paper-sec4-damage"] == 1 + 1 + 20
     assert counts["paper-sec4-reduced"] == 5 * 10
+    # One MAP-Elites run with the budget of the 50 GA runs it is compared with, on L = 15.
+    qd = {t["group"]: t for t in expand(load_study(shipped["qd-grid"]))}
+    assert counts["qd-grid"] == 51 and qd["map-elites"]["kind"] == "grid-qd"
+    ga = check_params("grid-evolved", qd["evolved"]["params"])
+    me = check_params("grid-qd", qd["map-elites"]["params"])
+    assert me.population * me.generations == 50 * ga.population * ga.generations
+    assert me.size == ga.size == 15
