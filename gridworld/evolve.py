@@ -43,6 +43,7 @@ __all__ = [
     "generation_noise_key",
     "generation_starts",
     "load_best",
+    "open_run",
     "run_evolution",
     "write_best",
     "write_final_grid",
@@ -50,6 +51,25 @@ __all__ = [
 
 #: Version of checkpoint.json; bump when its shape changes.
 CHECKPOINT_VERSION = 1
+
+
+def open_run(
+    out: Path, config: GridRunConfig | None, seed: int | None
+) -> tuple[GridRunConfig, int]:
+    """The configuration and seed of the run in ``out``: those it stored, for a run to continue
+    (a finished one raises :class:`RunFinished`), else ``config`` and ``seed``, stored there for
+    a new run (a ``ValueError`` without them)."""
+    out.mkdir(parents=True, exist_ok=True)
+    stored = out / "config.json"
+    if stored.exists():
+        data = json.loads(stored.read_text(encoding="utf-8"))
+        if (out / "summary.json").exists():
+            raise RunFinished(json.loads((out / "summary.json").read_text(encoding="utf-8")))
+        return decode_run_config(data["config"], file=stored), int(data["seed"])
+    if config is None or seed is None:
+        raise ValueError(f"{out} holds no run: a configuration and a seed are needed")
+    write_json(stored, {"config": to_builtins(config), "seed": seed})
+    return config, int(seed)
 
 
 class RunFinished(Exception):
@@ -153,20 +173,8 @@ def run_evolution(
     None); a finished run raises :class:`RunFinished`.
     """
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    stored = out / "config.json"
+    config, seed = open_run(out, config, seed)
     checkpoint_file = out / "checkpoint.json"
-    if stored.exists():
-        data = json.loads(stored.read_text(encoding="utf-8"))
-        config = decode_run_config(data["config"], file=stored)
-        seed = int(data["seed"])
-        if (out / "summary.json").exists():
-            raise RunFinished(json.loads((out / "summary.json").read_text(encoding="utf-8")))
-    else:
-        if config is None or seed is None:
-            raise ValueError(f"{out} holds no run: a configuration and a seed are needed")
-        write_json(stored, {"config": to_builtins(config), "seed": seed})
-    assert config is not None and seed is not None
     if config.optimizer != "ga":
         raise ValueError(f"{out}: a {config.optimizer} run (gridworld.qd), not the GA's")
     evaluator = evaluator_of(config)

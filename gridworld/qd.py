@@ -39,13 +39,13 @@ from typing import Any
 
 import numpy as np
 
-from gridworld.config import GridRunConfig, decode_run_config
+from gridworld.config import GridRunConfig
 from gridworld.evolve import (
     GenerationReport,
-    RunFinished,
     evaluator_of,
     generation_noise_key,
     generation_starts,
+    open_run,
     write_best,
     write_final_grid,
 )
@@ -216,20 +216,8 @@ def run_map_elites(
     ``checkpoint_seconds`` have passed since the last one (0: after every batch) and at the end.
     """
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    stored = out / "config.json"
+    config, seed = open_run(out, config, seed)
     checkpoint_file = out / "checkpoint.json"
-    if stored.exists():
-        data = json.loads(stored.read_text(encoding="utf-8"))
-        config = decode_run_config(data["config"], file=stored)
-        seed = int(data["seed"])
-        if (out / "summary.json").exists():
-            raise RunFinished(json.loads((out / "summary.json").read_text(encoding="utf-8")))
-    else:
-        if config is None or seed is None:
-            raise ValueError(f"{out} holds no run: a configuration and a seed are needed")
-        write_json(stored, {"config": to_builtins(config), "seed": seed})
-    assert config is not None and seed is not None
     if config.optimizer != "map-elites":
         raise ValueError(f"{out}: the run's optimizer is {config.optimizer}, not map-elites")
     seed = int(seed)

@@ -191,22 +191,20 @@ def write_calibration(
         text = text[:at] + before + " " * column + f"calibration: {flow}\n" + text[at:]
     # Checked before it replaces the file: an inventory this cannot edit stays as it was.
     check = path.with_name(f".{path.name}.calibrated")
+    problem = None
     try:
         check.write_text(text, encoding="utf-8")
         written = load_inventory(check).robot(robot)
+        if written is None or written.calibration != merged:
+            problem = "it reads back otherwise"
     except ConfigError as exc:
-        raise ConfigError(
-            f"cannot write the calibration into this file's layout ({exc}); add it by hand: "
-            f"calibration: {flow}",
-            file=str(path),
-            key=f"robots[{index}].calibration",
-        ) from None
+        problem = str(exc)
     finally:
         check.unlink(missing_ok=True)
-    if written is None or written.calibration != merged:
+    if problem is not None:
         raise ConfigError(
-            f"cannot write the calibration into this file's layout; add it by hand: "
-            f"calibration: {flow}",
+            f"cannot write the calibration into this file's layout ({problem}); add it by "
+            f"hand: calibration: {flow}",
             file=str(path),
             key=f"robots[{index}].calibration",
         )
