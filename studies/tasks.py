@@ -272,7 +272,15 @@ def check_task(task: dict[str, Any]) -> None:
 
         qd_experiment(task_experiment(task))
     elif kind in _KIND_RUNNERS:
-        task_experiment(task)
+        experiment = task_experiment(task)
+        if kind == "evolved" and experiment.evolution.evaluations is None:
+            # An endless run (docs/changing-arenas.md) is for a person to stop; a study would
+            # wait for it forever.
+            raise ConfigError(
+                "a study's run needs a number of evaluations: an endless run never ends",
+                file="<task>",
+                key="evolution.evaluations",
+            )
     else:
         from gridworld.tasks import check_params
 

@@ -41,6 +41,12 @@ def test_a_study_expands_into_one_task_per_group_sweep_value_and_seed(tmp_path):
             "used twice",
         ),
         ("name: x\ngroups: [{name: a, kind: random, seeds: {from: 5, to: 2}}]\n", "", "from"),
+        (
+            "name: x\ngroups:\n"
+            "  - {name: a, kind: evolved, params: {evolution: {evaluations: null}}}\n",
+            "groups[0].params.evolution.evaluations",
+            "an endless run never ends",
+        ),
     ],
 )
 def test_a_bad_study_names_the_file_and_key(tmp_path, text, key, words):
