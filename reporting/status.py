@@ -12,6 +12,7 @@ from runfiles.schema import (
     Live,
     PauseFile,
     PostEvaluation,
+    QDSummary,
     Software,
     SoftwareRecord,
     master_alive,
@@ -33,6 +34,9 @@ def running_master(path: str | Path) -> Live | None:
 def status_text(path: str | Path) -> str:
     """Where the run in ``path`` stands, in a few lines."""
     path = Path(path)
+    qd = schema.read_if_readable(path, QDSummary)
+    if qd is not None:
+        return _qd_status(path, qd)
     config = schema.read_config(path)
     assert config.experiment is not None
     planned = config.experiment.evolution.evaluations or "endless"
@@ -125,3 +129,21 @@ def _software(software: Software) -> str:
     dirty = commit.endswith("-dirty")
     short = commit.removesuffix("-dirty")[:SHORT_COMMIT] + (" with changes" if dirty else "")
     return f"{software.version} {short}"
+
+
+def _qd_status(path: Path, qd: QDSummary) -> str:
+    # A MAP-Elites run (docs/quality-diversity.md) has an archive, not a best genome.
+    planned = qd.experiment.evolution.evaluations
+    lines = [
+        f"run {path.resolve().name} ({path}): MAP-Elites",
+        f"phase: {'done' if qd.done else 'evolving'}, {qd.evaluations}/{planned} evaluations, "
+        f"served for {format_duration(qd.seconds)}",
+        f"archive: {qd.cells} cells filled (coverage {qd.coverage:.3f}), QD score "
+        f"{qd.qd_score:.1f}",
+    ]
+    for name, elite in sorted(qd.classes.items()):
+        post = ""
+        if elite.post_fitness is not None:
+            post = f", post-evaluated {elite.post_fitness:.4f} ({elite.post_class})"
+        lines.append(f"  {name}: best elite {elite.fitness:.4f}{post}")
+    return "\n".join(lines)

@@ -156,6 +156,12 @@ def test_sim_map_elites_writes_the_archive_figures_and_post_evaluated_elites(tmp
     printed = capsys.readouterr().out
     assert (out / "plots" / "qd_heatmap.png").stat().st_size > 0
     assert all(f"{name}: best elite" in printed for name in summary.classes)
+    # status tells where a MAP-Elites run stands, as it does for a (1+1) run.
+    assert main(["status", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "MAP-Elites" in printed and "phase: done, 12/12 evaluations" in printed
+    assert f"{summary.cells} cells filled" in printed
+    assert all(f"{name}: best elite" in printed for name in summary.classes)
 
 
 def test_a_stopped_run_resumes_to_the_result_it_would_have_had(tmp_path):
