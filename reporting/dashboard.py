@@ -165,6 +165,7 @@ class _Page:
         plot.add_tools(HoverTool(tooltips=[("robot", "@robot")]))
         self._generation: int | None = None
         self._signature: tuple[Any, ...] | None = None
+        self.doc = doc
         doc.title = f"run {run_dir.name}"
         doc.add_root(
             column(
@@ -182,12 +183,18 @@ class _Page:
 
     def refresh(self) -> None:
         """Show the run directory as it is now; an error shows on the page, which goes on."""
+        # One message to the browser for all of a snapshot: sent change by change, a page read
+        # between two of them showed the header of one evaluation over the robots' table of the
+        # one before.
+        self.doc.hold("combine")
         try:
             snapshot = self.poller.snapshot()
             self._show(snapshot)
         except Exception as exc:  # the page must outlive what it cannot show
             _log.exception("dashboard: cannot show %s", self.run_dir)
             _set(self.header, header_html(self.run_dir, None, f"cannot show the run: {exc}"))
+        finally:
+            self.doc.unhold()
 
     def _show(self, snapshot: Snapshot) -> None:
         _set(self.header, header_html(self.run_dir, snapshot, None))
