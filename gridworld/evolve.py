@@ -46,6 +46,7 @@ __all__ = [
     "open_run",
     "run_evolution",
     "write_best",
+    "write_csv",
     "write_final_grid",
 ]
 
@@ -145,7 +146,8 @@ def _columns(sensors: int) -> list[str]:
     return cols + [f"prediction_{k}" for k in range(sensors)]
 
 
-def _write_csv(path: Path, header: list[str], rows: list[list[Any]]) -> None:
+def write_csv(path: Path, header: list[str], rows: list[list[Any]]) -> None:
+    """Replace ``path`` by a CSV file of ``header`` and ``rows``, all at once."""
     text = io.StringIO(newline="")
     writer = csv.writer(text)
     writer.writerow(header)
@@ -204,7 +206,7 @@ def run_evolution(
                 reader = csv.reader(f)
                 next(reader)
                 done_rows = [row for row in reader if int(row[0]) < ga.generation]
-        _write_csv(individuals_file, _individual_columns(sensors), done_rows)
+        write_csv(individuals_file, _individual_columns(sensors), done_rows)
     while not ga.done:
         started = time.perf_counter()
         g = ga.generation
@@ -259,7 +261,7 @@ def run_evolution(
             "elapsed_s": elapsed,
         }
         write_json(checkpoint_file, state)
-        _write_csv(out / "generations.csv", _columns(sensors), rows)
+        write_csv(out / "generations.csv", _columns(sensors), rows)
         if progress is not None:
             progress(
                 GenerationReport(g + 1, genetic.generations, fitness_best, outcome.mean_fitness,

@@ -28,7 +28,6 @@ post-evaluation) and ``summary.json``.
 
 from __future__ import annotations
 
-import csv
 import io
 import json
 import time
@@ -47,6 +46,7 @@ from gridworld.evolve import (
     generation_starts,
     open_run,
     write_best,
+    write_csv,
     write_final_grid,
 )
 from gridworld.patterns import PATTERNS, classify
@@ -191,14 +191,6 @@ def _progress_row(
     ]
 
 
-def _write_csv(path: Path, header: list[str], rows: list[list[Any]]) -> None:
-    text = io.StringIO(newline="")
-    writer = csv.writer(text)
-    writer.writerow(header)
-    writer.writerows(rows)
-    write_atomic(path, text.getvalue().encode("utf-8"))
-
-
 def run_map_elites(
     config: GridRunConfig | None,
     seed: int | None,
@@ -248,7 +240,7 @@ def run_map_elites(
             "version": CHECKPOINT_VERSION, "batch": batch, "archive": name, "rows": rows,
             "elapsed_s": elapsed,
         })  # fmt: skip
-        _write_csv(out / "qd_progress.csv", columns, rows)
+        write_csv(out / "qd_progress.csv", columns, rows)
         for old in out.glob("archive-*.npz"):
             if old.name != name:
                 old.unlink(missing_ok=True)
@@ -367,7 +359,7 @@ def _finish(
     plots: bool,
 ) -> dict[str, Any]:
     header, table = _archive_rows(config, elites)
-    _write_csv(out / "archive.csv", header, table)
+    write_csv(out / "archive.csv", header, table)
     post = _post_evaluate(config, seed, elites)
     for code, entry in post.items():
         _write_elite(out / "elites" / code, config, seed, elites, entry)

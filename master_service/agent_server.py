@@ -37,8 +37,11 @@ from minimize_surprise.wire import (
     encode_payload,
 )
 
-__all__ = ["CHECK_TIMEOUT", "PING_TIMEOUT", "AgentServer"]
+__all__ = ["CHECK_TIMEOUT", "CONNECT_TIMEOUT", "PING_TIMEOUT", "AgentServer"]
 
+#: Seconds a command waits for the agents to connect: an agent that found no master backs off up
+#: to 30 s between tries (``reconnect.max``), so one that has waited long still comes within this.
+CONNECT_TIMEOUT: Final = 40.0
 #: Seconds an agent has to answer a check: its parts answer within 2 s each (read at once), the
 #: battery and ``vcgencmd`` within 2 s more each.
 CHECK_TIMEOUT: Final = 10.0

@@ -30,7 +30,7 @@ from typing import Any, Final, Literal
 
 import numpy as np
 
-from master_service.agent_server import AgentServer
+from master_service.agent_server import CONNECT_TIMEOUT, AgentServer
 from master_service.calibration import (
     CalibrationError,
     drive_speeds,
@@ -45,7 +45,6 @@ from minimize_surprise.network import GenomeLayout, NetworkSpec
 from minimize_surprise.wire import Evaluate, Failed, genome_to_bytes
 
 __all__ = [
-    "CONNECT_TIMEOUT",
     "DRIVE_COMMAND",
     "DRIVE_SECONDS",
     "GROUND_READS",
@@ -65,9 +64,6 @@ DRIVE_COMMAND: Final = 0.5
 DRIVE_SECONDS: Final = 5.0
 #: The drive's control period, the real robots' 10 Hz.
 DRIVE_PERIOD: Final = 0.1
-#: Seconds to wait for the robot's agent: one that found no master backs off up to 30 s between
-#: tries (``reconnect.max``), so it comes within this.
-CONNECT_TIMEOUT: Final = 40.0
 #: Seconds the agent gets beyond the drive to answer (a slow Wi-Fi, the trace's bytes).
 ANSWER_MARGIN: Final = 15.0
 
@@ -173,11 +169,7 @@ async def _ground(server: AgentServer, session: Session) -> tuple[tuple[float, f
             raise CalibrationError(f"{session.robot_id} did not answer a check")
         report, _ = exchange
         rule = report.ground_rule
-        values = {
-            name: value
-            for part in report.parts
-            for name, value in zip(part.sensors, part.values, strict=False)
-        }
+        values = report.readings()
         if "ground.0" not in values or "ground.1" not in values:
             raise CalibrationError(
                 f"{session.robot_id} reports no ground readings ({rule or 'no ground rule'})"

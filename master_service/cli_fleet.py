@@ -21,8 +21,9 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Final
 
+from master_service.agent_server import CONNECT_TIMEOUT
 from master_service.config import MasterConfig, load_master_config, required_secret
-from master_service.fleet import CONNECT_TIMEOUT, fleet_status, fleet_stop, format_status
+from master_service.fleet import fleet_status, fleet_stop, format_status
 from master_service.fleet_hosts import fleet_inventory_command
 from master_service.inventory import Inventory, load_inventory
 from master_service.rundir import RunDir, RunDirError

@@ -90,7 +90,8 @@ def report_command(args: argparse.Namespace) -> int:
 
 def check_command(args: argparse.Namespace) -> int:
     """``surprise-master check``."""
-    from master_service.preflight import CONNECT_TIMEOUT, format_table, run_check
+    from master_service.agent_server import CONNECT_TIMEOUT
+    from master_service.preflight import format_table, run_check
 
     config = load_master_config(args.config)
     secret = required_secret(config, args.config)

@@ -27,7 +27,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Final
 
-from master_service.agent_server import CHECK_TIMEOUT, AgentServer
+from master_service.agent_server import CHECK_TIMEOUT, CONNECT_TIMEOUT, AgentServer
 from master_service.config import MasterConfig
 from master_service.inventory import Inventory
 from master_service.server import Session
@@ -35,7 +35,6 @@ from master_service.stopall import StopOutcome, Stopper
 
 __all__ = [
     "CHECK_TIMEOUT",
-    "CONNECT_TIMEOUT",
     "StatusRow",
     "fleet_status",
     "fleet_stop",
@@ -43,9 +42,6 @@ __all__ = [
     "throttled_text",
 ]
 
-#: Seconds to wait for the agents to connect: an agent that found no master backs off up to 30 s
-#: between tries (``reconnect.max``), so one that has waited long still comes within this.
-CONNECT_TIMEOUT: Final = 40.0
 #: Characters of a commit shown in the status table.
 _SHORT_COMMIT: Final = 10
 #: The Pi's ``get_throttled`` bits and what they say (the firmware's documentation).

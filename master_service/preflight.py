@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 from typing import Any, Final
 
 import minimize_surprise
-from master_service.agent_server import CHECK_TIMEOUT, AgentServer
+from master_service.agent_server import CHECK_TIMEOUT, CONNECT_TIMEOUT, AgentServer
 from master_service.config import MasterConfig, inventory_of
 from master_service.inventory import Inventory
 from master_service.server import Session
@@ -42,7 +42,6 @@ from minimize_surprise.wire import CheckReport
 __all__ = [
     "CHECK_TIMEOUT",
     "CLOCK_OFFSET_NOTE",
-    "CONNECT_TIMEOUT",
     "PINGS",
     "RTT_NOTE",
     "SPARE_GRACE",
@@ -53,9 +52,6 @@ __all__ = [
     "update_command",
 ]
 
-#: Seconds to wait for the robots to connect: an agent that found no master backs off up to 30 s
-#: between tries (``reconnect.max``), so one that has waited long still comes within this.
-CONNECT_TIMEOUT: Final = 40.0
 #: Pings per robot for the round trip; the median is reported.
 PINGS: Final = 3
 #: A round trip above this is noted: the control loop runs on the robot, but a run's rounds wait
@@ -315,7 +311,7 @@ def _judge(row: RobotCheck, report: CheckReport, midpoint: float, config: Master
             bad.append(f"{len(part.values)} values for {len(part.sensors)} sensors")
         if bad:
             row.problems.append(f"{part.part} reads out of range: {', '.join(bad)}")
-        row.readings.update(zip(part.sensors, part.values, strict=False))
+    row.readings.update(report.readings())
     row.battery_v = report.battery_v
     threshold = config.battery_min_v
     if report.battery_v is None:

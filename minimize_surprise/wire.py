@@ -550,6 +550,14 @@ class CheckReport(_Message, tag="check-report", frozen=True):
             if not all(math.isfinite(v) for v in part.values):
                 raise ProtocolError(f"check report: {part.part} holds a value that is not finite")
 
+    def readings(self) -> dict[str, float]:
+        """Every value the report holds, by sensor name (a part that failed holds none)."""
+        return {
+            name: value
+            for part in self.parts
+            for name, value in zip(part.sensors, part.values, strict=False)
+        }
+
 
 class Escape(_Message, tag="escape", frozen=True):
     """Master -> robot (``surprise-master escape``): the experimenter asks for the safety layer's
