@@ -216,8 +216,8 @@ def evaluate(
     for t in range(steps):
         for b in range(b_count):
             if record and t % recs[b].box_every == 0 and box_start[b + 1] > box_start[b]:
-                rec = borrow(recs[b])  # its list, an argument, holds it
-                _record_boxes(rec, t // rec.box_every, boxes, box_start[b], box_start[b + 1])
+                frame = t // recs[b].box_every
+                _record_boxes(recs[b], frame, boxes, box_start[b], box_start[b + 1])
             sensing = borrow(sensings[b])  # its list, an argument, holds it
             arrays = SenseWork(full[b], bodies[b], cos_sin[b], candidates[b], near[b])
             physics.sense(sensing, poses[b], forces[b], clock[b], values[b], arrays, grid)
@@ -233,10 +233,8 @@ def evaluate(
         )  # fmt: skip
         for b in range(b_count):
             cmd, state, counts = cmds[b], states[b], interventions[b]
-            reasons = False
-            if record:
-                rec = borrow(recs[b])  # its list, an argument, holds it
-                reasons = rec.reasons.shape[0] > 0
+            # Poses only (record="poses"): no reasons to write.
+            reasons = record and recs[b].reasons.shape[0] > 0
             for i in range(n):
                 lane = b * n + i
                 inputs = SafetyInput(
@@ -252,9 +250,9 @@ def evaluate(
                 cmd[i, 0] = left
                 cmd[i, 1] = right
                 if reasons:
-                    rec.reasons[t, i] = code
+                    recs[b].reasons[t, i] = code
             if record:
-                _record(rec, t, b * n, poses[b], work, predictions, action, cmd)
+                _record(recs[b], t, b * n, poses[b], work, predictions, action, cmd)
             physics.step_world(
                 geometries[b], poses[b], cmd, forces[b], boxes, pending, box_start[b],
                 box_start[b + 1], need_force[b], grid,
