@@ -523,22 +523,27 @@ def _run_simulation(
     from master_service.experiments.simulate import SimulatedSwarm, print_if_compiling, quiet_agents
 
     mode = "real time" if realtime else "lockstep"
-    with display, quiet_agents():
-        what = f"replaying {replay.path} for" if replay is not None else "simulating"
-        print(
-            f"{'resuming' if resume else what} {experiment.place} "
-            f"({experiment.setting} setting, {engine} engine): {experiment.robots} robots, "
-            f"{planned_text(experiment.evolution.evaluations)}"
-            f" of {experiment.evaluation_steps} steps of {experiment.step_period:g} s, seed "
-            f"{experiment.seed}" + (f", {mode}" if engine == "agents" else "")
-        )
-        print_if_compiling(engine)
-        started = time.perf_counter()
-        if engine == "fast":
-            from master_service.experiments.engine_run import FastRun
+    what = f"replaying {replay.path} for" if replay is not None else "simulating"
+    print(
+        f"{'resuming' if resume else what} {experiment.place} "
+        f"({experiment.setting} setting, {engine} engine): {experiment.robots} robots, "
+        f"{planned_text(experiment.evolution.evaluations)}"
+        f" of {experiment.evaluation_steps} steps of {experiment.step_period:g} s, seed "
+        f"{experiment.seed}" + (f", {mode}" if engine == "agents" else "")
+    )
+    compiling = print_if_compiling(engine)
+    started = time.perf_counter()
+    fast = None
+    if engine == "fast":
+        from master_service.experiments.engine_run import FastRun
 
+        fast = FastRun(experiment, on_progress=display.update)
+        if compiling:
+            fast.compile_ahead()  # forks: before the display starts a thread
+    with display, quiet_agents():
+        if fast is not None:
             with stop_flag(received):
-                result = FastRun(experiment, on_progress=display.update).run(
+                result = fast.run(
                     out, resume=resume, should_stop=lambda: bool(received), replay=replay
                 )
         else:

@@ -22,6 +22,7 @@ once.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import linecache
@@ -37,11 +38,17 @@ from typing import Any, Literal, TypeVar
 __all__ = [
     "JIT",
     "BorrowError",
+    "ListOf",
+    "Plan",
     "borrow",
     "cache_directory",
+    "compile_ahead",
     "compiled_on_disk",
+    "cores",
     "kernel",
+    "signature",
     "typed_list",
+    "typed_list_plan",
 ]
 
 F = TypeVar("F", bound=Callable[..., Any])
@@ -144,10 +151,14 @@ def kernel(
     """Compile ``function`` with numba (no Python objects, cached on disk) if available.
 
     The original function stays reachable as ``.py_func`` either way, so tests can check that the
-    interpreted and the compiled kernel agree. ``@kernel(inline=True)`` compiles a small helper
-    into each kernel that calls it: a call that passes arrays costs a reference count taken and
-    dropped per array (atomic operations, each a few nanoseconds), more than a small helper's
-    own work. Division is numpy's by default (``error_model="numpy"``: x / 0 gives inf or nan,
+    interpreted and the compiled kernel agree. ``@kernel(inline=True)`` has LLVM inline the kernel
+    into every kernel that calls it (numba's ``forceinline``): a call costs more than a small
+    helper's own work, and a call of a large one in the engine's loop over robots a tenth of the
+    run (docs/simulation.md, "The first run"). The kernel is still compiled once, as a function
+    of its own, and its callers are compiled as calling it; numba's own inlining
+    (``inline="always"``) would compile a copy of it into each caller instead, at every call
+    site, which made the first run on a machine three times as long. Division is numpy's by
+    default (``error_model="numpy"``: x / 0 gives inf or nan,
     an integer // or % by 0 gives 0, where the interpreted kernel raises; so a kernel keeps its
     divisors away from 0). With
     Python's, every division is a path that may raise, which keeps numba from pruning the
@@ -158,9 +169,9 @@ def kernel(
     if _numba is None:
         function.py_func = function  # type: ignore[attr-defined]
         return function
-    return _numba.njit(
-        cache=_CACHE, nogil=True, error_model=error_model, inline="always" if inline else "never"
-    )(function)
+    return _numba.njit(cache=_CACHE, nogil=True, error_model=error_model, forceinline=inline)(
+        function
+    )
 
 
 def compiled_on_disk(function: Any) -> bool | None:
@@ -336,9 +347,9 @@ def _borrow_intrinsic(numba: ModuleType) -> Any:
 
 def _refuse_owned_borrows(lend: Any) -> None:
     # The check of :data:`borrow`, at compile time: numba runs its "after-inference" rewrites on
-    # every function it compiles in nopython mode, after type inference and after inlining the
-    # ``inline=True`` kernels it calls (so an inlined kernel's borrow of an argument is traced
-    # into its caller, where that argument may be the caller's own). This one rewrites nothing.
+    # every function it compiles in nopython mode, after type inference. Each kernel is checked
+    # on its own: an ``inline=True`` kernel is inlined by LLVM after its call was compiled as a
+    # call, so its caller holds the arguments until it returns. This one rewrites nothing.
     from numba.core import ir, rewrites, types
 
     @rewrites.register_rewrite("after-inference")
@@ -364,9 +375,9 @@ def _identity(value: T) -> T:
 #: kernel's own arguments (the caller holds them for the call) or what they hold (fields,
 #: views, items of an argument's list). An array the kernel allocates is refused: numba frees
 #: it after its owner's last use, so its borrowed view would be read after it is freed; compiling
-#: such a kernel raises :class:`BorrowError` naming both lines (traced through the kernel's
-#: ``inline=True`` callees too; a kernel called without inlining may borrow its arguments,
-#: which its caller holds). Never return or store a borrowed array. Without numba it is the
+#: such a kernel raises :class:`BorrowError` naming both lines. A called kernel, ``inline=True``
+#: or not, may borrow its arguments: its caller holds them for the call. Never return or store a
+#: borrowed array. Without numba it is the
 #: identity, and nothing is checked (nothing is freed early either).
 borrow: Callable[[T], T] = _borrow_intrinsic(_numba) if _numba is not None else _identity
 
@@ -406,3 +417,180 @@ def typed_list(items: Sequence[T]) -> Sequence[T]:
     for item in items[1:]:
         append(out, item)
     return out
+
+
+# --------------------------------------------------------------------------- compiling ahead
+
+#: Kernels to compile, each with the signature of a call (:func:`signature`).
+Plan = list[tuple[Any, tuple[Any, ...]]]
+
+
+class ListOf:
+    """In :func:`signature`'s arguments (or in a named tuple among them), a :func:`typed_list` of
+    items like ``item``, which building would compile."""
+
+    def __init__(self, item: Any) -> None:
+        self.item = item
+
+
+def signature(function: Any, *args: Any) -> tuple[Any, ...]:
+    """The numba types of ``args`` as ``function`` (a :func:`kernel`) is called with them: the
+    signature it is compiled for; empty without numba."""
+    if _numba is None:
+        return ()
+    return tuple(_type_of(function, arg) for arg in args)
+
+
+def _type_of(function: Any, value: Any) -> Any:
+    from numba import types
+
+    if isinstance(value, ListOf):
+        return types.ListType(function.typeof_pyval(value.item))
+    if isinstance(value, tuple) and any(isinstance(member, ListOf) for member in value):
+        # As numba types a tuple: a named tuple of one type for all members, or of each's own.
+        members = [_type_of(function, member) for member in value]
+        return types.BaseTuple.from_types(members, type(value))
+    return function.typeof_pyval(value)
+
+
+def typed_list_plan(item: Any, *, appended: bool = False) -> Plan:
+    """What :func:`typed_list` compiles for a list of items like ``item`` (of one item; with
+    ``appended``, of more), as a :data:`Plan`."""
+    kernels = _list_kernels()
+    if kernels is None:
+        return []
+    from numba import types
+
+    start, append = kernels
+    item_type = start.typeof_pyval(item)  # type: ignore[attr-defined]
+    plan: Plan = [(start, (item_type,))]
+    if appended:
+        plan.append((append, (types.ListType(item_type), item_type)))
+    return plan
+
+
+def compile_ahead(
+    plan: Plan, then: Plan | None = None, last: Plan | None = None, *, processes: int | None = None
+) -> int:
+    """Compile what the on-disk cache lacks of ``plan`` in ``processes`` processes at once (this
+    one and helpers forked from it; default: one per core this process may use), so that a
+    kernel calling them, compiled next, loads them from the cache instead of compiling each in
+    turn. numba compiles one function at a time per process, and a kernel's callees one after
+    the other while it compiles the kernel; the first run on a machine waits for all of them
+    (docs/simulation.md, "The first run"). ``last``: kernels that call the plan's, compiled
+    here once the plan is; ``then``: kernels needed later, compiled by the helpers meanwhile
+    and after this returns (they end before this process exits). Returns the number of
+    processes that compiled (0: nothing to do, or no cache to share the results through).
+
+    A helper that fails leaves its kernels to be compiled where they are called, which reports
+    any error there; nothing here changes what is compiled or how."""
+    if _numba is None or not _CACHE:
+        return 0
+    now, later, final = (
+        [(function, types) for function, types in part or () if not _in_cache(function, types)]
+        for part in (plan, then, last)
+    )
+    if processes is None:
+        processes = cores()
+    processes = min(processes, len(now) + len(later))
+    if processes < 1:
+        _compile_share(final, None, None)
+        return 1 if final else 0
+    _lock_cache_saves()
+    import multiprocessing  # here: it imports sockets, which the core keeps out (no I/O)
+
+    if processes == 1 or "fork" not in multiprocessing.get_all_start_methods():
+        _compile_share(now + final, None, None)  # ``then`` compiles where it is used
+        return 1
+    # Forked, not spawned: a helper starts at once with every module and kernel of this process
+    # (spawning would import them all again, a second or more per helper). Nothing else runs
+    # in this process while they start: the caller forks before any thread of its own.
+    context = multiprocessing.get_context("fork")
+    taken, done = context.Value("i", 0), context.Value("i", 0)
+    todo = now + later
+    helpers = [
+        context.Process(
+            target=_compile_share, args=(todo, taken, done), name=f"compile-{k}", daemon=False
+        )
+        for k in range(1, processes)
+    ]
+    for helper in helpers:
+        helper.start()
+    _compile_share(todo, taken, done, stop=len(now))
+    while done.value < len(now) and any(helper.is_alive() for helper in helpers):
+        time.sleep(_WAIT)
+    _compile_share(final, None, None)
+    return processes
+
+
+#: How often the process that compiles ahead looks whether its helpers are done (seconds): a
+#: kernel takes a tenth of a second or more to compile.
+_WAIT = 0.01
+
+
+def cores() -> int:
+    """The cores this process may run on (its affinity: all of them, or a ``taskset``'s)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not on Linux
+        return os.cpu_count() or 1
+
+
+def _in_cache(function: Any, types: tuple[Any, ...]) -> bool:
+    # Whether ``function`` has code for ``types`` in this process or in the on-disk cache.
+    if types in function.overloads:
+        return True
+    try:
+        return function._cache.load_overload(types, function.targetctx) is not None
+    except Exception:  # unreadable: compiling it tells
+        return False
+
+
+def _compile_share(plan: Plan, taken: Any, done: Any, stop: int | None = None) -> None:
+    # Take the next kernel not yet taken and compile it, until none is left (or none before
+    # ``stop``): the processes share the plan's order (largest first) and end together.
+    # ``done`` counts the kernels compiled before ``stop``, the ones a caller waits for.
+    k, last = -1, len(plan) if stop is None else stop
+    while True:
+        if taken is None:
+            k += 1
+        else:
+            with taken.get_lock():
+                k = taken.value
+                if k >= last:
+                    return
+                taken.value += 1
+        if k >= last:
+            return
+        function, types = plan[k]
+        # A failure leaves the kernel to its caller's compile, which reports it there.
+        with contextlib.suppress(Exception):
+            function.compile(types)
+        if done is not None and (stop is None or k < stop):
+            with done.get_lock():
+                done.value += 1
+
+
+def _lock_cache_saves() -> None:
+    # numba saves a kernel's compiled code as a data file named by its number in the kernel's
+    # index, and the index: two processes saving two signatures of one kernel at once could
+    # both take number 1, and the index end up naming the other's code. So from the first
+    # compile ahead on, every save of this process (and of the helpers it forks) holds a lock
+    # on a file in the cache directory; once, for the process's life (helpers may outlive the
+    # call that forked them).
+    from numba.core import caching
+
+    original = caching.IndexDataCacheFile.save
+    if getattr(original, "_locked", False):
+        return
+    lock_path = os.path.join(str(_numba.config.CACHE_DIR), ".save-lock")  # type: ignore[union-attr]
+
+    def save(self: Any, key: Any, data: Any) -> None:
+        import fcntl
+
+        with open(lock_path, "a") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+            original(self, key, data)
+
+    save._locked = True  # type: ignore[attr-defined]
+    caching.IndexDataCacheFile.save = save  # type: ignore[method-assign]

@@ -112,6 +112,8 @@ _FRONT_IR = IR_SENSORS[:5]
 _REAR_IR = IR_SENSORS[5:]
 # Kernel state: [phase, steps_left, direction, backward_steps, rng]; phases:
 _IDLE, _DRIVE, _TURN = 0, 1, 2
+#: In the kernel, no new manoeuvre begins (a running one goes on).
+_KEEP = _IDLE
 _PHASES: tuple[str, ...] = ("idle", "drive", "turn")
 
 Speed = Annotated[float, msgspec.Meta(gt=0.0, le=1.0)]
@@ -403,23 +405,6 @@ def _manoeuvre(p: SafetyParams, state: np.ndarray) -> tuple[float, float]:
 
 
 @kernel(inline=True)
-def _begin_turn(p: SafetyParams, state: np.ndarray) -> tuple[float, float]:
-    # A new turn on the spot, and its first step.
-    _draw_turn(p, state)
-    return _manoeuvre(p, state)
-
-
-@kernel(inline=True)
-def _begin_drive(p: SafetyParams, state: np.ndarray, direction: int) -> tuple[float, float]:
-    if p.escape_drive_steps == 0:
-        return _begin_turn(p, state)
-    state[0] = _DRIVE
-    state[1] = p.escape_drive_steps
-    state[2] = direction
-    return _manoeuvre(p, state)
-
-
-@kernel(inline=True)
 def safety_step(
     p: SafetyParams, sensors: SafetySensors, inputs: SafetyInput, state: np.ndarray
 ) -> tuple[float, float, int]:
@@ -498,45 +483,50 @@ def safety_step(
     # What makes a straight drive ahead unsafe; the first hit names the reason.
     ahead = _FRONT if obstacle_front else (_FORCE if pushing else (_GROUND if boundary else 0))
 
+    # Which manoeuvre this step runs, decided first and run once below: each helper then has
+    # one call site, so one inlined copy of it (every copy is code to optimise and emit in each
+    # kernel that inlines the layer, and the engine's first run on a machine waits for it).
+    code = -1  # no manoeuvre: the network's command, checked against the limit below
+    begin = _KEEP
+    direction = 0
     if inputs.escape_now:
         # The experimenter's hand (paper Sec. V-C): the escape a front obstacle starts, reverse
         # then turn, whatever runs now; the same manoeuvre, bounded as the layer's own. A robot
         # that left the arena drove out forward, so reversing brings it back in.
-        if p.escape_looks_ahead and obstacle_rear:
-            sl, sr = _begin_turn(p, state)
-        else:
-            sl, sr = _begin_drive(p, state, -1)
-        return sl, sr, _EXPERIMENTER
-    if state[0] != _IDLE:
+        code, direction = _EXPERIMENTER, -1
+        begin = _TURN if p.escape_looks_ahead and obstacle_rear else _DRIVE
+    elif state[0] != _IDLE:
+        code = _ESCAPE
         if p.escape_looks_ahead and state[0] == _DRIVE:
             blocked = ahead if state[2] > 0 else (_REAR if obstacle_rear else 0)
             if blocked:
-                sl, sr = _begin_turn(p, state)
-                return sl, sr, blocked
-        sl, sr = _manoeuvre(p, state)
-        return sl, sr, _ESCAPE
-    if still and p.skip_rules_when_still:
+                code, begin = blocked, _TURN
+    elif still and p.skip_rules_when_still:
         return left, right, reason
-
-    if obstacle_front:
-        if p.escape_looks_ahead and obstacle_rear:
-            # Boxed in front and back: either straight move would hit something, so only turn.
-            sl, sr = _begin_turn(p, state)
-            return sl, sr, _FRONT
-        sl, sr = _begin_drive(p, state, -1)
-        return sl, sr, _FRONT
-    if obstacle_rear:
+    elif obstacle_front:
+        # Boxed in front and back (looking ahead): either straight move would hit something,
+        # so only turn.
+        code, direction = _FRONT, -1
+        begin = _TURN if p.escape_looks_ahead and obstacle_rear else _DRIVE
+    elif obstacle_rear:
         # Escape forward unless the way ahead is unsafe too (front is already known clear).
-        if p.escape_looks_ahead and ahead:
-            sl, sr = _begin_turn(p, state)
-            return sl, sr, _REAR
-        sl, sr = _begin_drive(p, state, 1)
-        return sl, sr, _REAR
-    if ahead:  # force or the boundary: turn on the spot, unless already turning sharply
+        code, direction = _REAR, 1
+        begin = _TURN if p.escape_looks_ahead and ahead else _DRIVE
+    elif ahead:  # force or the boundary: turn on the spot, unless already turning sharply
         ratio = p.boundary_turn_ratio
         if ratio < 0.0 or left == right or abs(left + right) > ratio * abs(right - left):
-            sl, sr = _begin_turn(p, state)
-            return sl, sr, ahead
+            code, begin = ahead, _TURN
+    if code >= 0:
+        if begin == _DRIVE and p.escape_drive_steps == 0:
+            begin = _TURN  # no drive phase: the turn at once
+        if begin == _TURN:
+            _draw_turn(p, state)
+        elif begin == _DRIVE:
+            state[0] = _DRIVE
+            state[1] = p.escape_drive_steps
+            state[2] = direction
+        sl, sr = _manoeuvre(p, state)
+        return sl, sr, code
     limit = p.backward_limit_steps
     # An intended stop is already what the limit wants: it passes and counts as no intervention.
     if limit >= 0 and state[3] > limit and not still:

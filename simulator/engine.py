@@ -17,6 +17,10 @@ So for the same seed the engine and the agents give the same trajectories and fi
 bit (a test checks it). :class:`Swarm` holds one simulated swarm (world state, safety states,
 robot ids) and evaluates genomes on it; the evolution around it is the master's own
 :class:`~minimize_surprise.evolution.OnePlusOne` (see ``master_service.experiments.engine_run``).
+
+Why one file of over 600 lines: :func:`compile_plan` copies :func:`evaluate`'s calls argument by
+argument, so that a first run compiles the kernels it calls side by side (docs/simulation.md,
+"The first run"); next to each other, a change to one shows in the other.
 """
 
 from __future__ import annotations
@@ -28,7 +32,15 @@ from typing import Any, Literal, NamedTuple
 import numpy as np
 
 from minimize_surprise.fitness import step_score
-from minimize_surprise.jit import borrow, kernel, typed_list
+from minimize_surprise.jit import (
+    ListOf,
+    Plan,
+    borrow,
+    kernel,
+    signature,
+    typed_list,
+    typed_list_plan,
+)
 from minimize_surprise.network import (
     GenomeLayout,
     LaneWeights,
@@ -56,11 +68,13 @@ from simulator.world import World, box_frame_steps, box_frames
 
 __all__ = [
     "Arenas",
+    "CompilePlan",
     "EvaluationRecord",
     "Recording",
     "SafetyLayers",
     "Scratch",
     "Swarm",
+    "compile_plan",
     "evaluate",
     "evaluate_swarms",
     "new_scratch",
@@ -446,7 +460,7 @@ def evaluate_swarms(
     for swarm in swarms[1:]:
         first.check_batch(swarm)
     n = len(first.ids)
-    lanes = -(-len(swarms) * n // _LANES) * _LANES
+    lanes = _lane_count(len(swarms), n)
     net = lane_weights(
         [network_weights(swarm.layout, g) for swarm, g in zip(swarms, genomes, strict=True)],
         n, lanes,
@@ -515,6 +529,95 @@ def evaluate_swarms(
         trace = (rec.sensors, rec.predictions, rec.actions, rec.commands, rec.reasons, rec.poses)
         results.append(EvaluationRecord(fitness[b].copy(), counts, *trace, boxes=rec.boxes))
     return results
+
+
+class CompilePlan(NamedTuple):
+    """What a first run compiles for the engine (:func:`compile_plan`), for
+    :func:`~minimize_surprise.jit.compile_ahead`: the ``kernels`` :func:`evaluate` calls, the
+    typed ``lists`` it is given, and ``loop``, :func:`evaluate` itself."""
+
+    kernels: Plan
+    lists: Plan
+    loop: Plan
+
+
+def compile_plan(swarm: Swarm, *, batch: int = 1) -> CompilePlan:
+    """What :func:`evaluate` is and calls for batches of ``batch`` swarms like ``swarm``, each
+    kernel with the signature of its call: :func:`~minimize_surprise.jit.compile_ahead` compiles
+    the kernels side by side, then the loop against them while the lists compile. The calls copy
+    ``evaluate``'s, arena 0 and robot 0 standing for every one (``tests/sim/test_compile_ahead.py``
+    checks that the run compiles nothing more); the largest compile comes first."""
+    world = swarm.world
+    geometry, sensing = world.kernel_constants
+    pose, cmd, force, box_rows, pending_rows = world.kernel_state
+    n, r = len(swarm.ids), len(swarm._columns)
+    layout = swarm.layout
+    net = lane_weights([network_weights(layout, np.zeros(layout.size))], n, _lane_count(1, n))
+    scratch = new_scratch([sensing], n, net, r, swarm.spec.initial_action)
+    rec = swarm._recording(0, False)
+    grid = physics.grid_choice(n, min(_grid_limits(world)))
+    # Shaped as evaluate_swarms shapes them: each world's arrays stacked, boxes in one array.
+    poses, cmds, forces = np.stack([pose]), np.stack([cmd]), np.stack([force])
+    box_start = np.cumsum([0, len(box_rows)])
+    boxes, pending = (box_rows, pending_rows) if box_start[-1] else (None, None)
+    clock = np.zeros(1, dtype=np.int64)
+    states = np.stack([swarm.safety])
+    work, predictions, action = scratch.work, scratch.predictions, scratch.action
+    inputs = SafetyInput(
+        values=scratch.values[0, 0], left=0.0, right=0.0, fresh=True, age=0.0, escape_now=False
+    )
+    net_arrays = (net.a_in, net.a_out, net.p_in, net.p_self, net.p_out, net.free, net.fixed)
+    calls: list[tuple[Any, tuple[Any, ...]]] = [
+        (
+            physics.sense,
+            (
+                sensing, poses[0], forces[0], clock[0], scratch.values[0],
+                SenseWork(*(part[0] for part in scratch.sensing)), grid,
+            ),
+        ),
+        (
+            network_step_lanes,
+            (
+                *net_arrays, work, scratch.previous, scratch.hidden, scratch.acc, action,
+                predictions,
+            ),
+        ),
+        (
+            physics.step_world,
+            (
+                geometry, poses[0], cmds[0], forces[0], boxes, pending, box_start[0],
+                box_start[1], scratch.need_force[0], grid,
+            ),
+        ),
+        (safety_step, (swarm.layer.params, swarm.layer.groups, inputs, states[0][0])),
+        (_record, (rec, 0, 0, poses[0], work, predictions, action, cmds[0])),
+        (_record_boxes, (rec, 0, boxes, box_start[0], box_start[1])),
+        (step_score, (predictions[:, 0], work[:r, 0])),
+    ]  # fmt: skip
+    lists = [
+        entry
+        for item in (geometry, sensing, rec)
+        for entry in typed_list_plan(item, appended=batch > 1)
+    ]
+    unbuilt: Any = ListOf  # typed lists' types, without building them (which compiles)
+    arenas = Arenas(
+        unbuilt(geometry), unbuilt(sensing), poses, cmds, forces, boxes, pending, box_start, clock
+    )
+    loop = (
+        arenas, SafetyLayers(swarm.layer.params, swarm.layer.groups, states), net, scratch,
+        swarm._columns, 1, np.empty((1, n)),
+        np.zeros((1, n, len(REASON_OF_CODE)), dtype=np.int64), False, ListOf(rec), grid,
+    )  # fmt: skip
+    return CompilePlan(
+        kernels=[(function, signature(function, *args)) for function, args in calls],
+        lists=lists,
+        loop=[(evaluate, signature(evaluate, *loop))],
+    )
+
+
+def _lane_count(swarms: int, robots: int) -> int:
+    # The networks' lanes for ``swarms`` of ``robots``: whole multiples of _LANES.
+    return -(-swarms * robots // _LANES) * _LANES
 
 
 def _grid_limits(world: World) -> tuple[int, int]:

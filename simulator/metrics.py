@@ -43,7 +43,7 @@ from typing import Literal
 import msgspec
 import numpy as np
 
-from minimize_surprise.jit import kernel
+from minimize_surprise.jit import Plan, kernel, signature
 from simulator.physics.grid import build, gather, grid_side, new_cells
 
 #: Robots closer than this (metres, between positions) are in one cluster (paper: 15.75 cm).
@@ -168,6 +168,12 @@ def cluster_counts(positions: np.ndarray, distance: float = CLUSTER_DISTANCE) ->
     # The grid covers every position, with room to spare so that none is at its edge.
     half = (float(finite.max()) if finite.size else 0.0) + distance
     return _count_clusters(np.ascontiguousarray(pos[:, :, :2]), float(distance), half)
+
+
+def compile_plan() -> Plan:
+    """The measures' kernels with the signatures :func:`cluster_counts` calls them with: for
+    :func:`~minimize_surprise.jit.compile_ahead`, before a run reports its behaviour."""
+    return [(_count_clusters, signature(_count_clusters, np.zeros((1, 1, 2)), 0.0, 0.0))]
 
 
 @kernel

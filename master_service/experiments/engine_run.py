@@ -38,11 +38,13 @@ from master_service.experiments.simulation_setup import (
 )
 from master_service.replay import ReplaySource, write_replay_file
 from master_service.rundir import RunDir, RunState
+from minimize_surprise import jit
 from minimize_surprise.config import ExperimentConfig
 from minimize_surprise.events import ArenaEvent, describe
 from minimize_surprise.network import spec_from_config
 from minimize_surprise.wire import EvaluationStats, Result, Trace
-from simulator.engine import EvaluationRecord, Swarm, evaluate_swarms
+from simulator import metrics
+from simulator.engine import EvaluationRecord, Swarm, compile_plan, evaluate_swarms
 from simulator.events import apply_to_world, check_arena_events, event_rng
 from simulator.world import box_frame_steps
 
@@ -76,6 +78,16 @@ class FastRun:
         # agents`` would hold for this swarm (config.yaml has one format for both engines).
         self.config = MasterConfig(
             experiment=experiment, host="127.0.0.1", port=0, allowed_robots=self.ids
+        )
+
+    def compile_ahead(self) -> int:
+        """Compile the kernels this run calls on every core at once, then the engine's loop
+        around them while the helpers compile the lists it takes and the report's measures
+        (:func:`~minimize_surprise.jit.compile_ahead`); the number of processes that compiled,
+        0 when everything was compiled already."""
+        plan = compile_plan(self.swarm)
+        return jit.compile_ahead(
+            plan.kernels, then=plan.lists + metrics.compile_plan(), last=plan.loop
         )
 
     def run(

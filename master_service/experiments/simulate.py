@@ -399,16 +399,21 @@ def quiet_agents() -> Iterator[None]:
         logger.setLevel(level)
 
 
-def print_if_compiling(engine: str) -> None:
+def print_if_compiling(engine: str) -> bool:
     """Say so when this run compiles the simulator first (the first run on a machine, or after
-    an update: docs/simulation.md, "The first run"), before the progress sits still for it."""
+    an update: docs/simulation.md, "The first run"), before the progress sits still for it;
+    whether it does."""
     from minimize_surprise import jit
     from simulator import physics
     from simulator.engine import evaluate
 
-    if jit.compiled_on_disk(evaluate if engine == "fast" else physics.step_world) is False:
-        print(
-            "compiling the simulator for this machine: once, 10 to 30 s; later runs load it "
-            f"from {jit.cache_directory()}",
-            flush=True,
-        )
+    if jit.compiled_on_disk(evaluate if engine == "fast" else physics.step_world) is not False:
+        return False
+    cores = jit.cores() if engine == "fast" else 1  # the fast engine compiles on every core
+    on = f" on {cores} cores" if cores > 1 else ""
+    print(
+        f"compiling the simulator for this machine{on}: once, 5 to 15 s; later runs load it "
+        f"from {jit.cache_directory()}",
+        flush=True,
+    )
+    return True
