@@ -601,11 +601,12 @@ def compile_plan(swarm: Swarm, *, batch: int = 1) -> CompilePlan:
     ]
     unbuilt: Any = ListOf  # typed lists' types, without building them (which compiles)
     arenas = Arenas(
-        unbuilt(geometry), unbuilt(sensing), poses, cmds, forces, boxes, pending, box_start, clock
-    )
+        geometry=unbuilt(geometry), sensing=unbuilt(sensing), pose=poses, cmd=cmds, force=forces,
+        boxes=boxes, pending=pending, box_start=box_start, clock=clock,
+    )  # fmt: skip
+    layers = SafetyLayers(params=swarm.layer.params, sensors=swarm.layer.groups, state=states)
     loop = (
-        arenas, SafetyLayers(swarm.layer.params, swarm.layer.groups, states), net, scratch,
-        swarm._columns, 1, np.empty((1, n)),
+        arenas, layers, net, scratch, swarm._columns, 1, np.empty((1, n)),
         np.zeros((1, n, len(REASON_OF_CODE)), dtype=np.int64), False, ListOf(rec), grid,
     )  # fmt: skip
     return CompilePlan(
