@@ -494,13 +494,13 @@ def compile_ahead(
         processes = cores()
     processes = min(processes, len(now) + len(later))
     if processes < 1:
-        _compile_share(final, None, None)
+        _compile_share(final, None, None, 0)
         return 1 if final else 0
     _lock_cache_saves()
     import multiprocessing  # here: it imports sockets, which the core keeps out (no I/O)
 
     if processes == 1 or "fork" not in multiprocessing.get_all_start_methods():
-        _compile_share(now + final, None, None)  # ``then`` compiles where it is used
+        _compile_share(now + final, None, None, 0)  # ``then`` compiles where it is used
         return 1
     # Forked, not spawned: a helper starts at once with every module and kernel of this process
     # (spawning would import them all again, a second or more per helper). Nothing else runs
@@ -510,16 +510,19 @@ def compile_ahead(
     todo = now + later
     helpers = [
         context.Process(
-            target=_compile_share, args=(todo, taken, done), name=f"compile-{k}", daemon=False
+            target=_compile_share,
+            args=(todo, taken, done, len(now)),
+            name=f"compile-{k}",
+            daemon=False,
         )
         for k in range(1, processes)
     ]
     for helper in helpers:
         helper.start()
-    _compile_share(todo, taken, done, stop=len(now))
+    _compile_share(todo, taken, done, len(now), stop=len(now))
     while done.value < len(now) and any(helper.is_alive() for helper in helpers):
         time.sleep(_WAIT)
-    _compile_share(final, None, None)
+    _compile_share(final, None, None, 0)
     return processes
 
 
@@ -546,10 +549,12 @@ def _in_cache(function: Any, types: tuple[Any, ...]) -> bool:
         return False
 
 
-def _compile_share(plan: Plan, taken: Any, done: Any, stop: int | None = None) -> None:
+def _compile_share(
+    plan: Plan, taken: Any, done: Any, counted: int, stop: int | None = None
+) -> None:
     # Take the next kernel not yet taken and compile it, until none is left (or none before
     # ``stop``): the processes share the plan's order (largest first) and end together.
-    # ``done`` counts the kernels compiled before ``stop``, the ones a caller waits for.
+    # ``done`` counts the first ``counted`` kernels compiled, the ones the caller waits for.
     k, last = -1, len(plan) if stop is None else stop
     while True:
         if taken is None:
@@ -566,7 +571,7 @@ def _compile_share(plan: Plan, taken: Any, done: Any, stop: int | None = None) -
         # A failure leaves the kernel to its caller's compile, which reports it there.
         with contextlib.suppress(Exception):
             function.compile(types)
-        if done is not None and (stop is None or k < stop):
+        if done is not None and k < counted:
             with done.get_lock():
                 done.value += 1
 
