@@ -539,7 +539,10 @@ def _run_simulation(
 
         fast = FastRun(experiment, on_progress=display.update)
         if compiling:
-            fast.compile_ahead()  # forks: before the display starts a thread
+            # Before the display starts a thread (it forks); a signal meanwhile stops the run
+            # at its first evaluation's end, as it did while the first evaluation compiled.
+            with stop_flag(received):
+                fast.compile_ahead()
     with display, quiet_agents():
         if fast is not None:
             with stop_flag(received):
