@@ -32,15 +32,7 @@ from typing import Any, Literal, NamedTuple
 import numpy as np
 
 from minimize_surprise.fitness import step_score
-from minimize_surprise.jit import (
-    ListOf,
-    Plan,
-    borrow,
-    kernel,
-    signature,
-    typed_list,
-    typed_list_plan,
-)
+from minimize_surprise.jit import borrow, kernel, typed_list, typed_list_plan
 from minimize_surprise.network import (
     GenomeLayout,
     LaneWeights,
@@ -49,6 +41,7 @@ from minimize_surprise.network import (
     network_step_lanes,
     network_weights,
 )
+from minimize_surprise.precompile import ListOf, Plan, signature
 from minimize_surprise.safety import (
     REASON_OF_CODE,
     REASONS,
@@ -533,7 +526,7 @@ def evaluate_swarms(
 
 class CompilePlan(NamedTuple):
     """What a first run compiles for the engine (:func:`compile_plan`), for
-    :func:`~minimize_surprise.jit.compile_ahead`: the ``kernels`` :func:`evaluate` calls, the
+    :func:`~minimize_surprise.precompile.compile_ahead`: the ``kernels`` :func:`evaluate` calls, the
     typed ``lists`` it is given, and ``loop``, :func:`evaluate` itself."""
 
     kernels: Plan
@@ -543,10 +536,11 @@ class CompilePlan(NamedTuple):
 
 def compile_plan(swarm: Swarm, *, batch: int = 1) -> CompilePlan:
     """What :func:`evaluate` is and calls for batches of ``batch`` swarms like ``swarm``, each
-    kernel with the signature of its call: :func:`~minimize_surprise.jit.compile_ahead` compiles
-    the kernels side by side, then the loop against them while the lists compile. The calls copy
-    ``evaluate``'s, arena 0 and robot 0 standing for every one (``tests/sim/test_compile_ahead.py``
-    checks that the run compiles nothing more); the largest compile comes first."""
+    kernel with the signature of its call: :func:`~minimize_surprise.precompile.compile_ahead`
+    compiles the kernels side by side, then the loop against them while the lists compile. The
+    calls copy ``evaluate``'s, arena 0 and robot 0 standing for every one
+    (``tests/sim/test_compile_ahead.py`` checks that the run compiles nothing more); the largest
+    compile comes first."""
     world = swarm.world
     geometry, sensing = world.kernel_constants
     pose, cmd, force, box_rows, pending_rows = world.kernel_state

@@ -43,7 +43,8 @@ from typing import Literal
 import msgspec
 import numpy as np
 
-from minimize_surprise.jit import Plan, kernel, signature
+from minimize_surprise.jit import kernel
+from minimize_surprise.precompile import Plan, signature
 from simulator.physics.grid import build, gather, grid_side, new_cells
 
 #: Robots closer than this (metres, between positions) are in one cluster (paper: 15.75 cm).
@@ -172,7 +173,7 @@ def cluster_counts(positions: np.ndarray, distance: float = CLUSTER_DISTANCE) ->
 
 def compile_plan() -> Plan:
     """The measures' kernels with the signatures :func:`cluster_counts` calls them with: for
-    :func:`~minimize_surprise.jit.compile_ahead`, before a run reports its behaviour."""
+    :func:`~minimize_surprise.precompile.compile_ahead`, before a run reports its behaviour."""
     return [(_count_clusters, signature(_count_clusters, np.zeros((1, 1, 2)), 0.0, 0.0))]
 
 

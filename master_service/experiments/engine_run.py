@@ -38,7 +38,7 @@ from master_service.experiments.simulation_setup import (
 )
 from master_service.replay import ReplaySource, write_replay_file
 from master_service.rundir import RunDir, RunState
-from minimize_surprise import jit
+from minimize_surprise import precompile
 from minimize_surprise.config import ExperimentConfig
 from minimize_surprise.events import ArenaEvent, describe
 from minimize_surprise.network import spec_from_config
@@ -83,10 +83,10 @@ class FastRun:
     def compile_ahead(self) -> int:
         """Compile the kernels this run calls on every core at once, then the engine's loop
         around them while the helpers compile the lists it takes and the report's measures
-        (:func:`~minimize_surprise.jit.compile_ahead`); the number of processes that compiled,
-        0 when everything was compiled already."""
+        (:func:`~minimize_surprise.precompile.compile_ahead`); the number of processes that
+        compiled, 0 when everything was compiled already."""
         plan = compile_plan(self.swarm)
-        return jit.compile_ahead(
+        return precompile.compile_ahead(
             plan.kernels, then=plan.lists + metrics.compile_plan(), last=plan.loop
         )
 

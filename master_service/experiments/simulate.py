@@ -403,13 +403,13 @@ def print_if_compiling(engine: str) -> bool:
     """Say so when this run compiles the simulator first (the first run on a machine, or after
     an update: docs/simulation.md, "The first run"), before the progress sits still for it;
     whether it does."""
-    from minimize_surprise import jit
+    from minimize_surprise import jit, precompile
     from simulator import physics
     from simulator.engine import evaluate
 
     if jit.compiled_on_disk(evaluate if engine == "fast" else physics.step_world) is not False:
         return False
-    cores = jit.cores() if engine == "fast" else 1  # the fast engine compiles on every core
+    cores = precompile.cores() if engine == "fast" else 1  # the fast engine compiles on every core
     on = f" on {cores} cores" if cores > 1 else ""
     print(
         f"compiling the simulator for this machine{on}: once, 5 to 15 s; later runs load it "

@@ -1,4 +1,4 @@
-"""The first run compiles the engine's kernels side by side (`jit.compile_ahead`), then the
+"""The first run compiles the engine's kernels side by side (`precompile.compile_ahead`), then the
 engine's loop around them, which must find every kernel it calls already compiled: the plan
 (`engine.compile_plan`) copies the loop's calls, and a call that drifted from it would be
 compiled again, one after the other, as before (docs/simulation.md, "The first run"). Checked in
@@ -24,7 +24,7 @@ SCRIPT = textwrap.dedent(
     from master_service.experiments.simulation_setup import (
         simulated_safety, simulation_experiment, world_config,
     )
-    from minimize_surprise import jit
+    from minimize_surprise import precompile
     from minimize_surprise.network import spec_from_config
     from simulator import metrics
     from simulator.engine import Swarm, compile_plan, evaluate_swarms
@@ -37,7 +37,7 @@ SCRIPT = textwrap.dedent(
         for seed in range(1, batch + 1)
     ]
     plan = compile_plan(swarms[0], batch=batch)
-    processes = jit.compile_ahead(
+    processes = precompile.compile_ahead(
         plan.kernels, then=plan.lists + metrics.compile_plan(), last=plan.loop, processes=2
     )
     for helper in multiprocessing.active_children():
@@ -58,7 +58,7 @@ SCRIPT = textwrap.dedent(
     evaluate_swarms(swarms, [genome] * batch, 20)
     traced = evaluate_swarms(swarms, [genome] * batch, 20, record=True)
     metrics.cluster_counts(traced[0].poses)
-    again = jit.compile_ahead(
+    again = precompile.compile_ahead(
         plan.kernels, then=plan.lists + metrics.compile_plan(), last=plan.loop, processes=2
     )
     print(json.dumps({

@@ -1,7 +1,7 @@
-"""``jit.compile_ahead``: the plan's kernels and the last ones are on disk when it returns, the
-later ones once its helpers end, and a second call finds nothing to do. In a fresh interpreter
-with an empty cache, on kernels of a module written for the test (numba caches only kernels
-defined in files)."""
+"""``precompile.compile_ahead``: the plan's kernels and the last ones are on disk when it
+returns, the later ones once its helpers end, and a second call finds nothing to do. In a fresh
+interpreter with an empty cache, on kernels of a module written for the test (numba caches only
+kernels defined in files)."""
 
 from __future__ import annotations
 
@@ -46,25 +46,25 @@ KERNELS = textwrap.dedent(
 SCRIPT = textwrap.dedent(
     """
     import json, multiprocessing
-    from minimize_surprise import jit
+    from minimize_surprise import jit, precompile
     import tiny
 
     def plan(*names):
         value = {"three": 1, "five": 1}
         return [
-            (getattr(tiny, n), jit.signature(getattr(tiny, n), value.get(n, 1.0)))
+            (getattr(tiny, n), precompile.signature(getattr(tiny, n), value.get(n, 1.0)))
             for n in names
         ]
 
     names = ("one", "two", "three", "four", "five", "both")
-    processes = jit.compile_ahead(
+    processes = precompile.compile_ahead(
         plan("one", "two"), then=plan("three", "four", "five"), last=plan("both"), processes=3
     )
     on_return = {n: jit.compiled_on_disk(getattr(tiny, n)) for n in ("one", "two", "both")}
     for helper in multiprocessing.active_children():
         helper.join()
     at_end = {n: jit.compiled_on_disk(getattr(tiny, n)) for n in names}
-    again = jit.compile_ahead(plan(*names), processes=3)
+    again = precompile.compile_ahead(plan(*names), processes=3)
     print(json.dumps({"processes": processes, "on_return": on_return, "at_end": at_end,
                       "again": again, "value": tiny.both(1.0)}))
     """
