@@ -57,6 +57,8 @@ from typing import TYPE_CHECKING, Final, TypeVar
 import msgspec
 
 from master_service import cli_fleet, cli_lab, cli_qd
+from master_service.agent_server import CONNECT_TIMEOUT
+from master_service.cli_args import add_timeout
 from master_service.config import load_master_config, required_secret
 from master_service.console import Console
 from master_service.mark import hand_console
@@ -106,13 +108,7 @@ def _parser() -> argparse.ArgumentParser:
 
     check = sub.add_parser("check", help="preflight: is every robot fit for a run?")
     check.add_argument("config", type=Path, metavar="CONFIG", help="master configuration (YAML)")
-    check.add_argument(
-        "--timeout",
-        type=float,
-        default=None,
-        metavar="S",
-        help="seconds to wait for the robots to connect (default: 40)",
-    )
+    add_timeout(check, CONNECT_TIMEOUT, "the robots to connect")
     check.add_argument("--json", action="store_true", help="print the rows as JSON")
     check.set_defaults(handler=cli_lab.check_command)
 

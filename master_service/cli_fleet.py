@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any, Final
 
 from master_service.agent_server import CONNECT_TIMEOUT
+from master_service.cli_args import add_timeout
 from master_service.config import MasterConfig, load_master_config, required_secret
 from master_service.fleet import fleet_status, fleet_stop, format_status
 from master_service.fleet_hosts import fleet_inventory_command
@@ -71,13 +72,7 @@ def add_fleet_parser(sub: argparse._SubParsersAction) -> None:
 
     status = commands.add_parser("status", help="each robot: reachable, software, battery, ...")
     where(status)
-    status.add_argument(
-        "--timeout",
-        type=float,
-        default=CONNECT_TIMEOUT,
-        metavar="S",
-        help=f"seconds to wait for the agents to connect (default: {CONNECT_TIMEOUT:g})",
-    )
+    add_timeout(status, CONNECT_TIMEOUT, "the agents to connect")
     status.add_argument("--json", action="store_true", help="print the rows as JSON")
     status.set_defaults(handler=status_command)
 
@@ -144,13 +139,7 @@ def add_fleet_parser(sub: argparse._SubParsersAction) -> None:
         metavar="FILE",
         help="the tracker's configuration (floor, corner markers, camera; docs/tracking.md)",
     )
-    calibrate.add_argument(
-        "--timeout",
-        type=float,
-        default=CONNECT_TIMEOUT,
-        metavar="S",
-        help=f"seconds to wait for the robot's agent (default: {CONNECT_TIMEOUT:g})",
-    )
+    add_timeout(calibrate, CONNECT_TIMEOUT, "the robot's agent")
     calibrate.set_defaults(handler=calibrate_command)
 
 

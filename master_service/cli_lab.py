@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from master_service.cli_args import add_timeout
 from master_service.config import load_master_config, required_secret
 from master_service.rundir import RunDir, RunDirError
 from minimize_surprise.text import plural
@@ -90,12 +91,11 @@ def report_command(args: argparse.Namespace) -> int:
 
 def check_command(args: argparse.Namespace) -> int:
     """``surprise-master check``."""
-    from master_service.agent_server import CONNECT_TIMEOUT
     from master_service.preflight import format_table, run_check
 
     config = load_master_config(args.config)
     secret = required_secret(config, args.config)
-    timeout = CONNECT_TIMEOUT if args.timeout is None else args.timeout
+    timeout = args.timeout
     if not args.json:
         print(f"checking the robots of {args.config} (waiting up to {timeout:.0f} s for them)")
     rows = asyncio.run(run_check(config, secret, timeout=timeout))
@@ -191,13 +191,7 @@ def add_hand_commands(sub: argparse._SubParsersAction) -> None:
     )
     escape.add_argument("dir", type=Path, metavar="DIR", help="the run directory")
     escape.add_argument("robot", metavar="ROBOT", help="the robot's id")
-    escape.add_argument(
-        "--timeout",
-        type=float,
-        default=ANSWER_TIMEOUT,
-        metavar="S",
-        help=f"seconds to wait for the master's answer (default: {ANSWER_TIMEOUT:g})",
-    )
+    add_timeout(escape, ANSWER_TIMEOUT, "the master's answer")
     escape.set_defaults(handler=escape_command)
 
     swap = sub.add_parser(
@@ -206,13 +200,7 @@ def add_hand_commands(sub: argparse._SubParsersAction) -> None:
     swap.add_argument("dir", type=Path, metavar="DIR", help="the run directory")
     swap.add_argument("gone", metavar="GONE", help="the robot gone for good")
     swap.add_argument("spare", metavar="SPARE", help="the spare robot taking its place")
-    swap.add_argument(
-        "--timeout",
-        type=float,
-        default=SWAP_TIMEOUT,
-        metavar="S",
-        help=f"seconds to wait for the master's answer (default: {SWAP_TIMEOUT:g})",
-    )
+    add_timeout(swap, SWAP_TIMEOUT, "the master's answer")
     swap.set_defaults(handler=swap_command)
 
     mark = sub.add_parser(
@@ -222,13 +210,7 @@ def add_hand_commands(sub: argparse._SubParsersAction) -> None:
     )
     mark.add_argument("dir", type=Path, metavar="DIR", help="the run directory")
     mark.add_argument("text", nargs="+", metavar="TEXT", help="what you changed")
-    mark.add_argument(
-        "--timeout",
-        type=float,
-        default=MARK_TIMEOUT,
-        metavar="S",
-        help=f"seconds to wait for the master's answer (default: {MARK_TIMEOUT:g})",
-    )
+    add_timeout(mark, MARK_TIMEOUT, "the master's answer")
     mark.set_defaults(handler=mark_command)
 
 
